@@ -1,0 +1,31 @@
+"""safenav: safe UAV navigation with constrained reinforcement learning.
+
+The parts, as the folders show them:
+
+* :mod:`safenav.envs` - ``SafeNav-v0``, a batched CMDP simulator (world, sensors, dynamics).
+* :mod:`safenav.nn` - the shared feature extractor and the actor/critic heads.
+* :mod:`safenav.algos` - CSAC (the paper's method), SAC, PPO and the Lagrangian family.
+* :mod:`safenav.common` - replay buffer, Lagrange multiplier, curricula, logging, checkpoints.
+* :mod:`safenav.experiments` - the evaluation protocol, multi-seed sweeps on Ray, plots.
+* :mod:`safenav.deploy` - ONNX export, the onboard runtime, PX4 over MAVLink, the safety shield.
+
+Importing :mod:`safenav` registers ``SafeNav-v0`` for ``gymnasium.make`` and
+``gymnasium.make_vec`` (or use the id ``"safenav:SafeNav-v0"`` without importing).
+"""
+
+import gymnasium
+
+from safenav.errors import SafenavError
+
+__version__ = "0.1.0"
+
+if "SafeNav-v0" not in gymnasium.registry:
+    gymnasium.register(
+        id="SafeNav-v0",
+        entry_point="safenav.envs.nav:SafeNavEnv",
+        vector_entry_point="safenav.envs.nav:SafeNavVectorEnv",
+        # The env truncates at its own time limit (EnvConfig.max_episode_seconds).
+        max_episode_steps=None,
+    )
+
+__all__ = ["SafenavError", "__version__"]

@@ -1,0 +1,3 @@
+"""The CLI verbs, one module each; importing this package registers them on ``safenav.cli.app``."""
+
+from safenav.commands import bench, render  # noqa: F401

@@ -1,0 +1,1 @@
+"""``safenav bench {env,update,latency}``: the benchmarks whose figures the README quotes."""

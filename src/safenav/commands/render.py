@@ -1,0 +1,1 @@
+"""``safenav render``: fly one episode and write a GIF."""

@@ -1,0 +1,208 @@
+"""Typed configuration of ``SafeNav-v0`` and its named presets.
+
+Values marked (paper) come from the seed paper, (NavRL) from NavRL's open-source environment.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """SafeNav-v0 configuration. The defaults are the paper scenario (``preset="paper"``)."""
+
+    map_size: float = 50.0
+    """Side of the square flight area in metres; x, y in [-map_size/2, map_size/2] (paper)."""
+    num_static: int = 350
+    """Number of static pillars at full density (paper)."""
+    num_dynamic: int = 100
+    """Number of moving obstacles at full density, 8 equal classes (paper, NavRL)."""
+    density: float = 1.0
+    """Fraction of the obstacles that are active; the trainer's density curriculum raises it."""
+    pillar_sides: tuple[float, ...] = (0.4, 0.8)
+    """Footprint sides of the square pillars in metres (NavRL)."""
+    edge_margin: float = 2.0
+    """Obstacle-free band along the map border where starts and goals lie (kept free)."""
+
+    z_min: float = 0.2
+    """Lowest allowed altitude; below it is a ground collision (NavRL)."""
+    z_max: float = 4.0
+    """Highest allowed altitude; above it is a ceiling collision (NavRL)."""
+    uav_radius: float = 0.3
+    """Radius of the UAV's collision sphere in metres (NavRL)."""
+    v_max: float = 2.0
+    """Largest commanded speed per goal-frame axis in m/s (paper)."""
+    control_hz: float = 10.0
+    """Policy rate in Hz."""
+    physics_substeps: int = 4
+    """Physics integration steps per control step."""
+    velocity_time_constant: float = 0.4
+    """Time constant of the first-order velocity tracker in seconds (PX4 offboard-like)."""
+    max_acceleration: float = 3.0
+    """Acceleration limit of the velocity tracker in m/s^2 (PX4 MPC_ACC_HOR default)."""
+
+    lidar_range: float = 4.0
+    """Range of the range-image beams in metres (NavRL)."""
+    lidar_h_beams: int = 36
+    """Horizontal beams, evenly spaced over 360 degrees (NavRL)."""
+    lidar_v_angles: tuple[float, ...] = (-10.0, 0.0, 10.0, 20.0)
+    """Elevations of the vertical beams in degrees (NavRL)."""
+    grid_resolution: float = 0.1
+    """Cell side of the occupancy grid map in metres."""
+
+    num_tracked: int = 5
+    """Number of nearest moving obstacles in the observation (NavRL)."""
+    dyn_speed_range: tuple[float, float] = (0.5, 1.5)
+    """Speed range of moving obstacles in m/s, resampled every ``dyn_speed_period`` (NavRL)."""
+    dyn_speed_period: float = 2.0
+    """Seconds between speed resamples of the moving obstacles (NavRL)."""
+    dyn_local_range: float = 5.0
+    """Moving obstacles pick local goals within +-this many metres of their origin (NavRL)."""
+
+    goal_tolerance: float = 0.5
+    """Success when the UAV is within this distance of the goal (NavRL)."""
+    start_height_range: tuple[float, float] = (0.5, 2.5)
+    """Altitude range of starts and goals in metres (NavRL)."""
+    min_goal_distance: float = 20.0
+    """Least horizontal start-goal distance; shorter draws move the goal to the opposite side."""
+    max_episode_seconds: float = 60.0
+    """Time limit in simulated seconds; reaching it truncates the episode."""
+    terminate_on_collision: bool = True
+    """End the episode at a collision (paper); if False, it continues and cost keeps counting."""
+
+    reward_goal: float = 20.0
+    """Reward for reaching the goal (replaces NavRL's +1 per step, which pays loitering)."""
+    w_velocity: float = 1.0
+    """Weight of the velocity-toward-goal reward (NavRL)."""
+    w_static: float = 1.0
+    """Weight of the static safety reward, mean log beam distance (NavRL)."""
+    w_dynamic: float = 1.0
+    """Weight of the dynamic safety reward, mean log clearance to tracked obstacles (NavRL)."""
+    w_smooth: float = 0.1
+    """Weight of the penalty on the change of velocity between steps (NavRL)."""
+    w_height: float = 8.0
+    """Weight of the penalty on leaving the start-goal altitude band (NavRL)."""
+
+    num_worlds: int = 0
+    """Independent maps in a vector env (env i flies in map i % num_worlds); 0 = min(num_envs, 16)."""
+
+    # -- derived values -------------------------------------------------------------------
+    @property
+    def half(self) -> float:
+        return self.map_size / 2.0
+
+    @property
+    def dt(self) -> float:
+        """Control period in seconds."""
+        return 1.0 / self.control_hz
+
+    @property
+    def max_episode_steps(self) -> int:
+        return int(round(self.max_episode_seconds * self.control_hz))
+
+    @property
+    def active_static(self) -> int:
+        return int(round(self.num_static * self.density))
+
+    @property
+    def active_dynamic(self) -> int:
+        return int(round(self.num_dynamic * self.density))
+
+    def replace(self, **changes) -> EnvConfig:
+        """A copy with ``changes`` applied and validated."""
+        return dataclasses.replace(self, **changes)
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first invalid field."""
+
+        def bad(name: str, why: str) -> None:
+            raise ValueError(f"EnvConfig.{name}={getattr(self, name)!r} is invalid: {why}")
+
+        def finite(name: str) -> None:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                bad(name, "must be a number")
+            if not math.isfinite(value):
+                bad(name, "must be finite")
+
+        for name in (
+            "map_size", "density", "edge_margin", "z_min", "z_max", "uav_radius", "v_max",
+            "control_hz", "velocity_time_constant", "max_acceleration", "lidar_range",
+            "grid_resolution", "dyn_speed_period", "dyn_local_range", "goal_tolerance",
+            "min_goal_distance", "max_episode_seconds", "reward_goal", "w_velocity", "w_static",
+            "w_dynamic", "w_smooth", "w_height",
+        ):  # fmt: skip
+            finite(name)
+        for name in ("num_static", "num_dynamic", "physics_substeps", "lidar_h_beams",
+                     "num_tracked", "num_worlds"):  # fmt: skip
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int):
+                bad(name, "must be an integer")
+            if value < 0:
+                bad(name, "must be >= 0")
+        for name in ("map_size", "v_max", "control_hz", "velocity_time_constant",
+                     "max_acceleration", "lidar_range", "grid_resolution", "uav_radius",
+                     "dyn_speed_period", "goal_tolerance", "max_episode_seconds"):  # fmt: skip
+            if getattr(self, name) <= 0:
+                bad(name, "must be > 0")
+        for name in ("physics_substeps", "lidar_h_beams", "num_tracked"):
+            if getattr(self, name) < 1:
+                bad(name, "must be >= 1")
+        if not 0.0 <= self.density <= 1.0:
+            bad("density", "must lie in [0, 1]")
+        if not 0.0 <= self.z_min < self.z_max:
+            bad("z_max", "must exceed z_min >= 0")
+        if self.edge_margin < 1.0 or 2 * self.edge_margin >= self.map_size - 2.0:
+            bad("edge_margin", "must be >= 1 m and leave at least 2 m of interior")
+        if not self.pillar_sides or any((not math.isfinite(s)) or s <= 0 for s in self.pillar_sides):
+            bad("pillar_sides", "must be a non-empty tuple of positive sizes")
+        if not self.lidar_v_angles or any(abs(a) >= 80 for a in self.lidar_v_angles):
+            bad("lidar_v_angles", "must be a non-empty tuple of elevations within +-80 degrees")
+        lo, hi = self.dyn_speed_range
+        if not (0 <= lo <= hi) or not math.isfinite(hi):
+            bad("dyn_speed_range", "must be (low, high) with 0 <= low <= high")
+        lo, hi = self.start_height_range
+        if not (self.z_min < lo <= hi < self.z_max):
+            bad("start_height_range", "must lie strictly inside (z_min, z_max)")
+        if self.grid_resolution > self.lidar_range / 4:
+            bad("grid_resolution", "must be at most lidar_range / 4")
+        # Pillars may cover at most 30 % of the interior so that placement (and flight) is possible.
+        interior = (self.map_size - 2 * self.edge_margin) ** 2
+        mean_area = sum(s * s for s in self.pillar_sides) / len(self.pillar_sides)
+        if self.num_static * mean_area > 0.3 * interior:
+            bad("num_static", f"{self.num_static} pillars do not fit in the "
+                f"{self.map_size - 2 * self.edge_margin:.1f} m interior (at most 30 % cover)")
+        if self.min_goal_distance > self.map_size:
+            bad("min_goal_distance", "must not exceed map_size")
+
+
+PRESETS: dict[str, dict] = {
+    # Small and sparse: learning tests, the closed-loop flight test, quick demos.
+    "easy": dict(map_size=20.0, num_static=30, num_dynamic=8, min_goal_distance=10.0,
+                 max_episode_seconds=30.0),
+    # Between: a third of the paper area at similar density.
+    "medium": dict(map_size=30.0, num_static=120, num_dynamic=36, min_goal_distance=14.0,
+                   max_episode_seconds=45.0),
+    # The paper scenario (Fig. 2): 50 m x 50 m, 350 pillars, 100 moving obstacles.
+    "paper": dict(),
+}  # fmt: skip
+
+
+def make_config(preset: str = "paper", **overrides) -> EnvConfig:
+    """The named preset with ``overrides`` applied; ``ValueError`` for unknown names or fields."""
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}: choose one of {sorted(PRESETS)}")
+    known = {f.name for f in dataclasses.fields(EnvConfig)}
+    unknown = sorted(set(overrides) - known)
+    if unknown:
+        raise ValueError(f"unknown EnvConfig field(s) {unknown}; known fields: {sorted(known)}")
+    return EnvConfig(**{**PRESETS[preset], **overrides})
+
+
+__all__ = ["PRESETS", "EnvConfig", "make_config"]

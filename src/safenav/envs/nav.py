@@ -1,0 +1,577 @@
+"""``SafeNav-v0``: quadrotor navigation among static pillars and moving obstacles, as a CMDP.
+
+:class:`SafeNavVectorEnv` is the simulator: ``N`` UAVs stepped as one batch of tensors (no per-env
+Python loop), on CPU or CUDA. :class:`SafeNavEnv` is the single-env view of it (``N = 1``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import torch
+from gymnasium import Env, spaces
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from safenav.envs import rng
+from safenav.envs.config import EnvConfig, make_config
+from safenav.envs.dynamics import (
+    goal_frame_to_world,
+    move_obstacles,
+    sample_obstacle_goals,
+    sample_obstacle_speeds,
+    velocity_tracker,
+    world_to_goal_frame,
+)
+from safenav.envs.sensors import (
+    RangeImageSpec,
+    moving_obstacle_clearance,
+    pillar_clearance,
+    raycast_boxes_bruteforce,
+    raycast_height_map,
+)
+from safenav.envs.world import (
+    CUBOID_HEIGHT,
+    CUBOID_Z_RANGE,
+    CYLINDER_HEIGHT,
+    DYN_WIDTHS,
+    GridSpec,
+    World,
+    generate_world,
+    height_map,
+)
+
+# Observation scales: every feature lands roughly in [-1, 1] (documented in the class docstring).
+DIST_SCALE = 20.0  # m, horizontal distance to goal
+Z_SCALE = 4.0  # m, altitude difference to goal
+# Random streams of episode sampling (keys of the counter-based generator).
+_STREAMS = dict(s_side=1, s_along=2, s_z=3, g_side=4, g_along=5, g_z=6)
+
+
+def sample_episodes(cfg: EnvConfig, env_seed: torch.Tensor, counter: torch.Tensor):
+    """Start and goal of episode ``counter`` of the env seeded ``env_seed`` (batched).
+
+    Starts and goals lie in the obstacle-free edge band, ``edge_margin / 2`` from the border, at
+    altitudes in ``start_height_range``; the goal is on another side than the start (NavRL draws
+    sides), moved to the opposite side if closer than ``min_goal_distance``.
+    """
+    u = {k: rng.uniform(env_seed, counter, v) for k, v in _STREAMS.items()}
+    edge = cfg.half - cfg.edge_margin / 2
+    along = cfg.half - cfg.edge_margin
+    zlo, zhi = cfg.start_height_range
+    s_side = torch.floor(u["s_side"] * 4).long().clamp(max=3)
+    g_side = (s_side + 1 + torch.floor(u["g_side"] * 3).long().clamp(max=2)) % 4
+    s_along = (2 * u["s_along"] - 1) * along
+    g_along = (2 * u["g_along"] - 1) * along
+
+    def place(side, a, z):
+        # side 0: north (y = +edge), 1: east, 2: south, 3: west
+        x = torch.where(side == 0, a, torch.where(side == 1, edge, torch.where(side == 2, a, -edge)))
+        y = torch.where(side == 0, edge, torch.where(side == 1, a, torch.where(side == 2, -edge, a)))
+        return torch.stack([x, y, z], dim=-1)
+
+    start = place(s_side, s_along, zlo + u["s_z"] * (zhi - zlo))
+    goal = place(g_side, g_along, zlo + u["g_z"] * (zhi - zlo))
+    near = (goal[:, :2] - start[:, :2]).norm(dim=-1) < cfg.min_goal_distance
+    goal = torch.where(near[:, None], place((s_side + 2) % 4, g_along, goal[:, 2]), goal)
+    return start, goal
+
+
+def test_scenario(cfg: EnvConfig, env_seed: int = 1, episodes: int = 200):
+    """The fixed test scenario (paper IV-B): starts and goals of ``episodes`` episodes, from seed.
+
+    The map is the world of ``env_seed`` at full density; episode ``k`` is episode ``k`` of the
+    env seeded ``env_seed``. Bit-identical on every machine (counter-based integer hashing).
+    """
+    seeds = torch.full((episodes,), int(env_seed), dtype=torch.int64)
+    return sample_episodes(cfg, seeds, torch.arange(episodes, dtype=torch.int64))
+
+
+class SafeNavVectorEnv(VectorEnv):
+    """A batch of UAVs navigating to goals among pillars and moving obstacles (a CMDP).
+
+    ## Description
+    The paper's scenario (Fig. 2): a 50 m x 50 m area with up to 350 static pillars and 100
+    moving obstacles of 8 classes; a quadrotor with a 0.3 m collision sphere flies from a start to
+    a goal at the border using velocity commands. Each env flies in map ``i % num_worlds``; a map
+    is drawn at ``reset(seed=...)`` and kept, each episode draws a new start and goal in it.
+
+    ## Action Space
+    ``Box(-1, 1, (3,))``: the velocity command in the goal frame (x from start to goal, z up,
+    fixed at reset), scaled by ``v_max`` (2 m/s). A PX4-like first-order velocity tracker
+    (time constant 0.4 s, 3 m/s^2 limit) follows it.
+
+    ## Observation Space
+    ``Dict``: ``state`` (8,): unit vector to goal in the goal frame (3), horizontal distance to
+    goal / 20 m (1), z distance to goal / 4 m (1), velocity in the goal frame / v_max (3).
+    ``lidar`` (4, 36): ``(4 - d) / 4`` for beam distances ``d`` ray-cast from the occupancy grid,
+    rows at elevations -10, 0, 10, 20 degrees, columns every 10 degrees from the goal direction.
+    ``dynamic`` (5, 10): the 5 nearest moving obstacles within 4 m (zeros beyond), each: unit
+    relative position in the goal frame (3), horizontal distance / 4 (1), z distance / 4 (1),
+    velocity in the goal frame / v_max (3), width class / 3 (1), 1 for floating cuboids (1).
+
+    ## Rewards
+    NavRL's shaping: velocity toward the goal (m/s) + mean log(beam distance / range) + mean
+    log(clearance / range) of the tracked obstacles - 0.1 |v_t - v_{t-1}| - 8 x squared excursion
+    outside the start-goal altitude band (+-0.2 m) + 20 on reaching the goal. NavRL's +1 per
+    step is dropped: with success ending the episode it would pay loitering.
+
+    ## Cost
+    ``info["cost"]`` (paper Eq. 3): 1 at a step with a collision (pillar, moving obstacle,
+    ground below ``z_min``, ceiling above ``z_max``), else 0. Never folded into the reward.
+
+    ## Starting State
+    Hovering (zero velocity) at a start in the obstacle-free band along the border, altitude in
+    [0.5, 2.5] m; the goal lies on another side, at least ``min_goal_distance`` away.
+
+    ## Episode End
+    Terminated on success (within 0.5 m of the goal) or collision; truncated at the time limit
+    (60 s = 600 steps). Autoreset ``SAME_STEP``: the returned observation of a finished env is the
+    first of its next episode; ``info["final_obs"]`` holds the last one (``info["_final_obs"]``
+    marks which envs finished) and ``info["episode"]`` its statistics.
+
+    ## Arguments
+    ``num_envs``; ``preset`` (``"easy"``, ``"medium"``, ``"paper"``) or ``config``
+    (:class:`EnvConfig`); any ``EnvConfig`` field as keyword; ``device`` (``"cpu"``,
+    ``"cuda"``); ``output`` (``"numpy"`` or ``"torch"``: tensors stay on the device);
+    ``autoreset_mode``; ``raycaster`` (``"grid"``, or ``"bruteforce"`` for the reference).
+
+    >>> import gymnasium as gym, safenav
+    >>> envs = gym.make_vec("SafeNav-v0", num_envs=4, preset="easy")
+    >>> obs, info = envs.reset(seed=0)
+    >>> obs["state"].shape, obs["lidar"].shape, obs["dynamic"].shape
+    ((4, 8), (4, 4, 36), (4, 5, 10))
+    >>> obs, reward, terminated, truncated, info = envs.step(envs.action_space.sample())
+    >>> sorted(k for k in info if not k.startswith("_"))[:3]
+    ['clearance', 'collision', 'cost']
+
+    ## Version History
+    * v0: initial release.
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10, "autoreset_mode": AutoresetMode.SAME_STEP}
+
+    def __init__(
+        self,
+        num_envs: int = 1,
+        preset: str = "paper",
+        config: EnvConfig | None = None,
+        device: str | torch.device = "cpu",
+        output: str = "numpy",
+        autoreset_mode: AutoresetMode | str = AutoresetMode.SAME_STEP,
+        render_mode: str | None = None,
+        raycaster: str = "grid",
+        max_episode_steps: int | None = None,  # accepted from gymnasium.make_vec; see EnvConfig
+        **overrides: Any,
+    ) -> None:
+        if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
+            raise ValueError(f"num_envs={num_envs!r} is invalid: must be an integer >= 1")
+        if config is None:
+            config = make_config(preset, **overrides)
+        elif overrides:
+            config = config.replace(**overrides)
+        if max_episode_steps is not None:
+            config = config.replace(max_episode_seconds=max_episode_steps / config.control_hz)
+        if output not in ("numpy", "torch"):
+            raise ValueError(f"output={output!r} is invalid: choose 'numpy' or 'torch'")
+        if raycaster not in ("grid", "bruteforce"):
+            raise ValueError(f"raycaster={raycaster!r} is invalid: choose 'grid' or 'bruteforce'")
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode={render_mode!r} is invalid: only 'rgb_array'")
+        self.autoreset_mode = AutoresetMode(autoreset_mode)
+        if self.autoreset_mode == AutoresetMode.NEXT_STEP:
+            raise ValueError("autoreset_mode NEXT_STEP is not supported: use SAME_STEP or DISABLED")
+        self.metadata = {**self.metadata, "autoreset_mode": self.autoreset_mode}
+        self.cfg = config
+        self.num_envs = num_envs
+        self.device = torch.device(device)
+        self.output = output
+        self.render_mode = render_mode
+        self.raycaster = raycaster
+        self.num_worlds = min(config.num_worlds or min(num_envs, 16), num_envs)
+        self.grid = GridSpec.for_config(config)
+        self.spec_lidar = RangeImageSpec.for_config(config)
+
+        nv, nh = len(config.lidar_v_angles), config.lidar_h_beams
+        self.single_observation_space = spaces.Dict(
+            {
+                "state": spaces.Box(-np.inf, np.inf, (8,), np.float32),
+                "lidar": spaces.Box(0.0, 1.0, (nv, nh), np.float32),
+                "dynamic": spaces.Box(-np.inf, np.inf, (config.num_tracked, 10), np.float32),
+            }
+        )
+        self.single_action_space = spaces.Box(-1.0, 1.0, (3,), np.float32)
+        self.observation_space = batch_space(self.single_observation_space, num_envs)
+        self.action_space = batch_space(self.single_action_space, num_envs)
+
+        dev, n = self.device, num_envs
+        z3 = lambda: torch.zeros(n, 3, device=dev)  # noqa: E731
+        self.pos, self.vel, self.prev_vel, self.start, self.goal = z3(), z3(), z3(), z3(), z3()
+        self.yaw = torch.zeros(n, device=dev)
+        self.cos_yaw, self.sin_yaw = torch.ones(n, device=dev), torch.zeros(n, device=dev)
+        self.band = torch.zeros(n, 2, device=dev)
+        self.steps = torch.zeros(n, dtype=torch.int64, device=dev)
+        self.episode_counter = torch.zeros(n, dtype=torch.int64, device=dev)
+        self.env_seed = torch.zeros(n, dtype=torch.int64, device=dev)
+        self.world_idx = torch.arange(n, device=dev) % self.num_worlds
+        self.cell_offset = self.world_idx * (self.grid.size * self.grid.size)
+        self._stats = {k: torch.zeros(n, device=dev) for k in
+                       ("return", "cost", "path_length", "speed_sum")}  # fmt: skip
+        self._min_clear = torch.full((n,), math.inf, device=dev)
+        self.worlds: list[World] = []
+        self._trail: list[np.ndarray] = []
+        self.render_env_index = 0
+        self._last_ranges: torch.Tensor | None = None
+
+    # ------------------------------------------------------------------ worlds and density
+    def _build_worlds(self, base_seed: int) -> None:
+        cfg, dev, w = self.cfg, self.device, self.num_worlds
+        self.worlds = [generate_world(cfg, base_seed + i) for i in range(w)]
+        as_t = lambda f, dtype=torch.float32: torch.as_tensor(  # noqa: E731
+            np.stack([f(wd) for wd in self.worlds]), dtype=dtype, device=dev)
+        self.pillar_xy = as_t(lambda wd: wd.pillar_xy)
+        self.pillar_half = as_t(lambda wd: wd.pillar_half)
+        self.pillar_height = as_t(lambda wd: wd.pillar_height)
+        self.dyn_origin = as_t(lambda wd: wd.dyn_origin)
+        self.dyn_width = as_t(lambda wd: wd.dyn_width)
+        self.dyn_is_cuboid = as_t(lambda wd: wd.dyn_is_cuboid, torch.bool)
+        self.world_seed = torch.tensor([base_seed + i for i in range(w)], dtype=torch.int64, device=dev)
+        self._obstacle_id = torch.arange(cfg.num_dynamic, device=dev)
+        self._apply_density()
+        self._reset_obstacles()
+
+    def _apply_density(self) -> None:
+        self.n_static, self.n_dynamic = self.cfg.active_static, self.cfg.active_dynamic
+        self.heights = torch.stack([height_map(w, self.n_static) for w in self.worlds]).to(
+            self.device).reshape(-1)  # fmt: skip
+
+    def set_density(self, density: float) -> None:
+        """Set the fraction of active obstacles (density curriculum, paper Fig. 2); maps are kept."""
+        self.cfg = self.cfg.replace(density=float(density))
+        if self.worlds:
+            self._apply_density()
+
+    @property
+    def density(self) -> float:
+        return self.cfg.density
+
+    def _obstacle_goal(self, counter: torch.Tensor) -> torch.Tensor:
+        cfg = self.cfg
+        return sample_obstacle_goals(
+            self.world_seed[:, None], self._obstacle_id[None, :], counter, self.dyn_origin,
+            self.dyn_is_cuboid, cfg.dyn_local_range, cfg.half - cfg.edge_margin - 0.5,
+            CUBOID_Z_RANGE, CYLINDER_HEIGHT / 2,
+        )  # fmt: skip
+
+    def _reset_obstacles(self) -> None:
+        cfg = self.cfg
+        self.world_step = 0
+        self.dyn_goal_counter = torch.zeros(self.num_worlds, cfg.num_dynamic, dtype=torch.int64,
+                                            device=self.device)  # fmt: skip
+        self.dyn_pos = self.dyn_origin.clone()
+        self.dyn_goal = self._obstacle_goal(self.dyn_goal_counter)
+        self.dyn_vel = torch.zeros_like(self.dyn_pos)
+        self.dyn_speed = sample_obstacle_speeds(
+            self.world_seed[:, None], self._obstacle_id[None, :], torch.zeros((), dtype=torch.int64),
+            *cfg.dyn_speed_range,
+        )  # fmt: skip
+
+    def _step_obstacles(self) -> None:
+        cfg = self.cfg
+        self.world_step += 1
+        period = max(1, int(round(cfg.dyn_speed_period * cfg.control_hz)))
+        if self.world_step % period == 0:
+            self.dyn_speed = sample_obstacle_speeds(
+                self.world_seed[:, None], self._obstacle_id[None, :],
+                torch.tensor(self.world_step // period), *cfg.dyn_speed_range,
+            )  # fmt: skip
+        arrived = (self.dyn_goal - self.dyn_pos).norm(dim=-1) < 0.5
+        if bool(arrived.any()):
+            self.dyn_goal_counter += arrived.long()
+            self.dyn_goal = torch.where(arrived[..., None], self._obstacle_goal(self.dyn_goal_counter),
+                                        self.dyn_goal)  # fmt: skip
+        self.dyn_pos, self.dyn_vel = move_obstacles(self.dyn_pos, self.dyn_goal, self.dyn_speed, cfg.dt)
+
+    # ------------------------------------------------------------------ episodes
+    def _start_episodes(self, ids: torch.Tensor, starts=None, goals=None) -> None:
+        if starts is None:
+            starts, goals = sample_episodes(self.cfg, self.env_seed[ids], self.episode_counter[ids])
+        starts, goals = starts.to(self.device), goals.to(self.device)
+        self.start[ids], self.goal[ids], self.pos[ids] = starts, goals, starts
+        self.vel[ids] = 0.0
+        self.prev_vel[ids] = 0.0
+        heading = goals[:, :2] - starts[:, :2]
+        yaw = torch.atan2(heading[:, 1], heading[:, 0])
+        self.yaw[ids], self.cos_yaw[ids], self.sin_yaw[ids] = yaw, torch.cos(yaw), torch.sin(yaw)
+        self.band[ids] = torch.stack([torch.minimum(starts[:, 2], goals[:, 2]) - 0.2,
+                                      torch.maximum(starts[:, 2], goals[:, 2]) + 0.2], -1)  # fmt: skip
+        self.steps[ids] = 0
+        for v in self._stats.values():
+            v[ids] = 0.0
+        self._min_clear[ids] = math.inf
+        if self.render_mode is not None and bool((ids == self.render_env_index).any()):
+            self._trail = []
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        """Reset every env. ``seed`` draws new maps (map ``w`` from ``seed + w``, env ``i``'s episodes
+        from ``seed + i``); without it the maps are kept and each env starts its next episode.
+
+        ``options``: ``"density"`` (float), ``"starts"`` and ``"goals"`` (``(num_envs, 3)`` arrays)
+        to pin the episodes, e.g. to the fixed test scenario.
+        """
+        options = dict(options or {})
+        unknown = set(options) - {"density", "starts", "goals"}
+        if unknown:
+            raise ValueError(f"unknown reset option(s) {sorted(unknown)}: use density, starts, goals")
+        if "density" in options:
+            self.set_density(options["density"])
+        if seed is not None or not self.worlds:
+            if seed is None:
+                seed = int(np.random.SeedSequence().entropy % (2**31))
+            seed = int(seed)
+            self.env_seed = torch.arange(self.num_envs, dtype=torch.int64, device=self.device) + seed
+            self.episode_counter.zero_()
+            self._build_worlds(seed)
+        else:
+            self.episode_counter += 1
+        starts, goals = options.get("starts"), options.get("goals")
+        if (starts is None) != (goals is None):
+            raise ValueError("reset options 'starts' and 'goals' must be given together")
+        if starts is not None:
+            starts = torch.as_tensor(np.asarray(starts), dtype=torch.float32)
+            goals = torch.as_tensor(np.asarray(goals), dtype=torch.float32)
+            if starts.shape != (self.num_envs, 3) or goals.shape != (self.num_envs, 3):
+                raise ValueError(f"starts/goals must have shape ({self.num_envs}, 3), "
+                                 f"got {tuple(starts.shape)} and {tuple(goals.shape)}")  # fmt: skip
+        ids = torch.arange(self.num_envs, device=self.device)
+        self._start_episodes(ids, starts, goals)
+        obs, aux = self._sense()
+        self._last_ranges = aux["ranges"]
+        if self.render_mode is not None:
+            self._trail = [self.pos[self.render_env_index].cpu().numpy().copy()]
+        info = {"episode_id": self._out(self.episode_counter.clone())}
+        return self._out(obs), info
+
+    # ------------------------------------------------------------------ sensing
+    def _sense(self, ids: torch.Tensor | None = None) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+        cfg = self.cfg
+        sel = (lambda t: t) if ids is None else (lambda t: t[ids])
+        pos, vel, yaw, goal = sel(self.pos), sel(self.vel), sel(self.yaw), sel(self.goal)
+        cos_y, sin_y, world = sel(self.cos_yaw), sel(self.sin_yaw), sel(self.world_idx)
+        n = pos.shape[0]
+        rng_ = cfg.lidar_range
+
+        # Static obstacles: the range image, and the exact clearance to the nearest pillar.
+        ps = self.n_static
+        p_xy, p_half, p_h = self.pillar_xy[world, :ps], self.pillar_half[world, :ps], self.pillar_height[world, :ps]
+        if self.raycaster == "grid":
+            ranges = raycast_height_map(self.heights, self.grid.origin, self.grid.size, pos, yaw,
+                                        self.spec_lidar, sel(self.cell_offset))  # fmt: skip
+        else:
+            lo = torch.cat([p_xy - p_half[..., None], torch.zeros_like(p_half)[..., None]], -1)
+            hi = torch.cat([p_xy + p_half[..., None], p_h[..., None]], -1)
+            ranges = raycast_boxes_bruteforce(lo, hi, pos, yaw, self.spec_lidar)
+        static_clear = pillar_clearance(pos, p_xy, p_half, p_h)
+
+        # Moving obstacles: exact clearance to all, features of the nearest few within range.
+        nd, k = self.n_dynamic, cfg.num_tracked
+        dynamic = torch.zeros(n, k, 10, device=self.device)
+        tracked_clear = torch.full((n, k), rng_, device=self.device)
+        dyn_clear = torch.full((n,), math.inf, device=self.device)
+        if nd > 0:
+            rel = self.dyn_pos[world, :nd] - pos[:, None, :]
+            width, cuboid = self.dyn_width[world, :nd], self.dyn_is_cuboid[world, :nd]
+            clear_all = moving_obstacle_clearance(rel, width, cuboid, pos[:, 2], CUBOID_HEIGHT, CYLINDER_HEIGHT)
+            dyn_clear = clear_all.amin(-1)
+            # Standing cylinders span all altitudes: their relative z is zero (NavRL).
+            rel = torch.cat([rel[..., :2], torch.where(cuboid, rel[..., 2], 0.0)[..., None]], -1)
+            d2 = rel[..., :2].norm(dim=-1)
+            kk = min(k, nd)
+            d2_sel, idx = torch.topk(d2, kk, dim=-1, largest=False)
+            in_range = (d2_sel <= rng_)[..., None]
+            g = lambda t: torch.gather(t, 1, idx if t.dim() == 2 else idx[..., None].expand(-1, -1, t.shape[-1]))  # noqa: E731
+            rel_s = g(rel)
+            vel_s = g(self.dyn_vel[world, :nd])
+            rel_gf = world_to_goal_frame(rel_s, cos_y[:, None], sin_y[:, None])
+            unit = rel_gf / rel_gf.norm(dim=-1, keepdim=True).clamp(min=1e-6)
+            width_class = (g(width) / DYN_WIDTHS[0] - 1.0) / (len(DYN_WIDTHS) - 1)
+            feats = torch.cat([
+                unit, d2_sel[..., None] / rng_, rel_gf[..., 2:3] / rng_,
+                world_to_goal_frame(vel_s, cos_y[:, None], sin_y[:, None]) / cfg.v_max,
+                width_class[..., None], g(cuboid).float()[..., None],
+            ], -1)  # fmt: skip
+            dynamic[:, :kk] = torch.where(in_range, feats, 0.0)
+            tracked_clear[:, :kk] = torch.where(in_range[..., 0], g(clear_all), rng_)
+
+        to_goal = goal - pos
+        dist = to_goal.norm(dim=-1)
+        unit_goal = to_goal / dist[:, None].clamp(min=1e-6)
+        state = torch.cat([
+            world_to_goal_frame(unit_goal, cos_y, sin_y),
+            (to_goal[:, :2].norm(dim=-1) / DIST_SCALE)[:, None],
+            (to_goal[:, 2] / Z_SCALE)[:, None],
+            world_to_goal_frame(vel, cos_y, sin_y) / cfg.v_max,
+        ], -1)  # fmt: skip
+        obs = {"state": state, "lidar": (rng_ - ranges) / rng_, "dynamic": dynamic}
+        aux = {"ranges": ranges, "static_clear": static_clear, "dyn_clear": dyn_clear,
+               "tracked_clear": tracked_clear, "dist": dist, "unit_goal": unit_goal}  # fmt: skip
+        return obs, aux
+
+    # ------------------------------------------------------------------ stepping
+    def _check_actions(self, actions) -> torch.Tensor:
+        a = torch.as_tensor(actions, dtype=torch.float32, device=self.device)
+        if a.shape != (self.num_envs, 3):
+            raise ValueError(f"actions must have shape ({self.num_envs}, 3), got {tuple(a.shape)}")
+        if not bool(torch.isfinite(a).all()):
+            raise ValueError("actions contain NaN or Inf")
+        return a.clamp(-1.0, 1.0)
+
+    def step(self, actions):
+        cfg = self.cfg
+        if not self.worlds:
+            raise RuntimeError("call reset() before step()")
+        a = self._check_actions(actions)
+        cmd = goal_frame_to_world(a * cfg.v_max, self.cos_yaw, self.sin_yaw)
+        self.prev_vel = self.vel
+        old = self.pos
+        self.pos, self.vel = velocity_tracker(old, self.vel, cmd, cfg.dt, cfg.physics_substeps,
+                                              cfg.velocity_time_constant, cfg.max_acceleration)  # fmt: skip
+        self._step_obstacles()
+        obs, aux = self._sense()
+
+        z = self.pos[:, 2]
+        clearance = torch.minimum(aux["static_clear"], aux["dyn_clear"])
+        collision = (clearance <= cfg.uav_radius) | (z < cfg.z_min) | (z > cfg.z_max)
+        success = (aux["dist"] < cfg.goal_tolerance) & ~collision
+        # Reward (NavRL's terms; see class docstring).
+        r_vel = (self.vel * aux["unit_goal"]).sum(-1)
+        r_static = torch.log((aux["ranges"] / cfg.lidar_range).clamp(1e-3, 1.0)).mean((1, 2))
+        r_dyn = torch.log((aux["tracked_clear"] / cfg.lidar_range).clamp(1e-3, 1.0)).mean(-1)
+        p_smooth = (self.vel - self.prev_vel).norm(dim=-1)
+        above = (z - self.band[:, 1]).clamp(min=0)
+        below = (self.band[:, 0] - z).clamp(min=0)
+        p_height = above * above + below * below
+        reward = (cfg.w_velocity * r_vel + cfg.w_static * r_static + cfg.w_dynamic * r_dyn
+                  - cfg.w_smooth * p_smooth - cfg.w_height * p_height + cfg.reward_goal * success.float())  # fmt: skip
+        cost = collision.float()
+
+        self.steps += 1
+        terminated = success | (collision & cfg.terminate_on_collision)
+        truncated = (self.steps >= cfg.max_episode_steps) & ~terminated
+        done = terminated | truncated
+        st = self._stats
+        st["return"] += reward
+        st["cost"] += cost
+        st["path_length"] += (self.pos - old).norm(dim=-1)
+        st["speed_sum"] += self.vel.norm(dim=-1)
+        self._min_clear = torch.minimum(self._min_clear, clearance - cfg.uav_radius)
+        self._last_ranges = aux["ranges"]
+        if self.render_mode is not None:
+            self._trail.append(self.pos[self.render_env_index].cpu().numpy().copy())
+
+        info: dict[str, Any] = {"cost": cost, "success": success, "collision": collision,
+                                "clearance": clearance - cfg.uav_radius}  # fmt: skip
+        if bool(done.any()):
+            steps_f = self.steps.float()
+            info["episode"] = {
+                "return": st["return"].clone(), "cost": st["cost"].clone(), "length": self.steps.clone(),
+                "success": success.clone(), "collision": collision.clone(), "timeout": truncated.clone(),
+                "time": steps_f * cfg.dt, "path_length": st["path_length"].clone(),
+                "min_clearance": self._min_clear.clone(), "mean_speed": st["speed_sum"] / steps_f,
+            }  # fmt: skip
+            info["_episode"] = done.clone()
+            if self.autoreset_mode == AutoresetMode.SAME_STEP:
+                info["final_obs"] = {k: v.clone() for k, v in obs.items()}
+                info["_final_obs"] = done.clone()
+                ids = done.nonzero().squeeze(-1)
+                self.episode_counter[ids] += 1
+                self._start_episodes(ids)
+                new_obs, new_aux = self._sense(ids)
+                for key in obs:
+                    obs[key][ids] = new_obs[key]
+                self._last_ranges[ids] = new_aux["ranges"]
+        return self._out(obs), self._out(reward), self._out(terminated), self._out(truncated), self._out(info)
+
+    def _out(self, x):
+        """Tensors as the env's ``output`` type (NumPy views of CPU tensors cost no copy)."""
+        if self.output == "torch":
+            return x
+        if isinstance(x, dict):
+            return {k: self._out(v) for k, v in x.items()}
+        if isinstance(x, torch.Tensor):
+            return x.detach().cpu().numpy()
+        return x
+
+    # ------------------------------------------------------------------ rendering
+    def render(self):
+        """Top-down RGB image of env ``render_env_index``: pillars, moving obstacles, trail, goal."""
+        if self.render_mode is None:
+            return None
+        from safenav.envs.render import render_topdown
+
+        return render_topdown(self, self.render_env_index, trail=self._trail)
+
+    def close_extras(self, **kwargs) -> None:
+        self.worlds = []
+
+
+class SafeNavEnv(Env):
+    """Single-env view of :class:`SafeNavVectorEnv` (see it for the full description).
+
+    >>> import gymnasium as gym, safenav
+    >>> env = gym.make("SafeNav-v0", preset="easy")
+    >>> obs, info = env.reset(seed=1)
+    >>> {k: v.shape for k, v in obs.items()}
+    {'state': (8,), 'lidar': (4, 36), 'dynamic': (5, 10)}
+    >>> obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+    >>> float(info["cost"]) in (0.0, 1.0)
+    True
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(self, preset: str = "paper", config: EnvConfig | None = None, device: str = "cpu",
+                 render_mode: str | None = None, raycaster: str = "grid", **overrides: Any) -> None:  # fmt: skip
+        self.vec = SafeNavVectorEnv(1, preset=preset, config=config, device=device, output="torch",
+                                    autoreset_mode=AutoresetMode.DISABLED, render_mode=render_mode,
+                                    raycaster=raycaster, **overrides)  # fmt: skip
+        self.cfg = self.vec.cfg
+        self.render_mode = render_mode
+        self.observation_space = self.vec.single_observation_space
+        self.action_space = self.vec.single_action_space
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        super().reset(seed=seed)
+        if options and ("starts" in options or "goals" in options):
+            options = dict(options)
+            for key in ("starts", "goals"):
+                if key in options:
+                    options[key] = np.asarray(options[key], dtype=np.float32).reshape(1, 3)
+        obs, info = self.vec.reset(seed=seed, options=options)
+        return self._obs(obs), {"episode_id": int(info["episode_id"][0])}
+
+    def step(self, action):
+        a = np.asarray(action, dtype=np.float32)
+        if a.shape != (3,):
+            raise ValueError(f"action must have shape (3,), got {a.shape}")
+        obs, reward, terminated, truncated, info = self.vec.step(a[None])
+        out: dict[str, Any] = {k: (v[0].item() if v.dtype == torch.bool else float(v[0]))
+                               for k, v in info.items() if isinstance(v, torch.Tensor)}  # fmt: skip
+        if "episode" in info:
+            out["episode"] = {k: v[0].item() for k, v in info["episode"].items()}
+        return self._obs(obs), float(reward[0]), bool(terminated[0]), bool(truncated[0]), out
+
+    @staticmethod
+    def _obs(obs: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
+        return {k: v[0].cpu().numpy() for k, v in obs.items()}
+
+    def set_density(self, density: float) -> None:
+        self.vec.set_density(density)
+
+    def render(self):
+        return self.vec.render()
+
+
+__all__ = ["SafeNavEnv", "SafeNavVectorEnv", "sample_episodes", "test_scenario"]
