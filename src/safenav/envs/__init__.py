@@ -1,7 +1,7 @@
 """``SafeNav-v0``: the batched CMDP simulator (world, sensors, dynamics, the env itself)."""
 
 from safenav.envs.config import PRESETS, EnvConfig, make_config
-from safenav.envs.nav import SafeNavEnv, SafeNavVectorEnv, sample_episodes, test_scenario
+from safenav.envs.nav import SafeNavEnv, SafeNavVectorEnv, fixed_scenario, sample_episodes
 
 __all__ = ["PRESETS", "EnvConfig", "SafeNavEnv", "SafeNavVectorEnv", "make_config",
-           "sample_episodes", "test_scenario"]  # fmt: skip
+           "sample_episodes", "fixed_scenario"]  # fmt: skip

@@ -160,7 +160,9 @@ class EnvConfig:
             bad("z_max", "must exceed z_min >= 0")
         if self.edge_margin < 1.0 or 2 * self.edge_margin >= self.map_size - 2.0:
             bad("edge_margin", "must be >= 1 m and leave at least 2 m of interior")
-        if not self.pillar_sides or any((not math.isfinite(s)) or s <= 0 for s in self.pillar_sides):
+        if not self.pillar_sides or any(
+            (not math.isfinite(s)) or s <= 0 for s in self.pillar_sides
+        ):
             bad("pillar_sides", "must be a non-empty tuple of positive sizes")
         if not self.lidar_v_angles or any(abs(a) >= 80 for a in self.lidar_v_angles):
             bad("lidar_v_angles", "must be a non-empty tuple of elevations within +-80 degrees")
@@ -176,18 +178,21 @@ class EnvConfig:
         interior = (self.map_size - 2 * self.edge_margin) ** 2
         mean_area = sum(s * s for s in self.pillar_sides) / len(self.pillar_sides)
         if self.num_static * mean_area > 0.3 * interior:
-            bad("num_static", f"{self.num_static} pillars do not fit in the "
-                f"{self.map_size - 2 * self.edge_margin:.1f} m interior (at most 30 % cover)")
+            bad(
+                "num_static",
+                f"{self.num_static} pillars do not fit in the "
+                f"{self.map_size - 2 * self.edge_margin:.1f} m interior (at most 30 % cover)",
+            )
         if self.min_goal_distance > self.map_size:
             bad("min_goal_distance", "must not exceed map_size")
 
 
 PRESETS: dict[str, dict] = {
     # Small and sparse: learning tests, the closed-loop flight test, quick demos.
-    "easy": dict(map_size=20.0, num_static=30, num_dynamic=8, min_goal_distance=10.0,
+    "easy": dict(map_size=20.0, num_static=12, num_dynamic=6, min_goal_distance=10.0,
                  max_episode_seconds=30.0),
-    # Between: a third of the paper area at similar density.
-    "medium": dict(map_size=30.0, num_static=120, num_dynamic=36, min_goal_distance=14.0,
+    # Between: a third of the paper area at two thirds of its density.
+    "medium": dict(map_size=30.0, num_static=80, num_dynamic=24, min_goal_distance=14.0,
                    max_episode_seconds=45.0),
     # The paper scenario (Fig. 2): 50 m x 50 m, 350 pillars, 100 moving obstacles.
     "paper": dict(),

@@ -31,13 +31,17 @@ def velocity_tracker(
     return pos, vel
 
 
-def goal_frame_to_world(v: torch.Tensor, cos_yaw: torch.Tensor, sin_yaw: torch.Tensor) -> torch.Tensor:
+def goal_frame_to_world(
+    v: torch.Tensor, cos_yaw: torch.Tensor, sin_yaw: torch.Tensor
+) -> torch.Tensor:
     """Rotate ``(..., 3)`` vectors from the goal frame (x toward the goal, z up) to the world."""
     x, y = v[..., 0], v[..., 1]
     return torch.stack([cos_yaw * x - sin_yaw * y, sin_yaw * x + cos_yaw * y, v[..., 2]], dim=-1)
 
 
-def world_to_goal_frame(v: torch.Tensor, cos_yaw: torch.Tensor, sin_yaw: torch.Tensor) -> torch.Tensor:
+def world_to_goal_frame(
+    v: torch.Tensor, cos_yaw: torch.Tensor, sin_yaw: torch.Tensor
+) -> torch.Tensor:
     """Inverse of :func:`goal_frame_to_world`; ``cos_yaw``/``sin_yaw`` broadcast against ``v[..., 0]``."""
     x, y = v[..., 0], v[..., 1]
     return torch.stack([cos_yaw * x + sin_yaw * y, -sin_yaw * x + cos_yaw * y, v[..., 2]], dim=-1)

@@ -29,6 +29,7 @@ from safenav.envs.sensors import (
     RangeImageSpec,
     moving_obstacle_clearance,
     pillar_clearance,
+    quantize_heights,
     raycast_boxes_bruteforce,
     raycast_height_map,
 )
@@ -41,6 +42,7 @@ from safenav.envs.world import (
     World,
     generate_world,
     height_map,
+    world_from_obstacles,  # noqa: F401  (re-exported for custom maps)
 )
 
 # Observation scales: every feature lands roughly in [-1, 1] (documented in the class docstring).
@@ -68,8 +70,12 @@ def sample_episodes(cfg: EnvConfig, env_seed: torch.Tensor, counter: torch.Tenso
 
     def place(side, a, z):
         # side 0: north (y = +edge), 1: east, 2: south, 3: west
-        x = torch.where(side == 0, a, torch.where(side == 1, edge, torch.where(side == 2, a, -edge)))
-        y = torch.where(side == 0, edge, torch.where(side == 1, a, torch.where(side == 2, -edge, a)))
+        x = torch.where(
+            side == 0, a, torch.where(side == 1, edge, torch.where(side == 2, a, -edge))
+        )
+        y = torch.where(
+            side == 0, edge, torch.where(side == 1, a, torch.where(side == 2, -edge, a))
+        )
         return torch.stack([x, y, z], dim=-1)
 
     start = place(s_side, s_along, zlo + u["s_z"] * (zhi - zlo))
@@ -79,7 +85,7 @@ def sample_episodes(cfg: EnvConfig, env_seed: torch.Tensor, counter: torch.Tenso
     return start, goal
 
 
-def test_scenario(cfg: EnvConfig, env_seed: int = 1, episodes: int = 200):
+def fixed_scenario(cfg: EnvConfig, env_seed: int = 1, episodes: int = 200):
     """The fixed test scenario (paper IV-B): starts and goals of ``episodes`` episodes, from seed.
 
     The map is the world of ``env_seed`` at full density; episode ``k`` is episode ``k`` of the
@@ -151,7 +157,11 @@ class SafeNavVectorEnv(VectorEnv):
     * v0: initial release.
     """
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 10, "autoreset_mode": AutoresetMode.SAME_STEP}
+    metadata = {
+        "render_modes": ["rgb_array"],
+        "render_fps": 10,
+        "autoreset_mode": AutoresetMode.SAME_STEP,
+    }
 
     def __init__(
         self,
@@ -190,7 +200,9 @@ class SafeNavVectorEnv(VectorEnv):
         self.output = output
         self.render_mode = render_mode
         self.raycaster = raycaster
-        self.num_worlds = min(config.num_worlds or min(num_envs, 16), num_envs)
+        # Maps: the largest divisor of num_envs not above the request (env i flies in map i % W).
+        wanted = min(config.num_worlds or 16, num_envs)
+        self.num_worlds = max(d for d in range(1, wanted + 1) if num_envs % d == 0)
         self.grid = GridSpec.for_config(config)
         self.spec_lidar = RangeImageSpec.for_config(config)
 
@@ -216,36 +228,46 @@ class SafeNavVectorEnv(VectorEnv):
         self.episode_counter = torch.zeros(n, dtype=torch.int64, device=dev)
         self.env_seed = torch.zeros(n, dtype=torch.int64, device=dev)
         self.world_idx = torch.arange(n, device=dev) % self.num_worlds
-        self.cell_offset = self.world_idx * (self.grid.size * self.grid.size)
         self._stats = {k: torch.zeros(n, device=dev) for k in
                        ("return", "cost", "path_length", "speed_sum")}  # fmt: skip
         self._min_clear = torch.full((n,), math.inf, device=dev)
         self.worlds: list[World] = []
+        self._fresh_worlds = False
         self._trail: list[np.ndarray] = []
         self.render_env_index = 0
         self._last_ranges: torch.Tensor | None = None
 
     # ------------------------------------------------------------------ worlds and density
     def _build_worlds(self, base_seed: int) -> None:
+        self.set_worlds([generate_world(self.cfg, base_seed + i) for i in range(self.num_worlds)])
+
+    def set_worlds(self, worlds: list[World]) -> None:
+        """Install maps (one per world slot, e.g. from :func:`~safenav.envs.world.world_from_obstacles`);
+        moving obstacles restart at their origins. ``reset()`` without a seed keeps them."""
         cfg, dev, w = self.cfg, self.device, self.num_worlds
-        self.worlds = [generate_world(cfg, base_seed + i) for i in range(w)]
+        if len(worlds) != w:
+            raise ValueError(f"set_worlds needs {w} worlds (num_worlds), got {len(worlds)}")
+        self.worlds = list(worlds)
+        self._fresh_worlds = True
+        self.env_seed = torch.arange(self.num_envs, dtype=torch.int64, device=dev) + worlds[0].seed
         as_t = lambda f, dtype=torch.float32: torch.as_tensor(  # noqa: E731
-            np.stack([f(wd) for wd in self.worlds]), dtype=dtype, device=dev)
+            np.stack([f(wd) for wd in self.worlds]), dtype=dtype, device=dev
+        )
         self.pillar_xy = as_t(lambda wd: wd.pillar_xy)
         self.pillar_half = as_t(lambda wd: wd.pillar_half)
         self.pillar_height = as_t(lambda wd: wd.pillar_height)
         self.dyn_origin = as_t(lambda wd: wd.dyn_origin)
         self.dyn_width = as_t(lambda wd: wd.dyn_width)
         self.dyn_is_cuboid = as_t(lambda wd: wd.dyn_is_cuboid, torch.bool)
-        self.world_seed = torch.tensor([base_seed + i for i in range(w)], dtype=torch.int64, device=dev)
+        self.world_seed = torch.tensor([wd.seed for wd in worlds], dtype=torch.int64, device=dev)
         self._obstacle_id = torch.arange(cfg.num_dynamic, device=dev)
         self._apply_density()
         self._reset_obstacles()
 
     def _apply_density(self) -> None:
         self.n_static, self.n_dynamic = self.cfg.active_static, self.cfg.active_dynamic
-        self.heights = torch.stack([height_map(w, self.n_static) for w in self.worlds]).to(
-            self.device).reshape(-1)  # fmt: skip
+        maps = torch.stack([height_map(w, self.n_static) for w in self.worlds])
+        self.heights = quantize_heights(maps).to(self.device).reshape(-1)
 
     def set_density(self, density: float) -> None:
         """Set the fraction of active obstacles (density curriculum, paper Fig. 2); maps are kept."""
@@ -292,7 +314,9 @@ class SafeNavVectorEnv(VectorEnv):
             self.dyn_goal_counter += arrived.long()
             self.dyn_goal = torch.where(arrived[..., None], self._obstacle_goal(self.dyn_goal_counter),
                                         self.dyn_goal)  # fmt: skip
-        self.dyn_pos, self.dyn_vel = move_obstacles(self.dyn_pos, self.dyn_goal, self.dyn_speed, cfg.dt)
+        self.dyn_pos, self.dyn_vel = move_obstacles(
+            self.dyn_pos, self.dyn_goal, self.dyn_speed, cfg.dt
+        )
 
     # ------------------------------------------------------------------ episodes
     def _start_episodes(self, ids: torch.Tensor, starts=None, goals=None) -> None:
@@ -324,16 +348,17 @@ class SafeNavVectorEnv(VectorEnv):
         options = dict(options or {})
         unknown = set(options) - {"density", "starts", "goals"}
         if unknown:
-            raise ValueError(f"unknown reset option(s) {sorted(unknown)}: use density, starts, goals")
+            raise ValueError(
+                f"unknown reset option(s) {sorted(unknown)}: use density, starts, goals"
+            )
         if "density" in options:
             self.set_density(options["density"])
         if seed is not None or not self.worlds:
             if seed is None:
                 seed = int(np.random.SeedSequence().entropy % (2**31))
-            seed = int(seed)
-            self.env_seed = torch.arange(self.num_envs, dtype=torch.int64, device=self.device) + seed
+            self._build_worlds(int(seed))
+        if self._fresh_worlds:
             self.episode_counter.zero_()
-            self._build_worlds(seed)
         else:
             self.episode_counter += 1
         starts, goals = options.get("starts"), options.get("goals")
@@ -345,6 +370,7 @@ class SafeNavVectorEnv(VectorEnv):
             if starts.shape != (self.num_envs, 3) or goals.shape != (self.num_envs, 3):
                 raise ValueError(f"starts/goals must have shape ({self.num_envs}, 3), "
                                  f"got {tuple(starts.shape)} and {tuple(goals.shape)}")  # fmt: skip
+        self._fresh_worlds = False
         ids = torch.arange(self.num_envs, device=self.device)
         self._start_episodes(ids, starts, goals)
         obs, aux = self._sense()
@@ -355,57 +381,91 @@ class SafeNavVectorEnv(VectorEnv):
         return self._out(obs), info
 
     # ------------------------------------------------------------------ sensing
-    def _sense(self, ids: torch.Tensor | None = None) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+    def _sense(
+        self, ids: torch.Tensor | None = None
+    ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+        """Observation and reward inputs of all envs (``ids=None``) or of the envs ``ids``.
+
+        For all envs, env ``i = r * W + w`` flies in map ``w``: viewing the batch as ``(R, W)``
+        lets obstacle tensors ``(W, P)`` broadcast without gathering a copy per env.
+        """
         cfg = self.cfg
-        sel = (lambda t: t) if ids is None else (lambda t: t[ids])
-        pos, vel, yaw, goal = sel(self.pos), sel(self.vel), sel(self.yaw), sel(self.goal)
-        cos_y, sin_y, world = sel(self.cos_yaw), sel(self.sin_yaw), sel(self.world_idx)
-        n = pos.shape[0]
+        if ids is None:
+            r, w = self.num_envs // self.num_worlds, self.num_worlds
+            sel = lambda t: t.view(r, w, *t.shape[1:])  # noqa: E731
+            per_map = lambda t, n: t[:, :n].unsqueeze(0)  # noqa: E731
+        else:
+            sel = lambda t: t[ids]  # noqa: E731
+            world_ids = self.world_idx[ids]
+            per_map = lambda t, n: t[world_ids, :n]  # noqa: E731
+        pos, vel, goal = sel(self.pos), sel(self.vel), sel(self.goal)
+        cos_y, sin_y = sel(self.cos_yaw), sel(self.sin_yaw)
+        flat = lambda t: t.reshape(-1, *t.shape[pos.dim() - 1 :])  # noqa: E731  (R, W, ...) -> (N, ...)
         rng_ = cfg.lidar_range
 
         # Static obstacles: the range image, and the exact clearance to the nearest pillar.
         ps = self.n_static
-        p_xy, p_half, p_h = self.pillar_xy[world, :ps], self.pillar_half[world, :ps], self.pillar_height[world, :ps]
+        p_xy, p_half, p_h = (
+            per_map(self.pillar_xy, ps),
+            per_map(self.pillar_half, ps),
+            per_map(self.pillar_height, ps),
+        )
+        pos_f = flat(pos)
+        yaw_f = self.yaw if ids is None else self.yaw[ids]
+        world_f = self.world_idx if ids is None else self.world_idx[ids]
         if self.raycaster == "grid":
-            ranges = raycast_height_map(self.heights, self.grid.origin, self.grid.size, pos, yaw,
-                                        self.spec_lidar, sel(self.cell_offset))  # fmt: skip
+            ranges = raycast_height_map(self.heights, self.grid.origin, self.grid.size, pos_f, yaw_f,
+                                        self.spec_lidar, world_f)  # fmt: skip
         else:
             lo = torch.cat([p_xy - p_half[..., None], torch.zeros_like(p_half)[..., None]], -1)
             hi = torch.cat([p_xy + p_half[..., None], p_h[..., None]], -1)
-            ranges = raycast_boxes_bruteforce(lo, hi, pos, yaw, self.spec_lidar)
-        static_clear = pillar_clearance(pos, p_xy, p_half, p_h)
+            ranges = raycast_boxes_bruteforce(flat(lo.expand(*pos.shape[:-1], -1, -1)),
+                                              flat(hi.expand(*pos.shape[:-1], -1, -1)),
+                                              pos_f, yaw_f, self.spec_lidar)  # fmt: skip
+        static_clear = flat(pillar_clearance(pos, p_xy, p_half, p_h))
 
         # Moving obstacles: exact clearance to all, features of the nearest few within range.
         nd, k = self.n_dynamic, cfg.num_tracked
+        n = pos_f.shape[0]
         dynamic = torch.zeros(n, k, 10, device=self.device)
         tracked_clear = torch.full((n, k), rng_, device=self.device)
         dyn_clear = torch.full((n,), math.inf, device=self.device)
         if nd > 0:
-            rel = self.dyn_pos[world, :nd] - pos[:, None, :]
-            width, cuboid = self.dyn_width[world, :nd], self.dyn_is_cuboid[world, :nd]
-            clear_all = moving_obstacle_clearance(rel, width, cuboid, pos[:, 2], CUBOID_HEIGHT, CYLINDER_HEIGHT)
-            dyn_clear = clear_all.amin(-1)
+            rel = per_map(self.dyn_pos, nd) - pos[..., None, :]  # (..., D, 3)
+            width, cuboid = per_map(self.dyn_width, nd), per_map(self.dyn_is_cuboid, nd)
+            clear_all = moving_obstacle_clearance(
+                rel, width, cuboid, pos[..., 2], CUBOID_HEIGHT, CYLINDER_HEIGHT
+            )
+            dyn_clear = flat(clear_all.amin(-1))
             # Standing cylinders span all altitudes: their relative z is zero (NavRL).
             rel = torch.cat([rel[..., :2], torch.where(cuboid, rel[..., 2], 0.0)[..., None]], -1)
-            d2 = rel[..., :2].norm(dim=-1)
             kk = min(k, nd)
-            d2_sel, idx = torch.topk(d2, kk, dim=-1, largest=False)
+            d2_sel, idx = torch.topk(rel[..., :2].norm(dim=-1), kk, dim=-1, largest=False)
+            lead = rel.shape[:-1]  # (..., D)
+
+            def g(t: torch.Tensor) -> torch.Tensor:  # the tracked obstacles' rows of ``t``
+                if t.dim() == len(lead):
+                    return torch.gather(t.expand(lead), -1, idx)
+                return torch.gather(
+                    t.expand(*lead, t.shape[-1]), -2, idx[..., None].expand(*idx.shape, t.shape[-1])
+                )
+
             in_range = (d2_sel <= rng_)[..., None]
-            g = lambda t: torch.gather(t, 1, idx if t.dim() == 2 else idx[..., None].expand(-1, -1, t.shape[-1]))  # noqa: E731
-            rel_s = g(rel)
-            vel_s = g(self.dyn_vel[world, :nd])
-            rel_gf = world_to_goal_frame(rel_s, cos_y[:, None], sin_y[:, None])
+            rel_gf = world_to_goal_frame(g(rel), cos_y[..., None], sin_y[..., None])
+            vel_gf = world_to_goal_frame(
+                g(per_map(self.dyn_vel, nd)), cos_y[..., None], sin_y[..., None]
+            )
             unit = rel_gf / rel_gf.norm(dim=-1, keepdim=True).clamp(min=1e-6)
             width_class = (g(width) / DYN_WIDTHS[0] - 1.0) / (len(DYN_WIDTHS) - 1)
             feats = torch.cat([
-                unit, d2_sel[..., None] / rng_, rel_gf[..., 2:3] / rng_,
-                world_to_goal_frame(vel_s, cos_y[:, None], sin_y[:, None]) / cfg.v_max,
+                unit, d2_sel[..., None] / rng_, rel_gf[..., 2:3] / rng_, vel_gf / cfg.v_max,
                 width_class[..., None], g(cuboid).float()[..., None],
             ], -1)  # fmt: skip
-            dynamic[:, :kk] = torch.where(in_range, feats, 0.0)
-            tracked_clear[:, :kk] = torch.where(in_range[..., 0], g(clear_all), rng_)
+            dynamic[:, :kk] = flat(torch.where(in_range, feats, 0.0))
+            tracked_clear[:, :kk] = flat(torch.where(in_range[..., 0], g(clear_all), rng_))
 
-        to_goal = goal - pos
+        to_goal = flat(goal - pos)
+        vel, cos_y, sin_y = flat(vel), flat(cos_y), flat(sin_y)
         dist = to_goal.norm(dim=-1)
         unit_goal = to_goal / dist[:, None].clamp(min=1e-6)
         state = torch.cat([
@@ -492,7 +552,13 @@ class SafeNavVectorEnv(VectorEnv):
                 for key in obs:
                     obs[key][ids] = new_obs[key]
                 self._last_ranges[ids] = new_aux["ranges"]
-        return self._out(obs), self._out(reward), self._out(terminated), self._out(truncated), self._out(info)
+        return (
+            self._out(obs),
+            self._out(reward),
+            self._out(terminated),
+            self._out(truncated),
+            self._out(info),
+        )
 
     def _out(self, x):
         """Tensors as the env's ``output`` type (NumPy views of CPU tensors cost no copy)."""
@@ -574,4 +640,4 @@ class SafeNavEnv(Env):
         return self.vec.render()
 
 
-__all__ = ["SafeNavEnv", "SafeNavVectorEnv", "sample_episodes", "test_scenario"]
+__all__ = ["SafeNavEnv", "SafeNavVectorEnv", "sample_episodes", "fixed_scenario"]

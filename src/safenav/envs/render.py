@@ -21,7 +21,9 @@ BEAM = (250, 170, 170)
 BEAM_HIT = (230, 40, 40)
 
 
-def render_topdown(env, index: int = 0, trail: Sequence[np.ndarray] = (), size: int = 600) -> np.ndarray:
+def render_topdown(
+    env, index: int = 0, trail: Sequence[np.ndarray] = (), size: int = 600
+) -> np.ndarray:
     """Render env ``index``: pillars (dark = taller than the UAV), moving obstacles (orange
     cylinders, blue floating cuboids), the horizontal lidar beams, the trail, start and goal."""
     cfg = env.cfg
@@ -61,7 +63,9 @@ def render_topdown(env, index: int = 0, trail: Sequence[np.ndarray] = (), size: 
         for j, d in enumerate(ranges):
             a = yaw + 2 * math.pi * j / cfg.lidar_h_beams
             end = px(uav[0] + d * math.cos(a), uav[1] + d * math.sin(a))
-            draw.line([px(uav[0], uav[1]), end], fill=BEAM_HIT if d < cfg.lidar_range else BEAM, width=1)
+            draw.line(
+                [px(uav[0], uav[1]), end], fill=BEAM_HIT if d < cfg.lidar_range else BEAM, width=1
+            )
     start = env.start[index].cpu().numpy()
     goal = env.goal[index].cpu().numpy()
     sx, sy = px(start[0], start[1])

@@ -115,9 +115,7 @@ def generate_world(cfg: EnvConfig, seed: int) -> World:
     limit = cfg.half - cfg.edge_margin - 0.5  # obstacle surfaces stay out of the edge band
     origin = np.zeros((d, 3))
     origin[:, :2] = rng.uniform(-limit, limit, size=(d, 2))
-    origin[:, 2] = np.where(
-        is_cuboid, rng.uniform(*CUBOID_Z_RANGE, size=d), CYLINDER_HEIGHT / 2.0
-    )
+    origin[:, 2] = np.where(is_cuboid, rng.uniform(*CUBOID_Z_RANGE, size=d), CYLINDER_HEIGHT / 2.0)
     grid = GridSpec.for_config(cfg)
     return World(
         seed=int(seed),
@@ -131,12 +129,43 @@ def generate_world(cfg: EnvConfig, seed: int) -> World:
     )
 
 
+def world_from_obstacles(
+    cfg: EnvConfig,
+    pillars: list[tuple[float, float, float, float]] = (),
+    movers: list[tuple[float, float, float, float, bool]] = (),
+    seed: int = 0,
+) -> World:
+    """A hand-made world: ``pillars`` as ``(x, y, side, height)``, moving obstacles as
+    ``(x, y, z, width, is_cuboid)`` (their origins). For tests and custom maps; obstacles beyond
+    ``cfg.num_static`` / ``cfg.num_dynamic`` are an error."""
+    if len(pillars) > cfg.num_static or len(movers) > cfg.num_dynamic:
+        raise ValueError(f"world_from_obstacles: {len(pillars)} pillars / {len(movers)} movers exceed "
+                         f"num_static={cfg.num_static} / num_dynamic={cfg.num_dynamic}")  # fmt: skip
+    p = np.asarray(pillars, dtype=np.float64).reshape(-1, 4)
+    m = np.asarray(movers, dtype=np.float64).reshape(-1, 5)
+    # Unused slots: far outside the map, never active at the configured counts.
+    far = cfg.half + 1000.0
+    xy = np.concatenate([p[:, :2], np.full((cfg.num_static - len(p), 2), far)])
+    half = np.concatenate([p[:, 2] / 2, np.full(cfg.num_static - len(p), 0.2)])
+    heights = np.concatenate([p[:, 3], np.zeros(cfg.num_static - len(p))])
+    origin = np.concatenate([m[:, :3], np.full((cfg.num_dynamic - len(m), 3), far)])
+    width = np.concatenate([m[:, 3], np.full(cfg.num_dynamic - len(m), 0.25)])
+    cuboid = np.concatenate([m[:, 4] > 0.5, np.ones(cfg.num_dynamic - len(m), dtype=bool)])
+    grid = GridSpec.for_config(cfg)
+    return World(
+        seed=seed, pillar_xy=xy.astype(np.float32), pillar_half=half.astype(np.float32),
+        pillar_height=heights.astype(np.float32), dyn_origin=origin.astype(np.float32),
+        dyn_width=width.astype(np.float32), dyn_is_cuboid=cuboid,
+        pillar_rank_grid=_rasterize(grid, p[:, :2], p[:, 2] / 2),
+    )  # fmt: skip
+
+
 def height_map(world: World, active_pillars: int) -> torch.Tensor:
     """The 2.5-D occupancy grid: top of the occupied column per cell (0 = free), float32."""
     rank = torch.from_numpy(world.pillar_rank_grid).long()
-    heights = torch.from_numpy(world.pillar_height)
+    heights = torch.cat([torch.from_numpy(world.pillar_height), torch.zeros(1)])
     active = (rank >= 0) & (rank < active_pillars)
     return torch.where(active, heights[rank.clamp(min=0)], torch.zeros(()))
 
 
-__all__ = ["GridSpec", "World", "generate_world", "height_map"]
+__all__ = ["GridSpec", "World", "generate_world", "height_map", "world_from_obstacles"]

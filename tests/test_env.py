@@ -1,0 +1,384 @@
+"""SafeNav-v0: API, determinism, vector == single, geometry, sensing, reward, episode ends."""
+
+from __future__ import annotations
+
+import doctest
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from gymnasium.utils.env_checker import check_env
+
+import safenav  # noqa: F401  (registers SafeNav-v0)
+from safenav.envs import nav, sensors
+from safenav.envs.config import EnvConfig, make_config
+from safenav.envs.nav import SafeNavVectorEnv, fixed_scenario
+from safenav.envs.scripted import go_to_goal
+from safenav.envs.world import world_from_obstacles
+
+# A still, hand-built world: movers stand still, every step is the same geometry.
+STILL = dict(dyn_speed_range=(0.0, 0.0), num_static=4, num_dynamic=4)
+
+
+def hand_env(pillars=(), movers=(), preset="easy", **overrides) -> SafeNavVectorEnv:
+    env = SafeNavVectorEnv(1, preset=preset, output="torch", autoreset_mode="Disabled",
+                           **{**STILL, **overrides})  # fmt: skip
+    env.set_worlds([world_from_obstacles(env.cfg, list(pillars), list(movers))])
+    return env
+
+
+def place(env: SafeNavVectorEnv, start, goal=(8.0, 8.0, 1.5)) -> dict:
+    obs, _ = env.reset(options={"starts": [start], "goals": [goal]})
+    return obs
+
+
+def hover_step(env: SafeNavVectorEnv):
+    return env.step(torch.zeros(1, 3))
+
+
+# ---------------------------------------------------------------- API
+def test_check_env_passes():
+    env = gym.make("SafeNav-v0", preset="easy")
+    check_env(env.unwrapped, skip_render_check=False)
+
+
+def test_observation_spaces_match_spec():
+    env = gym.make("SafeNav-v0")
+    obs, _ = env.reset(seed=3)
+    assert env.observation_space["state"].shape == (8,)
+    assert env.observation_space["lidar"].shape == (4, 36)
+    assert env.observation_space["dynamic"].shape == (5, 10)
+    assert all(obs[k].dtype == np.float32 for k in obs)
+    assert env.observation_space.contains(obs)
+    assert env.action_space.shape == (3,) and env.action_space.high.max() == 1.0
+
+
+def test_make_vec_uses_native_batched_env():
+    envs = gym.make_vec("SafeNav-v0", num_envs=8, preset="easy")
+    assert isinstance(envs.unwrapped, SafeNavVectorEnv)
+    obs, _ = envs.reset(seed=0)
+    assert obs["lidar"].shape == (8, 4, 36)
+    obs, reward, term, trunc, info = envs.step(envs.action_space.sample())
+    assert reward.shape == (8,) and info["cost"].shape == (8,)
+
+
+def test_doctests_of_env_module():
+    result = doctest.testmod(nav, optionflags=doctest.ELLIPSIS)
+    assert result.attempted >= 4 and result.failed == 0
+
+
+# ---------------------------------------------------------------- determinism
+def rollout(env, seed: int, steps: int = 60):
+    obs, _ = env.reset(seed=seed)
+    rng = np.random.default_rng(0)
+    out = [obs["lidar"].copy(), obs["dynamic"].copy(), obs["state"].copy()]
+    for _ in range(steps):
+        obs, r, te, tr, info = env.step(rng.uniform(-1, 1, (3,)).astype(np.float32))
+        out += [obs["state"].copy(), obs["lidar"].copy(), obs["dynamic"].copy(), np.float32(r)]
+        if te or tr:
+            obs, _ = env.reset()
+    return out
+
+
+def test_same_seed_gives_identical_rollouts():
+    a = rollout(gym.make("SafeNav-v0", preset="medium"), seed=7)
+    b = rollout(gym.make("SafeNav-v0", preset="medium"), seed=7)
+    c = rollout(gym.make("SafeNav-v0", preset="medium"), seed=8)
+    assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+    assert not all(np.array_equal(x, y) for x, y in zip(a, c, strict=True))
+
+
+def test_vector_env_equals_single_envs_step_for_step():
+    n, seed = 3, 11
+    vec = SafeNavVectorEnv(n, preset="easy", num_worlds=n)
+    singles = [gym.make("SafeNav-v0", preset="easy").unwrapped for _ in range(n)]
+    vobs, _ = vec.reset(seed=seed)
+    sobs = [e.reset(seed=seed + i)[0] for i, e in enumerate(singles)]
+    rng = np.random.default_rng(1)
+    for _ in range(120):
+        a = rng.uniform(-1, 1, (n, 3)).astype(np.float32)
+        vobs, vr, vte, vtr, vinfo = vec.step(a)
+        for i, e in enumerate(singles):
+            o, r, te, tr, info = e.step(a[i])
+            assert (te, tr) == (bool(vte[i]), bool(vtr[i]))
+            assert r == pytest.approx(float(vr[i]), abs=1e-5)
+            assert info["cost"] == float(vinfo["cost"][i])
+            final = vinfo["final_obs"] if (te or tr) else vobs
+            for k in o:
+                np.testing.assert_allclose(o[k], final[k][i], atol=1e-5)
+            if te or tr:
+                o, _ = e.reset()
+                for k in o:
+                    np.testing.assert_allclose(o[k], vobs[k][i], atol=1e-5)
+
+
+def test_fixed_test_scenario_is_bit_identical():
+    cfg = make_config("paper")
+    s1, g1 = fixed_scenario(cfg, env_seed=1, episodes=200)
+    s2, g2 = fixed_scenario(cfg, env_seed=1, episodes=200)
+    assert torch.equal(s1, s2) and torch.equal(g1, g2)
+    assert s1.shape == (200, 3)
+    # Golden values: the integer hash and IEEE float32 arithmetic give these on every machine.
+    assert s1[0].tolist() == [3.470524787902832, -24.0, 1.780776858329773]
+    assert (g1[:, :2] - s1[:, :2]).norm(dim=-1).min() >= cfg.min_goal_distance
+
+
+# ---------------------------------------------------------------- collision geometry
+@pytest.mark.parametrize(
+    ("start", "collides"),
+    [
+        ((0.0, -0.69, 1.0), True),  # side of a 0.8 m pillar at (0, 0): face at y=-0.4, gap 0.29
+        ((0.0, -0.71, 1.0), False),  # gap 0.31 > radius
+        ((0.6, -0.6, 1.0), True),  # corner: distance sqrt(0.2^2 + 0.2^2) = 0.283
+        ((0.63, -0.63, 1.0), False),  # corner: 0.325
+        ((0.0, 0.0, 2.25), True),  # above a 2 m pillar by 0.25
+        ((0.0, 0.0, 2.35), False),  # above it by 0.35
+    ],
+)
+def test_pillar_collision_geometry(start, collides):
+    env = hand_env(pillars=[(0.0, 0.0, 0.8, 2.0)])
+    place(env, start)
+    _, _, term, _, info = hover_step(env)
+    assert bool(info["collision"][0]) is collides
+    assert float(info["cost"][0]) == (1.0 if collides else 0.0)
+
+
+@pytest.mark.parametrize(
+    ("start", "collides"),
+    [
+        ((0.0, -0.75, 1.0), True),  # standing cylinder of width 1.0: surface at 0.5, gap 0.25
+        ((0.0, -0.85, 3.5), False),  # gap 0.35, at any altitude
+        ((0.0, -0.79, 3.9), True),  # cylinder is 5 m tall: collides high up too
+    ],
+)
+def test_standing_cylinder_geometry(start, collides):
+    env = hand_env(movers=[(0.0, 0.0, 2.5, 1.0, False)])
+    place(env, start)
+    _, _, _, _, info = hover_step(env)
+    assert bool(info["collision"][0]) is collides
+
+
+@pytest.mark.parametrize(
+    ("start", "collides"),
+    [
+        ((0.0, 0.0, 3.25), False),  # cuboid spans z in [1.5, 2.5]: above by 0.75
+        ((0.0, 0.0, 2.75), True),  # above by 0.25
+        ((0.0, 0.0, 1.25), True),  # below by 0.25
+        ((0.0, 0.0, 0.85), False),  # below by 0.65
+        ((0.0, -0.7, 2.0), True),  # level, side at y=-0.5: gap 0.2
+        ((0.0, -0.9, 2.0), False),  # level, gap 0.4
+    ],
+)
+def test_floating_cuboid_geometry(start, collides):
+    env = hand_env(movers=[(0.0, 0.0, 2.0, 1.0, True)])
+    place(env, start)
+    _, _, _, _, info = hover_step(env)
+    assert bool(info["collision"][0]) is collides
+
+
+def test_ground_and_ceiling_are_collisions():
+    env = hand_env()
+    place(env, (0.0, 0.0, 0.15))
+    assert bool(hover_step(env)[4]["collision"][0])
+    place(env, (0.0, 0.0, 4.1))
+    assert bool(hover_step(env)[4]["collision"][0])
+    place(env, (0.0, 0.0, 2.0))
+    assert not bool(hover_step(env)[4]["collision"][0])
+
+
+# ---------------------------------------------------------------- sensing
+def analytic_beam_distance(pos, az, box_lo, box_hi):
+    """Horizontal beam from ``pos`` at azimuth ``az`` against one box (slab method)."""
+    d = np.array([math.cos(az), math.sin(az), 0.0])
+    t_near, t_far = -np.inf, np.inf
+    for i in range(3):
+        if abs(d[i]) < 1e-12:
+            if not box_lo[i] <= pos[i] <= box_hi[i]:
+                return np.inf
+            continue
+        t1, t2 = (box_lo[i] - pos[i]) / d[i], (box_hi[i] - pos[i]) / d[i]
+        t_near, t_far = max(t_near, min(t1, t2)), min(t_far, max(t1, t2))
+    return t_near if t_far >= t_near >= 0 else np.inf
+
+
+def test_range_image_matches_analytic_distance_to_pillars():
+    pillars = [(2.0, 0.3, 0.8, 5.0), (-1.1, 2.6, 0.4, 5.0), (0.2, -3.05, 0.8, 1.0)]
+    env = hand_env(pillars=pillars)
+    start = (0.0, 0.0, 1.5)
+    place(env, start, goal=(8.0, 0.0, 1.5))  # goal frame = world frame (yaw 0)
+    obs, _ = env._sense()
+    ranges = (1 - obs["lidar"][0]) * env.cfg.lidar_range
+    res = env.cfg.grid_resolution
+    row = env.cfg.lidar_v_angles.index(0.0)
+    checked = 0
+    for j in range(36):
+        az = 2 * math.pi * j / 36
+        best = min(
+            analytic_beam_distance(
+                np.array(start),
+                az,
+                np.array([x - s / 2, y - s / 2, 0]),
+                np.array([x + s / 2, y + s / 2, h]),
+            )  # fmt: skip
+            for x, y, s, h in pillars
+        )
+        expect = min(best, env.cfg.lidar_range)
+        # grazing beams (within half a cell of a corner) may round either way
+        if expect < env.cfg.lidar_range:
+            checked += 1
+        assert abs(float(ranges[row, j]) - expect) <= res + 1e-4 or _grazing(
+            start, az, pillars, res
+        )
+    assert checked >= 4
+    # the 1 m pillar is under the 0 deg beam at 1.5 m altitude: not seen by it
+    assert float(ranges[row, 27]) == pytest.approx(env.cfg.lidar_range)
+
+
+def _grazing(start, az, pillars, res) -> bool:
+    for x, y, s, _ in pillars:
+        for cx in (x - s / 2, x + s / 2):
+            for cy in (y - s / 2, y + s / 2):
+                # perpendicular distance from the corner to the beam line
+                dx, dy = cx - start[0], cy - start[1]
+                if abs(-math.sin(az) * dx + math.cos(az) * dy) < res:
+                    return True
+    return False
+
+
+def test_grid_raycaster_agrees_with_bruteforce():
+    a = SafeNavVectorEnv(16, preset="medium", output="torch")
+    b = SafeNavVectorEnv(16, preset="medium", output="torch", raycaster="bruteforce")
+    a.reset(seed=5)
+    b.reset(seed=5)
+    errs = []
+    for _ in range(30):
+        act = torch.rand(16, 3) * 2 - 1
+        oa, ob = a.step(act)[0], b.step(act)[0]
+        errs.append(((oa["lidar"] - ob["lidar"]).abs() * a.cfg.lidar_range).flatten())
+    err = torch.cat(errs)
+    assert (err <= a.cfg.grid_resolution + 1e-4).float().mean() > 0.97
+    assert float(err.median()) == 0.0
+
+
+def test_downward_beam_sees_the_ground():
+    env = hand_env()
+    place(env, (0.0, 0.0, 0.5))
+    _, aux = env._sense()
+    row = env.cfg.lidar_v_angles.index(-10.0)
+    expect = 0.5 / math.sin(math.radians(10))
+    assert torch.allclose(aux["ranges"][0, row], torch.full((36,), expect), atol=1e-3)
+
+
+def test_dynamic_features_track_nearest_in_range():
+    movers = [
+        (1.5, 0.0, 2.5, 0.5, False),
+        (0.0, 3.0, 1.5, 1.0, True),
+        (0.0, -6.0, 2.5, 0.25, False),
+    ]
+    env = hand_env(movers=movers)
+    place(env, (0.0, 0.0, 1.5), goal=(8.0, 0.0, 1.5))
+    obs, _ = env._sense()
+    dyn = obs["dynamic"][0]
+    assert torch.allclose(dyn[0, :3], torch.tensor([1.0, 0.0, 0.0]), atol=1e-5)  # cylinder: z rel 0
+    assert float(dyn[0, 3]) == pytest.approx(1.5 / 4)
+    assert float(dyn[0, 8]) == pytest.approx(1 / 3) and float(dyn[0, 9]) == 0.0
+    assert float(dyn[1, 3]) == pytest.approx(3.0 / 4) and float(dyn[1, 9]) == 1.0
+    assert torch.all(dyn[2:] == 0)  # the third is 6 m away: beyond range
+
+
+# ---------------------------------------------------------------- reward, cost, episode ends
+def test_cost_is_one_exactly_at_collision_steps():
+    env = hand_env(pillars=[(0.0, 0.0, 0.8, 5.0)], terminate_on_collision=False)
+    place(env, (-3.0, 0.0, 1.5), goal=(8.0, 0.0, 1.5))
+    costs, collided = [], []
+    for _ in range(60):
+        _, _, _, _, info = env.step(torch.tensor([[0.5, 0.0, 0.0]]))
+        costs.append(float(info["cost"][0]))
+        collided.append(float(info["clearance"][0]) <= 0.0)
+    assert costs == [1.0 if c else 0.0 for c in collided]
+    assert 0 < sum(costs) < 60
+
+
+def test_truncation_is_not_termination():
+    env = SafeNavVectorEnv(1, preset="easy", output="torch", max_episode_seconds=1.0, num_static=0,
+                           num_dynamic=0)  # fmt: skip
+    env.reset(seed=0)
+    for t in range(10):
+        _, _, term, trunc, info = env.step(torch.zeros(1, 3))
+    assert bool(trunc[0]) and not bool(term[0])
+    assert bool(info["_final_obs"][0]) and bool(info["episode"]["timeout"][0])
+
+
+def run_policy(env, policy, steps=400):
+    obs, _ = env.reset(seed=0)
+    total = 0.0
+    for _ in range(steps):
+        obs, r, term, trunc, info = env.step(policy(obs))
+        total += float(r[0])
+        if bool(term[0] or trunc[0]):
+            return total, bool(info["success"][0]), bool(info["collision"][0])
+    return total, False, False
+
+
+def test_go_to_goal_beats_hovering_and_crashing():
+    make = lambda: SafeNavVectorEnv(1, preset="easy", output="torch", num_static=0, num_dynamic=0,  # noqa: E731
+                                    autoreset_mode="Disabled")  # fmt: skip
+    ret_goal, success, _ = run_policy(make(), go_to_goal)
+    ret_hover, s_h, _ = run_policy(make(), lambda o: torch.zeros(1, 3))
+    ret_crash, _, crashed = run_policy(make(), lambda o: torch.tensor([[0.0, 0.0, -1.0]]))
+    assert success and not s_h and crashed
+    assert ret_goal > ret_hover and ret_goal > ret_crash
+
+
+def test_density_activates_a_prefix_of_obstacles():
+    env = SafeNavVectorEnv(2, preset="medium", output="torch")
+    env.reset(seed=0)
+    full = int((env.heights > 0).sum())
+    env.set_density(0.2)
+    assert env.n_static == 16 and env.n_dynamic == round(24 * 0.2)
+    assert 0 < int((env.heights > 0).sum()) < full
+
+
+# ---------------------------------------------------------------- configuration errors
+@pytest.mark.parametrize(
+    ("overrides", "field"),
+    [
+        (dict(num_static=-1), "num_static"),
+        (dict(num_dynamic=-3), "num_dynamic"),
+        (dict(v_max=0.0), "v_max"),
+        (dict(v_max=-2.0), "v_max"),
+        (dict(num_static=100000), "num_static"),
+        (dict(density=1.5), "density"),
+        (dict(map_size=float("nan")), "map_size"),
+    ],
+)
+def test_bad_config_names_the_field(overrides, field):
+    with pytest.raises(ValueError, match=field):
+        make_config("paper", **overrides)
+
+
+def test_unknown_preset_and_field():
+    with pytest.raises(ValueError, match="preset"):
+        make_config("hard")
+    with pytest.raises(ValueError, match="warp_speed"):
+        make_config("easy", warp_speed=3)
+    with pytest.raises(ValueError, match="preset"):
+        gym.make("SafeNav-v0", preset="nope")
+
+
+def test_bad_actions_raise_clear_errors():
+    env = SafeNavVectorEnv(2, preset="easy")
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="NaN"):
+        env.step(np.full((2, 3), np.nan, dtype=np.float32))
+    with pytest.raises(ValueError, match="shape"):
+        env.step(np.zeros((3, 3), dtype=np.float32))
+
+
+def test_config_is_a_typed_dataclass_with_paper_defaults():
+    cfg = EnvConfig()
+    assert (cfg.map_size, cfg.num_static, cfg.num_dynamic, cfg.v_max) == (50.0, 350, 100, 2.0)
+    assert cfg.max_episode_steps == 600
+    assert sensors.RangeImageSpec.for_config(cfg).num_samples == 40
