@@ -96,6 +96,9 @@ def test_vector_env_equals_single_envs_step_for_step():
     singles = [gym.make("SafeNav-v0", preset="easy").unwrapped for _ in range(n)]
     vobs, _ = vec.reset(seed=seed)
     sobs = [e.reset(seed=seed + i)[0] for i, e in enumerate(singles)]
+    for i in range(n):
+        for k in vobs:
+            np.testing.assert_array_equal(sobs[i][k], vobs[k][i])
     rng = np.random.default_rng(1)
     for _ in range(120):
         a = rng.uniform(-1, 1, (n, 3)).astype(np.float32)
@@ -305,7 +308,7 @@ def test_truncation_is_not_termination():
     env = SafeNavVectorEnv(1, preset="easy", output="torch", max_episode_seconds=1.0, num_static=0,
                            num_dynamic=0)  # fmt: skip
     env.reset(seed=0)
-    for t in range(10):
+    for _ in range(10):
         _, _, term, trunc, info = env.step(torch.zeros(1, 3))
     assert bool(trunc[0]) and not bool(term[0])
     assert bool(info["_final_obs"][0]) and bool(info["episode"]["timeout"][0])

@@ -1,1 +1,38 @@
 """``safenav bench {env,update,latency}``: the benchmarks whose figures the README quotes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Literal
+
+import tyro
+
+from safenav.cli import app
+
+
+@app.command(name="bench")
+def bench(
+    which: tyro.conf.Positional[Literal["env", "update", "latency"]],
+    json_out: Annotated[Path | None, tyro.conf.arg(name="json")] = None,
+    repeats: int = 5,
+    preset: str = "paper",
+) -> None:
+    """Measure throughput or latency and print a table; ``--json OUT`` writes the figures.
+
+    env: env-steps/s at 1, 64, 256, 1024 envs (cpu, and cuda when present) and the grid ray
+    caster's speed-up over a brute-force reference. update: gradient updates/s of CSAC and SAC
+    beside Stable-Baselines3's SAC, and PPO's training throughput. latency: batch-1 policy and
+    sensor-to-setpoint latency on one CPU thread.
+    """
+    if which == "env":
+        from safenav.bench.env import bench_env
+
+        bench_env(json_out, repeats=repeats, preset=preset)
+    elif which == "update":
+        from safenav.bench.update import bench_update
+
+        bench_update(json_out, repeats=repeats)
+    else:
+        from safenav.bench.latency import bench_latency
+
+        bench_latency(json_out)

@@ -1,0 +1,1 @@
+"""Benchmarks behind ``safenav bench``: env throughput, update throughput, onboard latency."""

@@ -1,0 +1,59 @@
+"""``safenav eval``: the fixed test scenario of paper IV-B, as JSON."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Literal
+
+import tyro
+
+from safenav.cli import app
+
+
+@app.command(name="eval")
+def eval_(
+    checkpoint: tyro.conf.Positional[Path | None] = None,
+    env_seed: int = 1,
+    episodes: int = 200,
+    shield: bool = False,
+    json_out: Annotated[Path | None, tyro.conf.arg(name="json")] = None,
+    policy: Literal["checkpoint", "scripted", "random"] = "checkpoint",
+    preset: str | None = None,
+    device: str = "cpu",
+) -> None:
+    """Evaluate a policy on the fixed test scenario (map of env seed 1, full density, 200 fixed
+    start/goal episodes, deterministic actions) and print success / collision / timeout rates.
+
+    ``--shield`` corrects actions with the velocity-obstacle safety shield. ``--preset`` overrides
+    the checkpoint's env preset. ``--policy scripted`` evaluates the potential-field baseline.
+    """
+    from rich.console import Console
+    from rich.table import Table
+
+    from safenav.envs.config import make_config
+    from safenav.experiments.evaluate import evaluate
+    from safenav.experiments.flight import resolve_policy
+
+    fn, cfg = resolve_policy(checkpoint, policy, device)
+    if preset is not None or cfg is None:
+        cfg = make_config(preset or "paper")
+    shield_fn = None
+    if shield:
+        from safenav.deploy.shield import env_shield
+
+        shield_fn = env_shield
+    result = evaluate(fn, cfg, env_seed=env_seed, episodes=episodes, device=device,
+                      shield=shield_fn, progress=True)  # fmt: skip
+    result["checkpoint"] = str(checkpoint) if checkpoint else policy
+    result["shield"] = shield
+    table = Table(title=f"fixed test scenario: env seed {env_seed}, {episodes} episodes")
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    for key in ("success_rate", "collision_rate", "timeout_rate", "mean_time_to_goal",
+                "mean_path_length", "min_clearance", "mean_speed"):  # fmt: skip
+        table.add_row(key, f"{result[key]:.3f}")
+    Console().print(table)
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(json.dumps(result, indent=2))

@@ -1,0 +1,1 @@
+"""Experiments: the evaluation protocol (paper IV-B), multi-seed sweeps on Ray, figures."""

@@ -1,0 +1,73 @@
+"""One rendered flight: an episode of the fixed test scenario, written as a GIF."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import torch
+
+from safenav.envs.config import make_config
+from safenav.envs.nav import SafeNavVectorEnv, fixed_scenario
+from safenav.envs.scripted import potential_field
+from safenav.errors import SafenavError
+
+
+def resolve_policy(checkpoint: Path | None, policy: str, device: str = "cpu"):
+    """``(policy_fn, env_config)`` for a checkpoint (its env config) or a scripted/random policy."""
+    if policy == "checkpoint":
+        if checkpoint is None:
+            raise SafenavError("no checkpoint given: pass CHECKPOINT or --policy scripted")
+        from safenav.algos.policy import load_policy
+
+        loaded = load_policy(checkpoint, device=device)
+        return loaded, loaded.env_config()
+    if policy == "scripted":
+        return potential_field, None
+    if policy == "random":
+        gen = torch.Generator().manual_seed(0)
+        return (lambda obs: torch.rand(obs["state"].shape[0], 3, generator=gen) * 2 - 1), None
+    raise SafenavError(f"unknown policy {policy!r}: choose checkpoint, scripted or random")
+
+
+@torch.no_grad()
+def render_episode(
+    out: Path,
+    checkpoint: Path | None = None,
+    policy: str = "checkpoint",
+    preset: str | None = None,
+    env_seed: int = 1,
+    episode: int = 0,
+    fps: int = 10,
+    size: int = 600,
+) -> dict:
+    """Fly episode ``episode`` of the fixed scenario and write ``out`` (GIF); returns its stats."""
+    fn, cfg = resolve_policy(checkpoint, policy)
+    if preset is not None or cfg is None:
+        cfg = make_config(preset or "paper")
+    cfg = cfg.replace(density=1.0, num_worlds=1)
+    starts, goals = fixed_scenario(cfg, env_seed, episode + 1)
+    env = SafeNavVectorEnv(1, config=cfg, output="torch", autoreset_mode="Disabled",
+                           render_mode="rgb_array")  # fmt: skip
+    obs, _ = env.reset(
+        seed=env_seed, options={"starts": starts[episode:], "goals": goals[episode:]}
+    )
+    frames = [env.render()]
+    stats: dict = {}
+    for _ in range(cfg.max_episode_steps):
+        obs, _, term, trunc, info = env.step(fn(obs))
+        frames.append(env.render())
+        if bool(term[0] or trunc[0]):
+            ep = info["episode"]
+            stats = {k: round(float(ep[k][0]), 3) for k in ("success", "collision", "timeout", "time",
+                                                           "return", "min_clearance")}  # fmt: skip
+            break
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    # Hold the last frame for a second so the outcome is visible.
+    frames += [frames[-1]] * fps
+    iio.imwrite(out, np.stack(frames), duration=1000 / fps, loop=0)
+    return stats
+
+
+__all__ = ["render_episode", "resolve_policy"]
