@@ -1,0 +1,5 @@
+"""``python -m safenav`` = the ``safenav`` command."""
+
+from safenav.cli import main
+
+main()
