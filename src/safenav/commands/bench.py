@@ -16,6 +16,7 @@ def bench(
     json_out: Annotated[Path | None, tyro.conf.arg(name="json")] = None,
     repeats: int = 5,
     preset: str = "paper",
+    num_envs: tuple[int, ...] = (1, 64, 256, 1024),
 ) -> None:
     """Measure throughput or latency and print a table; ``--json OUT`` writes the figures.
 
@@ -27,7 +28,7 @@ def bench(
     if which == "env":
         from safenav.bench.env import bench_env
 
-        bench_env(json_out, repeats=repeats, preset=preset)
+        bench_env(json_out, num_envs=num_envs, repeats=repeats, preset=preset)
     elif which == "update":
         from safenav.bench.update import bench_update
 
