@@ -1,0 +1,488 @@
+"""Results of a multi-seed sweep: read run directories, aggregate mean ± std across seeds.
+
+The inputs are what ``safenav train`` and ``safenav eval`` leave behind, so every number here can
+be recomputed from a sweep's output directory alone:
+
+- ``progress.csv`` of each run (one row per log interval; ``global_step`` = env steps so far),
+- ``eval.json`` of each run (``safenav eval`` on the fixed test scenario, paper IV-B).
+
+Conventions
+- ``std`` is the sample standard deviation across seeds (``ddof=1``; 0 for a single seed), the
+  spread of "the standard deviation across training runs" of the paper's Fig. 4.
+- Rates are fractions in [0, 1] in JSON; the Markdown table prints percent.
+- *Time to target* is the first logged point where success >= 85 % **and** collision <= 10 %,
+  measured on the run's periodic evaluation columns when the run logged them, else on its
+  training-episode rates; wall-clock comes from the run's own elapsed-time column when present,
+  else it is integrated from ``perf/sps`` (env steps / second) between log rows.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+#: The paper's Fig. 4 / Section IV-B figures (test success and collision rates), as fractions.
+PAPER_RESULTS: dict[str, dict[str, float]] = {
+    "csac": {"success_rate": 0.847, "collision_rate": 0.111},
+    "sac": {"success_rate": 0.813, "collision_rate": 0.140},
+    "ppo": {"success_rate": 0.711, "collision_rate": 0.246},
+}
+
+#: Display names of the algorithms ``safenav train --algo`` knows; others print as given.
+DISPLAY_NAMES: dict[str, str] = {
+    "csac": "CSAC",
+    "sac": "SAC",
+    "ppo": "PPO",
+    "ppo_lag": "PPO-Lag",
+    "sac_lag": "SAC-Lag",
+}
+
+#: Column pairs (success, collision) that hold *evaluation* rates, in order of preference.
+EVAL_RATE_COLUMNS: tuple[tuple[str, str], ...] = (
+    ("eval/success_rate", "eval/collision_rate"),
+    ("evaluation/success_rate", "evaluation/collision_rate"),
+    ("test/success_rate", "test/collision_rate"),
+)
+#: The training-episode rates every run logs (SPEC §3).
+TRAIN_RATE_COLUMNS: tuple[str, str] = ("charts/success_rate", "charts/collision_rate")
+#: Columns holding seconds since the start of training, in order of preference.
+ELAPSED_COLUMNS: tuple[str, ...] = (
+    "time/elapsed_s",
+    "time/elapsed",
+    "perf/elapsed_s",
+    "perf/wall_clock_s",
+    "charts/wall_clock_s",
+    "wall_clock_s",
+    "elapsed_s",
+    "time",
+)
+
+
+@dataclass(frozen=True)
+class Target:
+    """The time-to-target threshold: success >= ``success`` and collision <= ``collision``."""
+
+    success: float = 0.85
+    """Least success rate (fraction)."""
+    collision: float = 0.10
+    """Largest collision rate (fraction)."""
+
+
+def display_name(algo: str) -> str:
+    """``"csac"`` -> ``"CSAC"``; unknown labels are returned unchanged."""
+    return DISPLAY_NAMES.get(algo, algo)
+
+
+# -- reading run directories ---------------------------------------------------------------------
+
+
+def read_progress(path: str | Path) -> dict[str, np.ndarray]:
+    """``progress.csv`` as ``{column: float array}``; empty or non-numeric cells become NaN.
+
+    Rows shorter than the header (a run killed mid-write) are dropped.
+    """
+    path = Path(path)
+    if path.is_dir():
+        path = path / "progress.csv"
+    with path.open(newline="") as f:
+        reader = csv.reader(f)
+        header = next(reader, None)
+        if header is None:
+            return {}
+        rows = [r for r in reader if len(r) == len(header)]
+
+    def num(cell: str) -> float:
+        try:
+            return float(cell)
+        except ValueError:
+            return math.nan
+
+    table = np.array([[num(c) for c in r] for r in rows], dtype=float).reshape(-1, len(header))
+    return {name: table[:, i] for i, name in enumerate(header)}
+
+
+def last_step(path: str | Path) -> int:
+    """The last ``global_step`` in a ``progress.csv`` (0 when missing or empty), read cheaply."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "progress.csv"
+    try:
+        with path.open("rb") as f:
+            header = f.readline().decode().strip().split(",")
+            if "global_step" not in header:
+                return 0
+            col = header.index("global_step")
+            f.seek(0, 2)
+            size = f.tell()
+            f.seek(max(0, size - 8192))
+            lines = f.read().decode(errors="replace").splitlines()
+    except (OSError, UnicodeDecodeError):
+        return 0
+    for line in reversed(lines[1:] if size <= 8192 else lines):
+        cells = line.split(",")
+        if len(cells) == len(header):
+            try:
+                return int(float(cells[col]))
+            except ValueError:
+                continue
+    return 0
+
+
+def elapsed_seconds(progress: dict[str, np.ndarray]) -> np.ndarray | None:
+    """Seconds since the start of training at each row, or ``None`` if it cannot be known.
+
+    Uses the run's own elapsed-time column (see :data:`ELAPSED_COLUMNS`) when present; otherwise
+    integrates ``Δglobal_step / perf/sps`` row by row (the first row from step 0).
+    """
+    for name in ELAPSED_COLUMNS:
+        col = progress.get(name)
+        if col is not None and np.isfinite(col).any():
+            return col
+    steps, sps = progress.get("global_step"), progress.get("perf/sps")
+    if steps is None or sps is None or len(steps) == 0:
+        return None
+    delta = np.diff(steps, prepend=0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dt = np.where((sps > 0) & np.isfinite(sps), delta / sps, 0.0)
+    return np.cumsum(dt)
+
+
+def rate_columns(progress: dict[str, np.ndarray]) -> tuple[str, str, str] | None:
+    """``(source, success column, collision column)`` to judge a run by: evaluation if logged."""
+    for succ, coll in EVAL_RATE_COLUMNS:
+        if succ in progress and coll in progress:
+            ok = np.isfinite(progress[succ]) & np.isfinite(progress[coll])
+            if ok.any():
+                return "eval", succ, coll
+    succ, coll = TRAIN_RATE_COLUMNS
+    if succ in progress and coll in progress:
+        return "train", succ, coll
+    return None
+
+
+def time_to_target(
+    progress: dict[str, np.ndarray], target: Target = Target()
+) -> dict[str, Any] | None:
+    """The first logged point where the run meets ``target``, or ``None`` if it never does.
+
+    Returns ``{"env_steps", "wall_clock_s" (None if unknown), "source": "eval"|"train"}``.
+    """
+    cols = rate_columns(progress)
+    if cols is None or "global_step" not in progress:
+        return None
+    source, succ, coll = cols
+    s, c = progress[succ], progress[coll]
+    hit = np.isfinite(s) & np.isfinite(c) & (s >= target.success) & (c <= target.collision)
+    if not hit.any():
+        return None
+    i = int(np.argmax(hit))
+    elapsed = elapsed_seconds(progress)
+    wall = float(elapsed[i]) if elapsed is not None and np.isfinite(elapsed[i]) else None
+    return {"env_steps": int(progress["global_step"][i]), "wall_clock_s": wall, "source": source}
+
+
+def read_json(path: Path) -> dict[str, Any] | None:
+    """A JSON file as a dict, or ``None`` if missing or unreadable."""
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def run_identity(run_dir: Path) -> tuple[str, int | None]:
+    """``(algo label, seed)`` of a run directory.
+
+    Read from ``reproduce.json`` (written by ``safenav reproduce``), then ``config.json`` (keys
+    ``algo``/``seed`` at the top level or one level down), then the directory names
+    (``.../<algo>/seed<S>``).
+    """
+    for name in ("reproduce.json", "config.json"):
+        data = read_json(run_dir / name) or {}
+        candidates = [data] + [v for v in data.values() if isinstance(v, dict)]
+        algo = next((d["label"] for d in candidates if isinstance(d.get("label"), str)), None)
+        algo = algo or next((d["algo"] for d in candidates if isinstance(d.get("algo"), str)), None)
+        seed = next((d["seed"] for d in candidates if isinstance(d.get("seed"), int)), None)
+        if algo:
+            return algo, seed
+    seed = None
+    if run_dir.name.startswith("seed") and run_dir.name[4:].isdigit():
+        return run_dir.parent.name, int(run_dir.name[4:])
+    return run_dir.name, seed
+
+
+def seed_record(
+    run_dir: Path,
+    algo: str | None = None,
+    seed: int | None = None,
+    eval_result: dict[str, Any] | None = None,
+    wall_clock_s: float | None = None,
+    target: Target = Target(),
+) -> dict[str, Any]:
+    """One seed's row of ``results.json`` from its run directory.
+
+    ``algo`` and ``seed`` default to :func:`run_identity`.
+    ``eval_result`` defaults to ``run_dir/eval.json``; ``wall_clock_s`` (training time) to the
+    run's elapsed-time column, else ``reproduce.json``'s measured training time.
+    """
+    run_dir = Path(run_dir)
+    ev = eval_result if eval_result is not None else read_json(run_dir / "eval.json") or {}
+    progress = read_progress(run_dir) if (run_dir / "progress.csv").exists() else {}
+    steps = progress.get("global_step")
+    env_steps = int(np.nanmax(steps)) if steps is not None and np.isfinite(steps).any() else None
+    if wall_clock_s is None and progress:
+        elapsed = elapsed_seconds(progress)
+        if elapsed is not None and len(elapsed) and np.isfinite(elapsed[-1]):
+            wall_clock_s = float(elapsed[-1])
+    marker = read_json(run_dir / "reproduce.json") or {}
+    if marker.get("train_wall_clock_s") is not None and not any(
+        n in progress for n in ELAPSED_COLUMNS
+    ):
+        wall_clock_s = float(marker["train_wall_clock_s"])
+    if algo is None or seed is None:
+        ident_algo, ident_seed = run_identity(run_dir)
+        algo = algo or ident_algo
+        seed = ident_seed if seed is None else seed
+
+    def metric(key: str) -> float | None:
+        value = ev.get(key)
+        ok = isinstance(value, (int, float)) and math.isfinite(value)
+        return float(value) if ok else None
+
+    return {
+        "algo": algo,
+        "seed": seed,
+        "run_dir": str(run_dir),
+        "success_rate": metric("success_rate"),
+        "collision_rate": metric("collision_rate"),
+        "timeout_rate": metric("timeout_rate"),
+        "mean_time_to_goal": metric("mean_time_to_goal"),
+        "min_clearance": metric("min_clearance"),
+        "eval_episodes": ev.get("episodes"),
+        "env_steps": env_steps,
+        "wall_clock_s": wall_clock_s,
+        "time_to_target": time_to_target(progress, target) if progress else None,
+    }
+
+
+# -- aggregation -------------------------------------------------------------------------------
+
+
+def mean_std(values: Iterable[float | None]) -> dict[str, float] | None:
+    """``{"mean", "std"}`` of the finite values (sample std, ddof=1; 0 for one value), or None."""
+    xs = np.array([v for v in values if v is not None and math.isfinite(v)], dtype=float)
+    if xs.size == 0:
+        return None
+    std = float(xs.std(ddof=1)) if xs.size > 1 else 0.0
+    return {"mean": float(xs.mean()), "std": std}
+
+
+def aggregate_algo(
+    name: str, per_seed: Sequence[dict[str, Any]], target: Target = Target()
+) -> dict[str, Any]:
+    """Algorithm ``name``'s entry of ``results.json`` from its seeds' records (:func:`seed_record`).
+
+    ``env_steps`` and ``wall_clock_s`` are means per seed (one training run).
+    """
+    evaluated = [r for r in per_seed if r.get("success_rate") is not None]
+    reached = [r["time_to_target"] for r in per_seed if r.get("time_to_target")]
+    sources = sorted({t["source"] for t in reached})
+    steps = mean_std(r.get("env_steps") for r in per_seed)
+    wall = mean_std(r.get("wall_clock_s") for r in per_seed)
+    return {
+        "success_rate": mean_std(r["success_rate"] for r in evaluated),
+        "collision_rate": mean_std(r["collision_rate"] for r in evaluated),
+        "timeout_rate": mean_std(r["timeout_rate"] for r in evaluated),
+        "mean_time_to_goal": mean_std(r.get("mean_time_to_goal") for r in evaluated),
+        "seeds": len(evaluated),
+        "env_steps": steps["mean"] if steps else None,
+        "wall_clock_s": wall["mean"] if wall else None,
+        "time_to_target": {
+            "success_min": target.success,
+            "collision_max": target.collision,
+            "reached": len(reached),
+            "of": len(per_seed),
+            "env_steps": mean_std(t["env_steps"] for t in reached),
+            "wall_clock_s": mean_std(t["wall_clock_s"] for t in reached),
+            "source": sources[0] if len(sources) == 1 else ("mixed" if sources else None),
+        },
+        "paper": PAPER_RESULTS.get(name),
+        "per_seed": sorted(per_seed, key=lambda r: (r.get("seed") is None, r.get("seed") or 0)),
+    }
+
+
+def aggregate(
+    records: Sequence[dict[str, Any]],
+    meta: dict[str, Any] | None = None,
+    target: Target = Target(),
+) -> dict[str, Any]:
+    """``results.json``: records (each with an ``"algo"`` label) grouped and aggregated per algo.
+
+    Algorithms appear in the order of their first record. ``meta`` (command, machine, date, ...)
+    is merged in at the top level.
+    """
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for rec in records:
+        groups.setdefault(rec["algo"], []).append(rec)
+    algos = {name: aggregate_algo(name, recs, target) for name, recs in groups.items()}
+    return {"algos": algos, "paper": PAPER_RESULTS, **(meta or {})}
+
+
+# -- Markdown ------------------------------------------------------------------------------------
+
+
+def fmt_rate(stat: dict[str, float] | None) -> str:
+    """``{"mean": .847, "std": .012}`` -> ``"84.7 ± 1.2 %"``; None -> ``"—"``."""
+    if not stat:
+        return "—"
+    return f"{100 * stat['mean']:.1f} ± {100 * stat['std']:.1f} %"
+
+
+def fmt_seconds(seconds: float | None) -> str:
+    """Seconds as ``"42 s"``, ``"12.5 min"`` or ``"3.2 h"``; None -> ``"—"``."""
+    if seconds is None or not math.isfinite(seconds):
+        return "—"
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 2 * 3600:
+        return f"{seconds / 60:.1f} min"
+    return f"{seconds / 3600:.2f} h"
+
+
+def fmt_steps(steps: float | None) -> str:
+    """Env steps as ``"350k"`` / ``"1.20M"``; None -> ``"—"``."""
+    if steps is None or not math.isfinite(steps):
+        return "—"
+    if steps >= 1e6:
+        return f"{steps / 1e6:.2f}M"
+    if steps >= 1e4:
+        return f"{steps / 1e3:.0f}k"
+    return f"{steps:.0f}"
+
+
+def pct(value: float | None) -> str:
+    """A fraction as ``"84.7 %"``; None -> ``"—"``."""
+    return "—" if value is None else f"{100 * value:.1f} %"
+
+
+def render_markdown(results: dict[str, Any]) -> str:
+    """``results.md``: ours beside the paper's figures, time to target, and every seed."""
+    algos: dict[str, dict[str, Any]] = results["algos"]
+    paper: dict[str, dict[str, float]] = results.get("paper", PAPER_RESULTS)
+    lines = ["# Results: the fixed test scenario (paper IV-B)", ""]
+    ev = results.get("evaluation", {})
+    lines.append(
+        f"Every final policy flown on the fixed test scenario (map of env seed "
+        f"{ev.get('env_seed', 1)}, full density, {ev.get('episodes', 200)} fixed start/goal "
+        "episodes, deterministic actions); mean ± sample std across seeds. The paper's figures "
+        "are its Section IV-B values (Isaac Sim, RTX 4090); — where the paper did not run the "
+        "algorithm."
+    )
+    lines.append("")
+    lines.append(
+        "| algorithm | seeds | success (ours) | success (paper) | collision (ours) "
+        "| collision (paper) | timeout (ours) | env steps / seed | training time / seed |"
+    )
+    lines.append("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for name, a in algos.items():
+        p = paper.get(name)
+        lines.append(
+            f"| {display_name(name)} | {a['seeds']} | {fmt_rate(a['success_rate'])} "
+            f"| {pct(p['success_rate']) if p else '—'} "
+            f"| {fmt_rate(a['collision_rate'])} "
+            f"| {pct(p['collision_rate']) if p else '—'} "
+            f"| {fmt_rate(a['timeout_rate'])} | {fmt_steps(a['env_steps'])} "
+            f"| {fmt_seconds(a['wall_clock_s'])} |"
+        )
+    lines += ["", "## Time to target", ""]
+    first = next(iter(algos.values()), None)
+    ttt0 = first["time_to_target"] if first else {"success_min": 0.85, "collision_max": 0.10}
+    lines.append(
+        f"Env steps and training wall-clock until a run first logged success >= "
+        f"{100 * ttt0['success_min']:.0f} % and collision <= {100 * ttt0['collision_max']:.0f} % "
+        "(its periodic evaluation when logged — *eval* — else its training episodes — *train*); "
+        "mean ± std over the seeds that reached it."
+    )
+    lines += [
+        "",
+        "| algorithm | seeds that reached it | env steps | wall-clock | measured on |",
+        "|---|---:|---:|---:|---|",
+    ]
+    for name, a in algos.items():
+        t = a["time_to_target"]
+        steps = t["env_steps"]
+        wall = t["wall_clock_s"]
+        steps_s = f"{fmt_steps(steps['mean'])} ± {fmt_steps(steps['std'])}" if steps else "—"
+        wall_s = f"{fmt_seconds(wall['mean'])} ± {fmt_seconds(wall['std'])}" if wall else "—"
+        lines.append(
+            f"| {display_name(name)} | {t['reached']} / {t['of']} | {steps_s} | {wall_s} "
+            f"| {t['source'] or '—'} |"
+        )
+    lines += [
+        "",
+        "## Every seed",
+        "",
+        "| algorithm | seed | success | collision | timeout | env steps | training time | run |",
+        "|---|---:|---:|---:|---:|---:|---:|---|",
+    ]
+    for name, a in algos.items():
+        for r in a["per_seed"]:
+            lines.append(
+                f"| {display_name(name)} | {r.get('seed')} | {pct(r.get('success_rate'))} "
+                f"| {pct(r.get('collision_rate'))} | {pct(r.get('timeout_rate'))} "
+                f"| {fmt_steps(r.get('env_steps'))} | {fmt_seconds(r.get('wall_clock_s'))} "
+                f"| `{r.get('run_dir')}` |"
+            )
+    lines.append("")
+    for key, label in (("command", "Command"), ("machine", "Machine"), ("date", "Date")):
+        if results.get(key):
+            lines.append(f"{label}: `{results[key]}`  " if key == "command" else
+                         f"{label}: {results[key]}  ")  # fmt: skip
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def write_results(results: dict[str, Any], out_dir: str | Path) -> tuple[Path, Path]:
+    """Write ``results.json`` and ``results.md`` into ``out_dir``; returns their paths."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    js, md = out_dir / "results.json", out_dir / "results.md"
+    js.write_text(json.dumps(results, indent=2, allow_nan=False, default=_json_default) + "\n")
+    md.write_text(render_markdown(results))
+    return js, md
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, (np.integer, np.floating)):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+__all__ = [
+    "DISPLAY_NAMES",
+    "PAPER_RESULTS",
+    "Target",
+    "aggregate",
+    "aggregate_algo",
+    "display_name",
+    "elapsed_seconds",
+    "fmt_rate",
+    "fmt_seconds",
+    "fmt_steps",
+    "last_step",
+    "mean_std",
+    "pct",
+    "read_progress",
+    "render_markdown",
+    "run_identity",
+    "seed_record",
+    "time_to_target",
+    "write_results",
+]

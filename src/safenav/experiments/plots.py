@@ -1,0 +1,377 @@
+"""The paper's figures from run directories: Fig. 3 (learning curves), Fig. 4 (test results),
+and the Lagrange multiplier λ and cost threshold d over training.
+
+Inputs are run directories of ``safenav train`` (``progress.csv``; ``eval.json`` from
+``safenav eval`` for Fig. 4) or directories that contain them, e.g. a ``safenav reproduce``
+output. Runs are grouped by algorithm (:func:`safenav.experiments.aggregate.run_identity`).
+
+Curves of different seeds are logged at different steps; each seed is linearly interpolated onto
+a common grid of env steps, and the mean ± std (sample std, ddof=1) is taken over the seeds that
+cover each grid point, so a grid point beyond a short seed's last step averages the others.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only; never needs a display
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.ticker import FuncFormatter, PercentFormatter  # noqa: E402
+
+from safenav.errors import SafenavError  # noqa: E402
+from safenav.experiments.aggregate import (  # noqa: E402
+    PAPER_RESULTS,
+    display_name,
+    mean_std,
+    read_json,
+    read_progress,
+    run_identity,
+)
+
+COLORS: dict[str, str] = {
+    "csac": "#d62728",
+    "sac": "#1f77b4",
+    "ppo": "#2ca02c",
+    "ppo_lag": "#9467bd",
+    "sac_lag": "#ff7f0e",
+}
+_EXTRA_COLORS = ("#8c564b", "#e377c2", "#17becf", "#bcbd22", "#7f7f7f")
+#: Algorithms without a Lagrange multiplier; their constraint columns (if any) are not plotted.
+UNCONSTRAINED = frozenset({"sac", "ppo"})
+
+
+@dataclass
+class Run:
+    """One training run: its algorithm label, seed, directory, progress table and test result."""
+
+    algo: str
+    seed: int | None
+    run_dir: Path
+    progress: dict[str, np.ndarray]
+    eval: dict[str, Any] | None
+
+
+def find_runs(paths: Sequence[str | Path]) -> list[Run]:
+    """Every run directory (one holding ``progress.csv``) among or below ``paths``."""
+    dirs: list[Path] = []
+    for p in map(Path, paths):
+        if not p.exists():
+            raise SafenavError(f"{p} does not exist: pass run directories or a reproduce --out")
+        if (p / "progress.csv").exists():
+            dirs.append(p)
+        else:
+            dirs += sorted(f.parent for f in p.rglob("progress.csv"))
+    runs = []
+    for d in dict.fromkeys(dirs):
+        progress = read_progress(d)
+        if not progress or len(progress.get("global_step", ())) == 0:
+            continue
+        algo, seed = run_identity(d)
+        runs.append(Run(algo, seed, d, progress, read_json(d / "eval.json")))
+    if not runs:
+        raise SafenavError(
+            f"no run directories with a non-empty progress.csv in {[str(p) for p in paths]}"
+        )
+    return runs
+
+
+def color_of(algo: str, order: Sequence[str]) -> str:
+    """The algorithm's fixed colour (CSAC red, SAC blue, PPO green, ...)."""
+    if algo in COLORS:
+        return COLORS[algo]
+    extras = [a for a in order if a not in COLORS]
+    return _EXTRA_COLORS[extras.index(algo) % len(_EXTRA_COLORS)] if algo in extras else "#333"
+
+
+def group(runs: Sequence[Run]) -> dict[str, list[Run]]:
+    """Runs by algorithm, the paper's algorithms first (CSAC, SAC, PPO), then in given order."""
+    groups: dict[str, list[Run]] = {}
+    for r in runs:
+        groups.setdefault(r.algo, []).append(r)
+    known = [a for a in ("csac", "sac", "ppo", "sac_lag", "ppo_lag") if a in groups]
+    return {a: groups[a] for a in known + [a for a in groups if a not in known]}
+
+
+def smooth(values: np.ndarray, window: int) -> np.ndarray:
+    """Trailing moving average over ``window`` logged rows (NaN-aware); 1 = unchanged."""
+    if window <= 1:
+        return values
+    ok = np.isfinite(values)
+    v = np.where(ok, values, 0.0)
+    csum = np.cumsum(np.insert(v, 0, 0.0))
+    cnt = np.cumsum(np.insert(ok.astype(float), 0, 0.0))
+    idx = np.arange(1, len(values) + 1)
+    lo = np.maximum(idx - window, 0)
+    n = cnt[idx] - cnt[lo]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n > 0, (csum[idx] - csum[lo]) / n, np.nan)
+
+
+def resample(
+    steps: np.ndarray, values: np.ndarray, grid: np.ndarray, hold: bool = False
+) -> np.ndarray:
+    """``values`` logged at ``steps`` interpolated onto ``grid``; NaN outside the logged range.
+
+    ``hold``: keep the last logged value until the next (for step functions such as ``d``).
+    """
+    ok = np.isfinite(steps) & np.isfinite(values)
+    if ok.sum() == 0:
+        return np.full(grid.shape, np.nan)
+    s, v = steps[ok], values[ok]
+    order = np.argsort(s, kind="stable")
+    s, v = s[order], v[order]
+    if hold:
+        out = v[np.clip(np.searchsorted(s, grid, side="right") - 1, 0, len(s) - 1)]
+    else:
+        out = np.interp(grid, s, v)
+    out[(grid < s[0]) | (grid > s[-1])] = np.nan
+    return out
+
+
+def mean_curve(
+    runs: Sequence[Run], column: str, points: int = 200, window: int = 1, hold: bool = False
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int] | None:
+    """``(grid, mean, std, seeds)`` of ``column`` over ``runs``, or None if none logged it.
+
+    The grid spans the steps every seed covers (first logged step of the earliest to the last
+    logged step of the shortest seed), so the mean never jumps where a seed ends.
+    """
+    series = []
+    for r in runs:
+        if column in r.progress and np.isfinite(r.progress[column]).any():
+            steps = r.progress["global_step"]
+            series.append((steps, smooth(r.progress[column], window)))
+    if not series:
+        return None
+    lo = min(np.nanmin(s[np.isfinite(v)]) for s, v in series)
+    hi = min(np.nanmax(s[np.isfinite(v)]) for s, v in series)
+    grid = np.linspace(lo, hi, points) if hi > lo else np.array([hi])
+    stack = np.stack([resample(s, v, grid, hold) for s, v in series])
+    count = np.isfinite(stack).sum(axis=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns: no seed covers them
+        mean = np.nanmean(stack, axis=0)
+        std = np.where(count > 1, np.nanstd(stack, axis=0, ddof=1), 0.0)
+    keep = count > 0
+    return grid[keep], mean[keep], std[keep], len(series)
+
+
+def _fmt_step_tick(x: float, _pos: Any = None) -> str:
+    if x >= 1e6:
+        return f"{x / 1e6:g}M"
+    if x >= 1e3:
+        return f"{x / 1e3:g}k"
+    return f"{x:g}"
+
+
+def _steps_axis(ax: Any) -> None:
+    ax.xaxis.set_major_formatter(FuncFormatter(_fmt_step_tick))
+    ax.set_xlabel("environment steps")
+    ax.grid(alpha=0.3)
+
+
+def _curve_panel(ax, groups, column, ylabel, title, percent, window, hold=False) -> bool:
+    drew = False
+    order = list(groups)
+    for algo, runs in groups.items():
+        curve = mean_curve(runs, column, 400 if hold else 200, window, hold)
+        if curve is None:
+            continue
+        grid, mean, std, n = curve
+        scale = 100.0 if percent else 1.0
+        color = color_of(algo, order)
+        label = f"{display_name(algo)} ({n} seed{'s' if n != 1 else ''})"
+        ax.plot(grid, mean * scale, color=color, lw=2, label=label,
+                drawstyle="steps-post" if hold else "default")  # fmt: skip
+        ax.fill_between(grid, (mean - std) * scale, (mean + std) * scale, color=color, alpha=0.2,
+                        lw=0, step="post" if hold else None)  # fmt: skip
+        drew = True
+    ax.set_title(title)
+    ax.set_ylabel(ylabel)
+    _steps_axis(ax)
+    if percent:
+        ax.set_ylim(-2, 102)
+        ax.yaxis.set_major_formatter(PercentFormatter(100, decimals=0))
+    if drew:
+        ax.legend(loc="best", fontsize=9)
+    return drew
+
+
+def plot_learning_curves(groups: dict[str, list[Run]], out: Path, window: int = 1) -> Path | None:
+    """Fig. 3: training success rate and collision rate vs env steps, mean ± std over seeds."""
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.8), constrained_layout=True)
+    ok = _curve_panel(axes[0], groups, "charts/success_rate", "success rate (% of episodes)",
+                      "Success rate during training", True, window)  # fmt: skip
+    ok |= _curve_panel(axes[1], groups, "charts/collision_rate", "collision rate (% of episodes)",
+                       "Collision rate during training", True, window)  # fmt: skip
+    fig.suptitle("Learning curves (cf. paper Fig. 3): mean over seeds, shading ± 1 std",
+                 fontsize=13)  # fmt: skip
+    return _save(fig, out) if ok else _discard(fig)
+
+
+def plot_return_cost(groups: dict[str, list[Run]], out: Path, window: int = 1) -> Path | None:
+    """Episodic return and episodic cost (collisions per episode) during training."""
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.8), constrained_layout=True)
+    ok = _curve_panel(axes[0], groups, "charts/episodic_return", "return per episode",
+                      "Episodic return during training", False, window)  # fmt: skip
+    ok |= _curve_panel(axes[1], groups, "charts/episodic_cost", "cost per episode (collisions)",
+                       "Episodic cost during training", False, window)  # fmt: skip
+    fig.suptitle("Return and cost: mean over seeds, shading ± 1 std", fontsize=13)
+    return _save(fig, out) if ok else _discard(fig)
+
+
+def plot_constraint(groups: dict[str, list[Run]], out: Path) -> Path | None:
+    """λ (Lagrange multiplier) and d (cost threshold, curriculum) over training, CSAC family."""
+    constrained = {a: r for a, r in groups.items() if a not in UNCONSTRAINED}
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.8), constrained_layout=True)
+    ok = _curve_panel(axes[0], constrained, "constraint/lambda", "λ (dimensionless)",
+                      "Lagrange multiplier λ", False, 1)  # fmt: skip
+    ok |= _curve_panel(axes[1], constrained, "constraint/d", "d (cost threshold)",
+                       "Cost threshold d (constraint curriculum)", False, 1, hold=True)  # fmt: skip
+    d_values = [y for line in axes[1].get_lines() for y in line.get_ydata() if y > 0]
+    if d_values and max(d_values) / min(d_values) > 20:
+        axes[1].set_yscale("log")  # a curriculum down to d_min near 0 spans decades
+    fig.suptitle("Constraint: λ and d over training, mean over seeds, shading ± 1 std",
+                 fontsize=13)  # fmt: skip
+    return _save(fig, out) if ok else _discard(fig)
+
+
+def eval_table(groups: dict[str, list[Run]]) -> dict[str, dict[str, Any]]:
+    """Per algorithm: mean/std of test success and collision rates over its evaluated seeds."""
+    table = {}
+    for algo, runs in groups.items():
+        evals = [r.eval for r in runs if r.eval and "success_rate" in r.eval]
+        if evals:
+            table[algo] = {
+                "success_rate": mean_std(e["success_rate"] for e in evals),
+                "collision_rate": mean_std(e["collision_rate"] for e in evals),
+                "seeds": len(evals),
+                "episodes": evals[0].get("episodes"),
+            }
+    return table
+
+
+def plot_test_results(groups: dict[str, list[Run]], out: Path) -> Path | None:
+    """Fig. 4: test success and collision rates, ours (mean ± std bars) beside the paper's."""
+    from matplotlib.patches import Patch
+
+    table = eval_table(groups)
+    if not table:
+        return None
+    algos = list(table)
+    fig, axes = plt.subplots(1, 2, figsize=(max(10.0, 2.0 * len(algos) + 5), 5.0),
+                             constrained_layout=True)  # fmt: skip
+    x = np.arange(len(algos), dtype=float)
+    width = 0.38
+    colors = [color_of(a, algos) for a in algos]
+    panels = (("success_rate", "Success rate", "higher is better"),
+              ("collision_rate", "Collision rate", "lower is better"))  # fmt: skip
+    for ax, (key, name, better) in zip(axes, panels, strict=True):
+        paper = [PAPER_RESULTS.get(a, {}).get(key) for a in algos]
+        has = np.array([p is not None for p in paper])
+        ours = np.array([100 * table[a][key]["mean"] for a in algos])
+        err = np.array([100 * table[a][key]["std"] for a in algos])
+        # Side by side where the paper has a figure; centred alone where it does not.
+        xo = np.where(has, x - width / 2, x)
+        ax.bar(xo, ours, width, yerr=err, capsize=5, color=colors, edgecolor="black", lw=0.8,
+               error_kw={"elinewidth": 1.5})  # fmt: skip
+        tops = list(ours + err)
+        for xi, m, e in zip(xo, ours, err, strict=True):
+            ax.annotate(f"{m:.1f}", (xi, m + e), xytext=(0, 3), textcoords="offset points",
+                        ha="center", fontsize=10, fontweight="bold")  # fmt: skip
+        if has.any():
+            pv = np.array([100 * p for p in paper if p is not None])
+            ax.bar(x[has] + width / 2, pv, width, color="white", hatch="///", lw=1.5,
+                   edgecolor=[c for c, h in zip(colors, has, strict=True) if h])  # fmt: skip
+            tops += list(pv)
+            for xi, m in zip(x[has] + width / 2, pv, strict=True):
+                ax.annotate(f"{m:.1f}", (xi, m), xytext=(0, 3), textcoords="offset points",
+                            ha="center", fontsize=10, color="#444")  # fmt: skip
+        n = [table[a]["seeds"] for a in algos]
+        ax.set_xticks(x, [f"{display_name(a)}\n{k} seed{'s' if k != 1 else ''}"
+                          for a, k in zip(algos, n, strict=True)])  # fmt: skip
+        ax.set_ylim(0, min(112.0, max(max(tops) * 1.18, 10.0) + 3))
+        ax.yaxis.set_major_formatter(PercentFormatter(100, decimals=0))
+        ax.set_ylabel(f"{name.lower()} (% of test episodes)")
+        ax.set_title(f"{name} ({better})")
+        ax.grid(axis="y", alpha=0.3)
+        handles = [Patch(facecolor="#999", edgecolor="black", label="ours: mean ± std over seeds")]
+        if has.any():
+            handles.append(Patch(facecolor="white", edgecolor="#555", hatch="///",
+                                 label="paper, Sec. IV-B (Isaac Sim)"))  # fmt: skip
+        ax.legend(handles=handles, loc="upper right", fontsize=9)
+    episodes = next(iter(table.values())).get("episodes")
+    fig.suptitle(
+        "Fixed test scenario (cf. paper Fig. 4): env seed 1, full density"
+        + (f", {episodes} episodes per policy" if episodes else ""),
+        fontsize=13,
+    )
+    return _save(fig, out)
+
+
+def _save(fig: Any, out: Path) -> Path:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+    return out
+
+
+def _discard(fig: Any) -> None:
+    plt.close(fig)
+    return None
+
+
+#: File names of the figures :func:`plot_all` writes.
+FIGURES = {
+    "learning_curves": "fig3_learning_curves.png",
+    "test_results": "fig4_test_results.png",
+    "constraint": "constraint_lambda_d.png",
+    "return_cost": "return_cost.png",
+}
+
+
+def plot_all(
+    paths: Sequence[str | Path],
+    out_dir: str | Path,
+    window: int = 1,
+    runs: Sequence[Run] | None = None,
+) -> list[Path]:
+    """Write every figure the runs under ``paths`` support into ``out_dir``; returns the paths.
+
+    Fig. 4 needs ``eval.json`` in the run directories; λ/d need a constrained algorithm that
+    logged ``constraint/lambda``. Figures without data are not written. ``runs`` (from
+    :func:`find_runs`) saves reading ``paths`` again.
+    """
+    groups = group(runs if runs is not None else find_runs(paths))
+    out_dir = Path(out_dir)
+    written = [
+        plot_learning_curves(groups, out_dir / FIGURES["learning_curves"], window),
+        plot_test_results(groups, out_dir / FIGURES["test_results"]),
+        plot_constraint(groups, out_dir / FIGURES["constraint"]),
+        plot_return_cost(groups, out_dir / FIGURES["return_cost"], window),
+    ]
+    return [p for p in written if p is not None]
+
+
+__all__ = [
+    "FIGURES",
+    "Run",
+    "find_runs",
+    "mean_curve",
+    "plot_all",
+    "plot_constraint",
+    "plot_learning_curves",
+    "plot_return_cost",
+    "plot_test_results",
+    "resample",
+    "smooth",
+    "eval_table",
+]

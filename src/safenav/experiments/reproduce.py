@@ -1,0 +1,571 @@
+"""``safenav reproduce``: the paper's Section IV as one command, every trial a Ray task.
+
+A *trial* is one algorithm × one seed: ``safenav train`` into its run directory, then
+``safenav eval`` of the final checkpoint on the fixed test scenario (env seed 1, paper IV-B).
+Each trial is a Ray task that reserves ``cpus_per_trial`` CPUs and runs both commands as
+subprocesses with that many torch threads, logging to ``OUT/logs/``. Ray is the only scheduler:
+``ray.init()`` starts a local instance (all cores of this machine) or, with ``address``, joins an
+existing cluster, and runs as many trials at once as the CPUs allow.
+
+Layout of ``OUT`` (the trial state lives in the files, so rerunning the same command resumes):
+
+```
+OUT/runs/<algo>/seed<S>/   the run directory of safenav train (config.json, progress.csv, tb/,
+                           checkpoint.pt) plus eval.json (safenav eval) and reproduce.json
+                           (what this module ran: total steps, attempts, training wall-clock)
+OUT/logs/<algo>-seed<S>.{train,eval}.log   the subprocesses' output
+OUT/results.json, OUT/results.md           mean ± std across seeds (safenav.experiments.aggregate)
+OUT/figures/*.png                          safenav plot OUT
+```
+
+A trial whose ``reproduce.json`` says it trained to ``total_steps`` and whose ``eval.json`` is
+newer than its checkpoint is skipped; one with a checkpoint but unfinished is resumed with
+``--resume``; one trained but not evaluated is only evaluated.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import platform
+import shlex
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+from safenav.errors import SafenavError
+from safenav.experiments.aggregate import (
+    aggregate,
+    display_name,
+    fmt_rate,
+    fmt_seconds,
+    last_step,
+    read_json,
+    seed_record,
+    write_results,
+)
+
+#: The algorithms ``safenav train --algo`` accepts (SPEC §3).
+KNOWN_ALGOS: tuple[str, ...] = ("csac", "sac", "ppo", "ppo_lag", "sac_lag")
+#: Env steps per trial when ``--total-steps`` names no figure for an algorithm.
+DEFAULT_TOTAL_STEPS: dict[str, int] = {
+    "csac": 1_000_000,
+    "sac": 1_000_000,
+    "sac_lag": 1_000_000,
+    "ppo": 3_000_000,
+    "ppo_lag": 3_000_000,
+}
+FALLBACK_TOTAL_STEPS = 1_000_000
+
+
+@dataclass(frozen=True)
+class Trial:
+    """One algorithm × one seed: what to train, where, with which resources."""
+
+    label: str
+    """Name in the results (an algorithm, or a ``--variants`` label)."""
+    algo: str
+    """``safenav train --algo``."""
+    seed: int
+    total_steps: int
+    run_dir: Path
+    log_dir: Path
+    preset: str | None = "paper"
+    device: str = "cpu"
+    cpus: int = 2
+    """CPUs reserved in Ray and torch threads of the subprocesses."""
+    gpus: float = 0.0
+    eval_episodes: int = 200
+    env_seed: int = 1
+    train_args: tuple[str, ...] = ()
+    """Extra arguments appended to ``safenav train`` (config overrides)."""
+
+    @property
+    def name(self) -> str:
+        return f"{self.label}-seed{self.seed}"
+
+    @property
+    def checkpoint(self) -> Path:
+        return self.run_dir / "checkpoint.pt"
+
+    def log(self, kind: str) -> Path:
+        """``OUT/logs/<label>-seed<S>.<kind>``."""
+        return self.log_dir / f"{self.name}.{kind}"
+
+    def train_command(self, resume: bool, overwrite: bool = False) -> list[str]:
+        """``python -m safenav train ...`` for this trial."""
+        cmd = [sys.executable, "-m", "safenav", "train", "--algo", self.algo, "--env",
+               "SafeNav-v0", "--seed", str(self.seed), "--total-steps", str(self.total_steps),
+               "--run-dir", str(self.run_dir), "--device", self.device]  # fmt: skip
+        if self.preset is not None:
+            cmd += ["--preset", self.preset]
+        if resume:
+            cmd += ["--resume", str(self.run_dir)]
+        elif overwrite:
+            cmd += ["--overwrite"]
+        return cmd + list(self.train_args)
+
+    def eval_command(self) -> list[str]:
+        """``python -m safenav eval CHECKPOINT ...`` writing ``eval.json`` into the run dir."""
+        return [sys.executable, "-m", "safenav", "eval", str(self.checkpoint), "--env-seed",
+                str(self.env_seed), "--episodes", str(self.eval_episodes), "--device",
+                self.device, "--json", str(self.run_dir / "eval.json")]  # fmt: skip
+
+
+def trial_state(trial: Trial) -> str:
+    """``"done"``, ``"evaluate"`` (trained, not evaluated), ``"resume"`` or ``"fresh"``."""
+    marker = read_json(trial.run_dir / "reproduce.json") or {}
+    trained = bool(marker.get("trained")) and int(marker.get("total_steps", 0)) >= trial.total_steps
+    if trained and trial.checkpoint.exists():
+        ev = read_json(trial.run_dir / "eval.json") or {}
+        fresh_eval = (
+            ev.get("episodes") == trial.eval_episodes
+            and ev.get("env_seed") == trial.env_seed
+            and (trial.run_dir / "eval.json").stat().st_mtime >= trial.checkpoint.stat().st_mtime
+        )
+        return "done" if fresh_eval else "evaluate"
+    return "resume" if trial.checkpoint.exists() else "fresh"
+
+
+class TrialFailed(RuntimeError):
+    """A trial's subprocess exited with an error; the message ends with its log's last lines."""
+
+
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
+    """Linux: the child gets SIGTERM when the Ray worker that started it dies."""
+    with contextlib.suppress(Exception):
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
+def _run_logged(cmd: list[str], log: Path, threads: int) -> float:
+    """Run ``cmd`` with ``threads`` torch/OpenMP threads, output appended to ``log``.
+
+    Returns the seconds it took; raises :class:`TrialFailed` on a non-zero exit. If this process
+    is interrupted (Ray cancelled the task), the child is terminated first.
+    """
+    env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads),
+           "COLUMNS": "120", "PYTHONUNBUFFERED": "1"}  # fmt: skip
+    log.parent.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    with log.open("ab") as out:
+        out.write(f"\n$ {shlex.join(cmd)}\n".encode())
+        out.flush()
+        preexec = _die_with_parent if sys.platform.startswith("linux") else None
+        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env,
+                                preexec_fn=preexec)  # fmt: skip
+        try:
+            rc = proc.wait()
+        except BaseException:
+            proc.terminate()
+            try:
+                proc.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+            raise
+    seconds = time.perf_counter() - t0
+    if rc != 0:
+        tail = log.read_text(errors="replace").strip().splitlines()[-15:]
+        raise TrialFailed(f"exit code {rc} from: {shlex.join(cmd[1:])}\n" + "\n".join(tail))
+    return seconds
+
+
+def _write_json(path: Path, data: dict[str, Any]) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, default=str))
+    os.replace(tmp, path)
+
+
+def run_trial(trial: Trial) -> dict[str, Any]:
+    """Train (fresh or resumed) and evaluate one trial as its files require; the Ray task body.
+
+    Returns ``{"name", "state", "host", "started", "train_s", "eval_s"}`` (``state`` as found by
+    :func:`trial_state` before it ran; ``started`` as ``time.time()``).
+    """
+    started = time.time()
+    state = trial_state(trial)
+    info: dict[str, Any] = {"name": trial.name, "state": state, "host": socket.gethostname(),
+                            "started": started, "train_s": 0.0, "eval_s": 0.0}  # fmt: skip
+    status = trial.log("status")
+    status.parent.mkdir(parents=True, exist_ok=True)
+    marker_path = trial.run_dir / "reproduce.json"
+    if state in ("fresh", "resume"):
+        status.write_text("training")
+        # No checkpoint yet: whatever an earlier attempt left in the run dir is replaced.
+        overwrite = state == "fresh" and trial.run_dir.exists()
+        cmd = trial.train_command(resume=state == "resume", overwrite=overwrite)
+        attempt: dict[str, Any] = {
+            "started": datetime.fromtimestamp(started, timezone.utc).isoformat(timespec="seconds"),
+            "host": info["host"],
+            "resume": state == "resume",
+        }
+        try:
+            info["train_s"] = _run_logged(cmd, trial.log("train.log"), trial.cpus)
+        finally:
+            # Keep the record of every attempt, including failed ones, for the wall-clock total.
+            marker = read_json(marker_path) or {}
+            attempts = marker.get("attempts", [])
+            attempts.append({**attempt, "seconds": round(time.time() - started, 2)})
+            marker = {
+                **asdict(trial),
+                "run_dir": str(trial.run_dir),
+                "log_dir": str(trial.log_dir),
+                "trained": False,
+                "attempts": attempts,
+                "train_wall_clock_s": round(sum(a["seconds"] for a in attempts), 2),
+                "command": shlex.join(cmd[1:]),
+            }
+            if trial.run_dir.exists():
+                _write_json(marker_path, marker)
+        marker["trained"] = True
+        _write_json(marker_path, marker)
+    if state != "done":
+        status.write_text("evaluating")
+        info["eval_s"] = _run_logged(trial.eval_command(), trial.log("eval.log"), trial.cpus)
+    status.write_text("done")
+    return info
+
+
+# -- the sweep -----------------------------------------------------------------------------------
+
+
+def parse_steps(text: str) -> int:
+    """``"300000"``, ``"300_000"``, ``"300k"``, ``"2M"``, ``"1e6"`` -> an int of env steps."""
+    t = text.strip().lower().replace("_", "")
+    scale = {"k": 1_000, "m": 1_000_000}.get(t[-1:], 1)
+    try:
+        value = float(t[:-1] if scale > 1 else t) * scale
+    except ValueError:
+        raise SafenavError(f"--total-steps: {text!r} is not a number of env steps") from None
+    if value < 1 or value != int(value):
+        raise SafenavError(f"--total-steps: {text!r} must be a positive whole number")
+    return int(value)
+
+
+def resolve_total_steps(specs: Sequence[str], labels: Sequence[str],
+                        algo_of: dict[str, str]) -> dict[str, int]:  # fmt: skip
+    """Env steps per label from ``["N", "csac=300k", ...]``: a bare ``N`` is the default for all.
+
+    Labels named nowhere get :data:`DEFAULT_TOTAL_STEPS` of their algorithm.
+    """
+    default: int | None = None
+    named: dict[str, int] = {}
+    for spec in specs:
+        if "=" in spec:
+            key, value = spec.split("=", 1)
+            if key not in labels:
+                raise SafenavError(
+                    f"--total-steps {spec}: {key!r} is not among the algorithms {list(labels)}"
+                )
+            named[key] = parse_steps(value)
+        else:
+            default = parse_steps(spec)
+    return {
+        label: named.get(label, default if default is not None else
+                         DEFAULT_TOTAL_STEPS.get(algo_of[label], FALLBACK_TOTAL_STEPS))
+        for label in labels
+    }  # fmt: skip
+
+
+def parse_variants(specs: Sequence[str]) -> dict[str, tuple[str, tuple[str, ...]]]:
+    """``["csac_min=csac --flag value"]`` -> ``{"csac_min": ("csac", ("--flag", "value"))}``."""
+    variants: dict[str, tuple[str, tuple[str, ...]]] = {}
+    for spec in specs:
+        label, sep, rest = spec.partition("=")
+        words = shlex.split(rest)
+        if not sep or not label.strip() or not words:
+            raise SafenavError(
+                f"--variants {spec!r}: write LABEL=ALGO [train options], "
+                "e.g. 'csac_nocurr=csac --no-curriculum'"
+            )
+        if words[0] not in KNOWN_ALGOS:
+            raise SafenavError(f"--variants {spec!r}: unknown algorithm {words[0]!r}; "
+                               f"choose one of {list(KNOWN_ALGOS)}")  # fmt: skip
+        variants[label.strip()] = (words[0], tuple(words[1:]))
+    return variants
+
+
+@dataclass
+class SweepConfig:
+    """Everything ``safenav reproduce`` needs; the CLI fills it from its flags."""
+
+    out: Path
+    algos: tuple[str, ...] = ("csac", "sac", "ppo")
+    seeds: int = 5
+    first_seed: int = 0
+    total_steps: tuple[str, ...] = ()
+    preset: str | None = "paper"
+    address: str | None = None
+    cpus_per_trial: int = 2
+    gpus_per_trial: float = 0.0
+    num_cpus: int | None = None
+    eval_episodes: int = 200
+    env_seed: int = 1
+    device: str = "cpu"
+    train_args: tuple[str, ...] = ()
+    variants: tuple[str, ...] = ()
+    plots: bool = True
+    progress: bool = True
+    command: str = ""
+    extra_meta: dict[str, Any] = field(default_factory=dict)
+
+
+def plan(cfg: SweepConfig) -> list[Trial]:
+    """The trials of a sweep, seed-major (every algorithm's seed 0 first) so that partial
+    sweeps cover every algorithm."""
+    if cfg.seeds < 1:
+        raise SafenavError(f"--seeds {cfg.seeds}: need at least one seed")
+    if cfg.cpus_per_trial < 1:
+        raise SafenavError(f"--cpus-per-trial {cfg.cpus_per_trial}: need at least one CPU")
+    if cfg.eval_episodes < 1:
+        raise SafenavError(f"--eval-episodes {cfg.eval_episodes}: need at least one episode")
+    variants = parse_variants(cfg.variants)
+    labels = list(dict.fromkeys([*cfg.algos, *variants]))
+    if not labels:
+        raise SafenavError("--algos: name at least one algorithm")
+    algo_of: dict[str, str] = {}
+    for label in labels:
+        if label in variants:
+            algo_of[label] = variants[label][0]
+        elif label in KNOWN_ALGOS:
+            algo_of[label] = label
+        else:
+            raise SafenavError(f"--algos: unknown algorithm {label!r}; choose from "
+                               f"{list(KNOWN_ALGOS)} or define it with --variants")  # fmt: skip
+    steps = resolve_total_steps(cfg.total_steps, labels, algo_of)
+    out = Path(cfg.out).resolve()
+    return [
+        Trial(label=label, algo=algo_of[label], seed=seed, total_steps=steps[label],
+              run_dir=out / "runs" / label / f"seed{seed}", log_dir=out / "logs",
+              preset=cfg.preset, device=cfg.device, cpus=cfg.cpus_per_trial,
+              gpus=cfg.gpus_per_trial, eval_episodes=cfg.eval_episodes, env_seed=cfg.env_seed,
+              train_args=tuple(cfg.train_args) + variants.get(label, ("", ()))[1])
+        for seed in range(cfg.first_seed, cfg.first_seed + cfg.seeds)
+        for label in labels
+    ]  # fmt: skip
+
+
+def machine_description() -> str:
+    """CPU model, core count, memory, OS, Python, torch (and GPU) of this machine, in one line."""
+    cpu = platform.processor() or platform.machine()
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    mem = ""
+    with contextlib.suppress(OSError, ValueError, IndexError):
+        kib = int(Path("/proc/meminfo").read_text().split("\n")[0].split()[1])
+        mem = f", {kib / 2**20:.0f} GiB RAM"
+    parts = [f"{cpu}, {os.cpu_count()} CPUs{mem}", f"{platform.system()} {platform.release()}",
+             f"Python {platform.python_version()}"]  # fmt: skip
+    with contextlib.suppress(ImportError):
+        import torch
+
+        parts.append(f"torch {torch.__version__}")
+        if torch.cuda.is_available():
+            parts.append(torch.cuda.get_device_name(0))
+    return "; ".join(parts)
+
+
+def _init_ray(cfg: SweepConfig) -> tuple[bool, float]:
+    """Start or join Ray; returns ``(we started it, seconds it took)``."""
+    import ray
+
+    if ray.is_initialized():
+        return False, 0.0
+    t0 = time.perf_counter()
+    address = cfg.address or os.environ.get("RAY_ADDRESS")
+    kwargs: dict[str, Any] = {"log_to_driver": False, "configure_logging": False}
+    if address:
+        ray.init(address=address, **kwargs)
+    else:
+        ray.init(num_cpus=cfg.num_cpus or os.cpu_count() or 1, include_dashboard=False,
+                 **kwargs)  # fmt: skip
+    return True, time.perf_counter() - t0
+
+
+def _check_resources(cfg: SweepConfig) -> dict[str, Any]:
+    """Refuse a sweep no Ray node can run; returns a description of the cluster."""
+    import ray
+
+    nodes = [n for n in ray.nodes() if n.get("Alive")]
+    node_cpus = [n.get("Resources", {}).get("CPU", 0.0) for n in nodes]
+    node_gpus = [n.get("Resources", {}).get("GPU", 0.0) for n in nodes]
+    if cfg.cpus_per_trial > max(node_cpus, default=0.0):
+        raise SafenavError(
+            f"--cpus-per-trial {cfg.cpus_per_trial} exceeds the largest Ray node's "
+            f"{max(node_cpus, default=0.0):.0f} CPUs: lower it (or --num-cpus for local Ray)"
+        )
+    if cfg.gpus_per_trial > max(node_gpus, default=0.0):
+        raise SafenavError(f"--gpus-per-trial {cfg.gpus_per_trial}: no Ray node has that many GPUs")
+    return {"nodes": len(nodes), "cpus": sum(node_cpus), "gpus": sum(node_gpus),
+            "parallel_trials": int(sum(c // cfg.cpus_per_trial for c in node_cpus))}  # fmt: skip
+
+
+def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
+    """Train and evaluate every trial on Ray, then write ``results.json``, ``results.md`` and
+    the figures into ``cfg.out``; returns the results dict.
+
+    Trials that fail are reported (their log's last lines) and left out of the results; if any
+    failed, :class:`TrialFailed` is raised after the results of the others are written.
+    """
+    import ray
+    from rich.console import Console
+
+    console = Console(stderr=True)
+    trials = plan(cfg)
+    out = Path(cfg.out).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    states = {t.name: trial_state(t) for t in trials}
+    todo = [t for t in trials if states[t.name] != "done"]
+    sweep_t0 = time.perf_counter()
+    started_ray, init_s = False, 0.0
+    cluster: dict[str, Any] = {}
+    outcomes: dict[str, dict[str, Any]] = {}
+    failures: dict[str, str] = {}
+    try:
+        if todo:
+            started_ray, init_s = _init_ray(cfg)
+            cluster = _check_resources(cfg)
+            console.print(
+                f"[bold]reproduce[/]: {len(trials)} trials ({len(trials) - len(todo)} already "
+                f"done), {cluster['parallel_trials']} at a time on {cluster['nodes']} Ray "
+                f"node(s), {cluster['cpus']:.0f} CPUs; logs in {out / 'logs'}"
+            )
+            outcomes, failures = _run_on_ray(cfg, todo, states, console)
+    finally:
+        if started_ray:
+            ray.shutdown()
+    sweep_s = time.perf_counter() - sweep_t0
+
+    records = [
+        seed_record(t.run_dir, algo=t.label, seed=t.seed)
+        for t in trials
+        if t.name not in failures and (t.run_dir / "eval.json").exists()
+    ]
+    submitted = [o for o in outcomes.values() if "submitted" in o]
+    latency = [o["started"] - o["submitted"] for o in submitted]
+    meta = {
+        "command": cfg.command,
+        "machine": machine_description(),
+        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "preset": cfg.preset,
+        "total_steps": {t.label: t.total_steps for t in trials},
+        "evaluation": {"env_seed": cfg.env_seed, "episodes": cfg.eval_episodes},
+        "ray": {
+            "address": cfg.address or os.environ.get("RAY_ADDRESS") or "local",
+            "cpus_per_trial": cfg.cpus_per_trial,
+            "gpus_per_trial": cfg.gpus_per_trial,
+            **cluster,
+            "init_s": round(init_s, 2),
+            "first_task_start_s": round(min(latency), 3) if latency else None,
+        },
+        "sweep_wall_clock_s": round(sweep_s, 1),
+        "failed": sorted(failures),
+        **cfg.extra_meta,
+    }
+    results = aggregate(records, meta)
+    js, md = write_results(results, out)
+    figures: list[Path] = []
+    if cfg.plots and records:
+        from safenav.experiments.plots import plot_all
+
+        figures = plot_all([out], out / "figures")
+    _print_summary(console, results, [js, md, *figures])
+    if failures:
+        for name, why in failures.items():
+            console.print(f"[red]failed[/] {name}: {why.splitlines()[0]}  (log: {out / 'logs'})")
+        raise TrialFailed(f"{len(failures)} of {len(trials)} trials failed: {sorted(failures)}; "
+                          f"rerun the same command to retry them")  # fmt: skip
+    return results
+
+
+def _run_on_ray(cfg: SweepConfig, todo: list[Trial], states: dict[str, str], console: Any):
+    """Submit ``todo`` as Ray tasks and wait for them with a live progress table."""
+    import ray
+    from rich import progress as rp
+
+    remote = ray.remote(run_trial)
+    pending: dict[Any, Trial] = {}
+    submitted: dict[str, float] = {}
+    for trial in todo:
+        ref = remote.options(num_cpus=trial.cpus, num_gpus=trial.gpus, max_retries=0,
+                             name=f"trial:{trial.name}").remote(trial)  # fmt: skip
+        pending[ref] = trial
+        submitted[trial.name] = time.time()
+    outcomes: dict[str, dict[str, Any]] = {}
+    failures: dict[str, str] = {}
+    columns = (rp.TextColumn("{task.description:<22}"), rp.BarColumn(), rp.MofNCompleteColumn(),
+               rp.TextColumn("{task.fields[status]:<10}"), rp.TimeElapsedColumn())  # fmt: skip
+    with rp.Progress(*columns, console=console, disable=not cfg.progress,
+                  refresh_per_second=2) as bar:  # fmt: skip
+        rows = {t.name: bar.add_task(t.name, total=t.total_steps, status="queued",
+                                     completed=last_step(t.run_dir)) for t in todo}  # fmt: skip
+        try:
+            while pending:
+                ready, _ = ray.wait(list(pending), num_returns=1, timeout=1.0)
+                for ref in ready:
+                    trial = pending.pop(ref)
+                    try:
+                        outcome = ray.get(ref)
+                        outcome["submitted"] = submitted[trial.name]
+                        outcomes[trial.name] = outcome
+                        status = "done"
+                    except ray.exceptions.RayError as err:
+                        cause = getattr(err, "cause", None) or err
+                        failures[trial.name] = str(cause)
+                        status = "failed"
+                    bar.update(rows[trial.name], completed=last_step(trial.run_dir),
+                               status=status)  # fmt: skip
+                for trial in pending.values():
+                    status_file = trial.log("status")
+                    status = status_file.read_text().strip() if status_file.exists() else "queued"
+                    bar.update(rows[trial.name], completed=last_step(trial.run_dir),
+                               status=status if status != "done" else "finishing")  # fmt: skip
+        except KeyboardInterrupt:
+            for ref in pending:
+                ray.cancel(ref)
+            raise
+    return outcomes, failures
+
+
+def _print_summary(console: Any, results: dict[str, Any], files: list[Path]) -> None:
+    from rich.table import Table
+
+    table = Table(title="fixed test scenario: mean ± std across seeds")
+    for col in ("algorithm", "seeds", "success", "collision", "timeout", "training / seed"):
+        table.add_column(col, justify="left" if col == "algorithm" else "right")
+    for name, a in results["algos"].items():
+        table.add_row(display_name(name), str(a["seeds"]), fmt_rate(a["success_rate"]),
+                      fmt_rate(a["collision_rate"]), fmt_rate(a["timeout_rate"]),
+                      fmt_seconds(a["wall_clock_s"]))  # fmt: skip
+    console.print(table)
+    for path in files:
+        console.print(f"wrote {path}")
+
+
+__all__ = [
+    "DEFAULT_TOTAL_STEPS",
+    "KNOWN_ALGOS",
+    "SweepConfig",
+    "Trial",
+    "TrialFailed",
+    "machine_description",
+    "parse_steps",
+    "parse_variants",
+    "plan",
+    "resolve_total_steps",
+    "run_sweep",
+    "run_trial",
+    "trial_state",
+]

@@ -1,0 +1,98 @@
+"""safenav plot: figures from synthetic run directories; resampling onto a common step grid."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from safenav.cli import main
+from safenav.errors import SafenavError
+from safenav.experiments import plots
+from test_reproduce_synthetic import learning_run, write_eval
+
+
+def synthetic_runs(root):
+    """csac x3 (seeds of different lengths), sac x2, ppo x2 (unconstrained), ppo_lag x1."""
+    spec = {"csac": (3, 0.95, True), "sac": (2, 0.85, False), "ppo": (2, 0.7, False),
+            "ppo_lag": (1, 0.75, True)}  # fmt: skip
+    for algo, (n, final, constrained) in spec.items():
+        for seed in range(n):
+            run = root / "runs" / algo / f"seed{seed}"
+            learning_run(run, algo, seed, steps=20_000 + 2_000 * seed, final_success=final,
+                         constrained=constrained)  # fmt: skip
+            write_eval(run, final - 0.02 * seed, (1 - final) / 2 + 0.01 * seed)
+    return root
+
+
+def test_resample_interpolates_and_leaves_nan_outside():
+    grid = np.array([0.0, 50.0, 100.0, 150.0, 250.0])
+    out = plots.resample(np.array([50.0, 150.0, 200.0]), np.array([1.0, 3.0, np.nan]), grid)
+    assert np.isnan(out[0]) and np.isnan(out[4])
+    assert out[1:4].tolist() == [1.0, 2.0, 3.0]
+
+
+def test_mean_curve_over_seeds_of_different_length(tmp_path):
+    for seed, (steps, slope) in enumerate([(4000, 1e-4), (2000, 3e-4)]):
+        run = tmp_path / f"seed{seed}"
+        run.mkdir()
+        (run / "progress.csv").write_text(
+            "global_step,charts/success_rate\n"
+            + "".join(f"{s},{slope * s}\n" for s in range(1000, steps + 1, 1000))
+        )
+    runs = plots.find_runs([tmp_path])
+    grid, mean, std, n = plots.mean_curve(runs, "charts/success_rate", points=3)
+    # The grid ends where the shorter seed ends; seeds interpolated at 1000, 1500, 2000.
+    assert n == 2 and grid.tolist() == [1000, 1500, 2000]
+    a, b = 1e-4 * grid, 3e-4 * grid
+    assert mean == pytest.approx((a + b) / 2)
+    assert std == pytest.approx(np.abs(b - a) / np.sqrt(2))
+
+
+def test_smooth_is_a_trailing_nan_aware_mean():
+    x = np.array([1.0, 3.0, np.nan, 5.0])
+    assert plots.smooth(x, 2).tolist() == [1.0, 2.0, 3.0, 5.0]
+    assert plots.smooth(x, 1) is x
+
+
+def test_plot_writes_both_figures_and_lambda_d(tmp_path):
+    root = synthetic_runs(tmp_path / "sweep")
+    written = plots.plot_all([root], tmp_path / "fig")
+    names = {p.name for p in written}
+    assert set(plots.FIGURES.values()) == names
+    for path in written:
+        with Image.open(path) as im:
+            assert im.size[0] >= 1000 and im.size[1] >= 500
+            # Not a blank canvas: plenty of distinct colours.
+            pixels = np.asarray(im.convert("RGB").resize((200, 100))).reshape(-1, 3)
+            assert len(np.unique(pixels, axis=0)) > 50
+    table = plots.eval_table(plots.group(plots.find_runs([root])))
+    assert list(table) == ["csac", "sac", "ppo", "ppo_lag"]
+    assert table["csac"]["success_rate"]["mean"] == pytest.approx(0.93)
+    assert table["sac"]["seeds"] == 2
+
+
+def test_plot_cli_accepts_run_dirs_and_skips_fig4_without_eval(tmp_path, capsys):
+    root = synthetic_runs(tmp_path / "sweep")
+    runs = [root / "runs" / "sac" / "seed0", root / "runs" / "sac" / "seed1"]
+    for r in runs:
+        (r / "eval.json").unlink()
+    main(["plot", *map(str, runs), "--out", str(tmp_path / "figs"), "--smooth", "3"])
+    out = capsys.readouterr().out
+    assert "2 runs of sac" in out and "Fig. 4 needs" in out
+    files = sorted(p.name for p in (tmp_path / "figs").iterdir())
+    # SAC has no λ/d and no eval.json: only the curves.
+    assert files == ["fig3_learning_curves.png", "return_cost.png"]
+
+
+def test_plot_cli_default_out_and_errors(tmp_path, capsys):
+    root = synthetic_runs(tmp_path / "sweep")
+    main(["plot", str(root)])
+    assert (root / "figures" / "fig4_test_results.png").exists()
+    with pytest.raises(SystemExit) as err:
+        main(["plot", str(tmp_path / "nowhere")])
+    assert err.value.code == 2
+    assert "does not exist" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SafenavError, match="no run directories"):
+        plots.find_runs([tmp_path / "empty"])

@@ -1,0 +1,327 @@
+"""safenav reproduce: aggregation of results on synthetic runs, time to target, trial state.
+
+Everything here runs on synthetic run directories (the files train and eval write), in well
+under a second per test. The end-to-end sweep on Ray is in test_reproduce_e2e.py.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from safenav.errors import SafenavError
+from safenav.experiments import aggregate as agg
+from safenav.experiments import reproduce as rep
+from test_reproduce_synthetic import learning_run, write_eval, write_progress
+
+# -- reading progress.csv --------------------------------------------------------------------------
+
+
+def test_read_progress_empty_cells_are_nan_and_torn_rows_dropped(tmp_path):
+    (tmp_path / "progress.csv").write_text(
+        "global_step,charts/success_rate,eval/success_rate\n100,0.5,\n200,0.6,0.7\n300,0."
+    )
+    p = agg.read_progress(tmp_path)
+    assert p["global_step"].tolist() == [100, 200]
+    assert math.isnan(p["eval/success_rate"][0]) and p["eval/success_rate"][1] == 0.7
+    assert agg.last_step(tmp_path) == 200
+    assert agg.last_step(tmp_path / "missing") == 0
+
+
+def test_last_step_reads_the_tail_of_a_long_file(tmp_path):
+    rows = [{"global_step": s, "perf/sps": 1.0} for s in range(0, 300_000, 100)]
+    write_progress(tmp_path, rows)
+    assert (tmp_path / "progress.csv").stat().st_size > 8192
+    assert agg.last_step(tmp_path) == 299_900
+
+
+# -- statistics --------------------------------------------------------------------------------
+
+
+def test_mean_std_is_sample_std_and_skips_missing():
+    assert agg.mean_std([0.8, 0.9, 1.0]) == pytest.approx({"mean": 0.9, "std": 0.1})
+    assert agg.mean_std([0.7, None, 0.8, math.nan]) == pytest.approx(
+        {"mean": 0.75, "std": math.sqrt(0.005)}
+    )
+    assert agg.mean_std([0.3]) == {"mean": 0.3, "std": 0.0}
+    assert agg.mean_std([]) is None
+
+
+def test_elapsed_seconds_integrates_sps_or_uses_the_runs_clock():
+    p = {"global_step": np.array([1000.0, 2000, 3000]), "perf/sps": np.array([100.0, 100, 50])}
+    assert agg.elapsed_seconds(p).tolist() == [10.0, 20.0, 40.0]
+    p["time/elapsed_s"] = np.array([11.0, 22.0, 33.0])
+    assert agg.elapsed_seconds(p).tolist() == [11.0, 22.0, 33.0]
+    assert agg.elapsed_seconds({"global_step": np.array([1.0])}) is None
+
+
+def test_time_to_target_on_training_rates(tmp_path):
+    write_progress(tmp_path, [
+        {"global_step": 1000, "charts/success_rate": 0.50, "charts/collision_rate": 0.30, "perf/sps": 100},
+        {"global_step": 2000, "charts/success_rate": 0.86, "charts/collision_rate": 0.12, "perf/sps": 100},
+        {"global_step": 3000, "charts/success_rate": 0.90, "charts/collision_rate": 0.08, "perf/sps": 50},
+        {"global_step": 4000, "charts/success_rate": 0.95, "charts/collision_rate": 0.05, "perf/sps": 100},
+    ])  # fmt: skip
+    p = agg.read_progress(tmp_path)
+    # Row 2 has the success but not the collision; row 3 is the first with both: 10+10+20 s.
+    assert agg.time_to_target(p) == {"env_steps": 3000, "wall_clock_s": 40.0, "source": "train"}
+    assert agg.time_to_target(p, agg.Target(success=0.99, collision=0.1)) is None
+    # The boundary counts: >= 85 % and <= 10 %.
+    assert agg.time_to_target(p, agg.Target(success=0.86, collision=0.12))["env_steps"] == 2000
+
+
+def test_time_to_target_prefers_evaluation_columns(tmp_path):
+    write_progress(tmp_path, [
+        {"global_step": 1000, "charts/success_rate": 0.9, "charts/collision_rate": 0.0, "perf/sps": 100},
+        {"global_step": 2000, "charts/success_rate": 0.9, "charts/collision_rate": 0.0, "perf/sps": 100,
+         "eval/success_rate": 0.80, "eval/collision_rate": 0.05},
+        {"global_step": 3000, "charts/success_rate": 0.9, "charts/collision_rate": 0.0, "perf/sps": 100},
+        {"global_step": 4000, "charts/success_rate": 0.9, "charts/collision_rate": 0.0, "perf/sps": 100,
+         "eval/success_rate": 0.85, "eval/collision_rate": 0.10},
+    ])  # fmt: skip
+    p = agg.read_progress(tmp_path)
+    assert agg.time_to_target(p) == {"env_steps": 4000, "wall_clock_s": 40.0, "source": "eval"}
+
+
+# -- aggregation ---------------------------------------------------------------------------------
+
+
+def synthetic_sweep(root: Path) -> dict:
+    """csac: 3 seeds (2 reach the target), sac: 2 seeds, ppo_lag: 1 seed; hand-picked rates."""
+    plan = {
+        "csac": [(0.8, 0.10, 5000), (0.9, 0.05, 3000), (1.0, 0.00, None)],
+        "sac": [(0.7, 0.2, None), (0.8, 0.1, None)],
+        "ppo_lag": [(0.6, 0.3, None)],
+    }
+    records = []
+    for algo, seeds in plan.items():
+        for seed, (success, collision, reach_at) in enumerate(seeds):
+            run = root / "runs" / algo / f"seed{seed}"
+            rows = [{"global_step": s, "charts/success_rate": 0.9 if s == reach_at else 0.5,
+                     "charts/collision_rate": 0.05 if s == reach_at else 0.5, "perf/sps": 100.0}
+                    for s in range(1000, 10_001, 1000)]  # fmt: skip
+            write_progress(run, rows)
+            write_eval(run, success, collision)
+            records.append(agg.seed_record(run, algo=algo, seed=seed))
+    return agg.aggregate(records, {"command": "safenav reproduce --out X", "machine": "test",
+                                   "date": "2026-01-01"})  # fmt: skip
+
+
+def test_aggregate_hand_computed(tmp_path):
+    res = synthetic_sweep(tmp_path)
+    assert list(res["algos"]) == ["csac", "sac", "ppo_lag"]
+    csac, sac, lag = (res["algos"][k] for k in ("csac", "sac", "ppo_lag"))
+    assert csac["seeds"] == 3 and sac["seeds"] == 2 and lag["seeds"] == 1
+    assert csac["success_rate"] == pytest.approx({"mean": 0.9, "std": 0.1})
+    assert csac["collision_rate"] == pytest.approx({"mean": 0.05, "std": 0.05})
+    assert csac["timeout_rate"] == pytest.approx({"mean": 0.05, "std": 0.05})
+    assert sac["success_rate"] == pytest.approx({"mean": 0.75, "std": math.sqrt(0.005)})
+    assert lag["success_rate"] == {"mean": 0.6, "std": 0.0}
+    # env steps / wall-clock: means per seed (10k steps at 100 sps = 100 s).
+    assert csac["env_steps"] == 10_000 and csac["wall_clock_s"] == pytest.approx(100.0)
+    # Time to target: seeds 0 and 1 reached it at 5000 and 3000 steps (50 s and 30 s).
+    ttt = csac["time_to_target"]
+    assert (ttt["reached"], ttt["of"], ttt["source"]) == (2, 3, "train")
+    assert ttt["env_steps"] == pytest.approx({"mean": 4000, "std": math.sqrt(2) * 1000})
+    assert ttt["wall_clock_s"] == pytest.approx({"mean": 40.0, "std": math.sqrt(200)})
+    assert sac["time_to_target"]["reached"] == 0 and sac["time_to_target"]["env_steps"] is None
+    assert csac["paper"] == {"success_rate": 0.847, "collision_rate": 0.111}
+    assert lag["paper"] is None
+    assert [r["seed"] for r in csac["per_seed"]] == [0, 1, 2]
+    assert res["command"] == "safenav reproduce --out X" and res["machine"] == "test"
+
+
+def test_results_files_have_the_documented_shape(tmp_path):
+    res = synthetic_sweep(tmp_path)
+    js, md = agg.write_results(res, tmp_path / "out")
+    data = json.loads(js.read_text())
+    for algo in data["algos"].values():
+        for key in ("success_rate", "collision_rate", "timeout_rate"):
+            assert set(algo[key]) == {"mean", "std"}
+        for key in ("seeds", "env_steps", "wall_clock_s", "per_seed", "time_to_target"):
+            assert key in algo
+    assert {"command", "machine", "date"} <= set(data)
+    text = md.read_text()
+    assert "| CSAC | 3 | 90.0 ± 10.0 % | 84.7 % | 5.0 ± 5.0 % | 11.1 % |" in text
+    assert "| SAC | 2 | 75.0 ± 7.1 % | 81.3 % | 15.0 ± 7.1 % | 14.0 % |" in text
+    assert "| PPO-Lag | 1 | 60.0 ± 0.0 % | — | 30.0 ± 0.0 % | — |" in text
+    assert "| CSAC | 2 / 3 | 4000 ± 1414 | 40 s ± 14 s | train |" in text
+    assert "| SAC | 0 / 2 | — | — | — |" in text
+
+
+def test_formatting():
+    assert agg.fmt_rate({"mean": 0.847, "std": 0.0123}) == "84.7 ± 1.2 %"
+    assert agg.fmt_rate(None) == "—"
+    assert agg.fmt_seconds(42) == "42 s" and agg.fmt_seconds(750) == "12.5 min"
+    assert agg.fmt_seconds(3 * 3600) == "3.00 h" and agg.fmt_seconds(None) == "—"
+    assert agg.fmt_steps(350_000) == "350k" and agg.fmt_steps(1_200_000) == "1.20M"
+
+
+def test_run_identity(tmp_path):
+    learning_run(tmp_path / "a", "sac_lag", 3, steps=2000)
+    assert agg.run_identity(tmp_path / "a") == ("sac_lag", 3)
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / "config.json").write_text(json.dumps({"train": {"algo": "ppo", "seed": 2}}))
+    assert agg.run_identity(tmp_path / "b") == ("ppo", 2)
+    (tmp_path / "csac" / "seed4").mkdir(parents=True)
+    assert agg.run_identity(tmp_path / "csac" / "seed4") == ("csac", 4)
+
+
+# -- the sweep's plan ---------------------------------------------------------------------------
+
+
+def test_parse_steps():
+    assert rep.parse_steps("300000") == rep.parse_steps("300_000") == rep.parse_steps("300k")
+    assert rep.parse_steps("2M") == 2_000_000 and rep.parse_steps("1e6") == 1_000_000
+    for bad in ("lots", "0", "-5", "1.5"):
+        with pytest.raises(SafenavError):
+            rep.parse_steps(bad)
+
+
+def test_plan_total_steps_variants_and_order(tmp_path):
+    cfg = rep.SweepConfig(out=tmp_path, algos=("csac", "ppo"), seeds=2, first_seed=7,
+                          total_steps=("50k", "ppo=2M"), cpus_per_trial=1, preset="easy",
+                          variants=("csac_min=csac --cost-target min",))  # fmt: skip
+    trials = rep.plan(cfg)
+    assert [t.name for t in trials] == ["csac-seed7", "ppo-seed7", "csac_min-seed7",
+                                        "csac-seed8", "ppo-seed8", "csac_min-seed8"]  # fmt: skip
+    by = {t.name: t for t in trials}
+    assert by["csac-seed7"].total_steps == 50_000 and by["ppo-seed8"].total_steps == 2_000_000
+    assert by["csac_min-seed7"].algo == "csac"
+    assert by["csac_min-seed7"].run_dir == tmp_path.resolve() / "runs" / "csac_min" / "seed7"
+    cmd = by["csac_min-seed7"].train_command(resume=False)
+    assert cmd[:4] == [sys.executable, "-m", "safenav", "train"]
+    assert cmd[cmd.index("--algo") + 1] == "csac" and cmd[-2:] == ["--cost-target", "min"]
+    assert cmd[cmd.index("--preset") + 1] == "easy" and "--resume" not in cmd
+    resumed = by["ppo-seed7"].train_command(resume=True)
+    assert resumed[resumed.index("--resume") + 1] == str(by["ppo-seed7"].run_dir)
+    # Defaults per algorithm when --total-steps names none.
+    default = rep.plan(rep.SweepConfig(out=tmp_path, algos=("csac", "ppo"), seeds=1))
+    assert [t.total_steps for t in default] == [rep.DEFAULT_TOTAL_STEPS["csac"],
+                                                rep.DEFAULT_TOTAL_STEPS["ppo"]]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        ({"algos": ("dqn",)}, "unknown algorithm 'dqn'"),
+        ({"total_steps": ("sac=1k",)}, "'sac' is not among"),
+        ({"seeds": 0}, "at least one seed"),
+        ({"cpus_per_trial": 0}, "at least one CPU"),
+        ({"variants": ("nolabel",)}, "LABEL=ALGO"),
+        ({"variants": ("x=dqn --a b",)}, "unknown algorithm 'dqn'"),
+    ],
+)
+def test_plan_rejects_mistakes_with_one_line(tmp_path, changes, message):
+    cfg = rep.SweepConfig(out=tmp_path, algos=("csac",), seeds=1)
+    for k, v in changes.items():
+        setattr(cfg, k, v)
+    with pytest.raises(SafenavError, match=message):
+        rep.plan(cfg)
+
+
+# -- one trial: fresh, resumed, evaluated, skipped --------------------------------------------
+
+FAKE_TRAIN = """
+import json, sys, pathlib
+args = sys.argv[1:]
+run = pathlib.Path(args[args.index("--run-dir") + 1])
+total = int(args[args.index("--total-steps") + 1])
+if "--fail" in args:
+    print("boom: something broke"); sys.exit(3)
+run.mkdir(parents=True, exist_ok=True)
+start = json.loads((run / "checkpoint.pt").read_text())["step"] if "--resume" in args else 0
+with (run / "progress.csv").open("a" if start else "w") as f:
+    if not start:
+        f.write("global_step,charts/success_rate,charts/collision_rate,perf/sps\\n")
+    f.write(f"{total},0.9,0.05,100\\n")
+(run / "checkpoint.pt").write_text(json.dumps({"step": total, "resumed_from": start}))
+(run.parent / "calls.txt").open("a").write(" ".join(args) + "\\n")
+"""
+FAKE_EVAL = """
+import json, sys, pathlib
+args = sys.argv[1:]
+out = pathlib.Path(args[args.index("--json") + 1])
+out.write_text(json.dumps({"success_rate": 0.9, "collision_rate": 0.05, "timeout_rate": 0.05,
+    "episodes": int(args[args.index("--episodes") + 1]), "env_seed": 1}))
+(out.parent.parent / "calls.txt").open("a").write("eval\\n")
+"""
+
+
+@pytest.fixture
+def fake_commands(tmp_path, monkeypatch):
+    """Replace ``python -m safenav train/eval`` by scripts writing what the real ones write."""
+    train, ev = tmp_path / "fake_train.py", tmp_path / "fake_eval.py"
+    train.write_text(FAKE_TRAIN)
+    ev.write_text(FAKE_EVAL)
+    real_train = rep.Trial.train_command
+
+    def train_command(self, resume, overwrite=False):
+        return [sys.executable, str(train), *real_train(self, resume, overwrite)[4:]]
+
+    def eval_command(self):
+        return [sys.executable, str(ev), "--episodes", str(self.eval_episodes), "--json",
+                str(self.run_dir / "eval.json")]  # fmt: skip
+
+    monkeypatch.setattr(rep.Trial, "train_command", train_command)
+    monkeypatch.setattr(rep.Trial, "eval_command", eval_command)
+
+
+def make_trial(tmp_path, total=1000, **kw) -> rep.Trial:
+    return rep.Trial(label="csac", algo="csac", seed=0, total_steps=total,
+                     run_dir=tmp_path / "runs" / "csac" / "seed0", log_dir=tmp_path / "logs",
+                     cpus=1, eval_episodes=10, **kw)  # fmt: skip
+
+
+def test_trial_fresh_then_skipped_then_resumed_for_more_steps(tmp_path, fake_commands):
+    trial = make_trial(tmp_path)
+    calls = trial.run_dir.parent / "calls.txt"
+    assert rep.trial_state(trial) == "fresh"
+    info = rep.run_trial(trial)
+    assert info["state"] == "fresh" and info["train_s"] > 0 and info["eval_s"] > 0
+    assert rep.trial_state(trial) == "done"
+    marker = json.loads((trial.run_dir / "reproduce.json").read_text())
+    assert marker["trained"] and marker["total_steps"] == 1000 and len(marker["attempts"]) == 1
+    assert trial.log("train.log").exists() and trial.log("status").read_text() == "done"
+    n_calls = len(calls.read_text().splitlines())
+    assert rep.run_trial(trial)["state"] == "done"  # a finished trial is skipped
+    assert len(calls.read_text().splitlines()) == n_calls
+    # Asking for more steps resumes the run from its checkpoint, then re-evaluates.
+    longer = make_trial(tmp_path, total=2000)
+    assert rep.trial_state(longer) == "resume"
+    rep.run_trial(longer)
+    last_train = [c for c in calls.read_text().splitlines() if c != "eval"][-1]
+    assert "--resume" in last_train
+    assert json.loads(longer.checkpoint.read_text()) == {"step": 2000, "resumed_from": 1000}
+    assert rep.trial_state(longer) == "done"
+    marker = json.loads((trial.run_dir / "reproduce.json").read_text())
+    assert len(marker["attempts"]) == 2 and marker["attempts"][1]["resume"]
+    rec = agg.seed_record(trial.run_dir)
+    assert rec["algo"] == "csac" and rec["seed"] == 0 and rec["env_steps"] == 2000
+    # Training wall-clock: the measured attempts (the run logged no elapsed-time column).
+    assert rec["wall_clock_s"] == marker["train_wall_clock_s"] > 0
+
+
+def test_trial_evaluates_only_when_trained_but_not_evaluated(tmp_path, fake_commands):
+    trial = make_trial(tmp_path)
+    rep.run_trial(trial)
+    (trial.run_dir / "eval.json").unlink()
+    assert rep.trial_state(trial) == "evaluate"
+    more = dataclasses.replace(trial, eval_episodes=20)
+    assert rep.trial_state(more) == "evaluate"  # different episode count: evaluate again
+    rep.run_trial(more)
+    assert json.loads((trial.run_dir / "eval.json").read_text())["episodes"] == 20
+    assert rep.trial_state(more) == "done"
+
+
+def test_failed_trial_raises_with_the_log_tail(tmp_path, fake_commands):
+    trial = make_trial(tmp_path, train_args=("--fail",))
+    with pytest.raises(rep.TrialFailed, match="boom: something broke"):
+        rep.run_trial(trial)
+    assert rep.trial_state(trial) == "fresh"
