@@ -228,59 +228,56 @@ def test_plan_rejects_mistakes_with_one_line(tmp_path, changes, message):
 
 # -- one trial: fresh, resumed, evaluated, skipped --------------------------------------------
 
-FAKE_TRAIN = """
+# A stand-in for ``python -m safenav {train,eval}`` that writes what the real commands write.
+FAKE_SAFENAV = """#!{python}
 import json, sys, pathlib
-args = sys.argv[1:]
-run = pathlib.Path(args[args.index("--run-dir") + 1])
-total = int(args[args.index("--total-steps") + 1])
+verb, args = sys.argv[3], sys.argv[4:]
+def arg(name):
+    return args[args.index(name) + 1]
+if verb == "eval":
+    out = pathlib.Path(arg("--json"))
+    ck = json.loads(pathlib.Path(args[0]).read_text())
+    out.write_text(json.dumps({{"success_rate": ck["success"], "collision_rate": 0.05,
+        "timeout_rate": 0.95 - ck["success"], "episodes": int(arg("--episodes")),
+        "env_seed": int(arg("--env-seed"))}}))
+    (out.parent.parent / "calls.txt").open("a").write("eval\\n")
+    sys.exit(0)
+run, total, seed = pathlib.Path(arg("--run-dir")), int(arg("--total-steps")), int(arg("--seed"))
 if "--fail" in args:
     print("boom: something broke"); sys.exit(3)
 run.mkdir(parents=True, exist_ok=True)
 start = json.loads((run / "checkpoint.pt").read_text())["step"] if "--resume" in args else 0
 with (run / "progress.csv").open("a" if start else "w") as f:
     if not start:
-        f.write("global_step,charts/success_rate,charts/collision_rate,perf/sps\\n")
-    f.write(f"{total},0.9,0.05,100\\n")
-(run / "checkpoint.pt").write_text(json.dumps({"step": total, "resumed_from": start}))
+        f.write("global_step,charts/success_rate,charts/collision_rate,constraint/lambda,"
+                "constraint/d,perf/sps\\n")
+    for step in range(start + 100, total + 1, 100):
+        f.write(f"{{step}},{{step / total * 0.9}},{{0.3 * (1 - step / total)}},0.1,0.2,1000\\n")
+success = 0.8 + 0.05 * seed
+(run / "config.json").write_text(json.dumps({{"algo": arg("--algo"), "seed": seed}}))
+(run / "checkpoint.pt").write_text(json.dumps({{"step": total, "resumed_from": start,
+                                                "success": success}}))
 (run.parent / "calls.txt").open("a").write(" ".join(args) + "\\n")
-"""
-FAKE_EVAL = """
-import json, sys, pathlib
-args = sys.argv[1:]
-out = pathlib.Path(args[args.index("--json") + 1])
-out.write_text(json.dumps({"success_rate": 0.9, "collision_rate": 0.05, "timeout_rate": 0.05,
-    "episodes": int(args[args.index("--episodes") + 1]), "env_seed": 1}))
-(out.parent.parent / "calls.txt").open("a").write("eval\\n")
 """
 
 
 @pytest.fixture
-def fake_commands(tmp_path, monkeypatch):
-    """Replace ``python -m safenav train/eval`` by scripts writing what the real ones write."""
-    train, ev = tmp_path / "fake_train.py", tmp_path / "fake_eval.py"
-    train.write_text(FAKE_TRAIN)
-    ev.write_text(FAKE_EVAL)
-    real_train = rep.Trial.train_command
-
-    def train_command(self, resume, overwrite=False):
-        return [sys.executable, str(train), *real_train(self, resume, overwrite)[4:]]
-
-    def eval_command(self):
-        return [sys.executable, str(ev), "--episodes", str(self.eval_episodes), "--json",
-                str(self.run_dir / "eval.json")]  # fmt: skip
-
-    monkeypatch.setattr(rep.Trial, "train_command", train_command)
-    monkeypatch.setattr(rep.Trial, "eval_command", eval_command)
+def fake_python(tmp_path) -> str:
+    """An executable that answers ``-m safenav train|eval ...`` like the real commands."""
+    path = tmp_path / "fake-python"
+    path.write_text(FAKE_SAFENAV.format(python=sys.executable))
+    path.chmod(0o755)
+    return str(path)
 
 
-def make_trial(tmp_path, total=1000, **kw) -> rep.Trial:
+def make_trial(tmp_path, python, total=1000, **kw) -> rep.Trial:
     return rep.Trial(label="csac", algo="csac", seed=0, total_steps=total,
                      run_dir=tmp_path / "runs" / "csac" / "seed0", log_dir=tmp_path / "logs",
-                     cpus=1, eval_episodes=10, **kw)  # fmt: skip
+                     cpus=1, eval_episodes=10, python=python, **kw)  # fmt: skip
 
 
-def test_trial_fresh_then_skipped_then_resumed_for_more_steps(tmp_path, fake_commands):
-    trial = make_trial(tmp_path)
+def test_trial_fresh_then_skipped_then_resumed_for_more_steps(tmp_path, fake_python):
+    trial = make_trial(tmp_path, fake_python)
     calls = trial.run_dir.parent / "calls.txt"
     assert rep.trial_state(trial) == "fresh"
     info = rep.run_trial(trial)
@@ -293,12 +290,12 @@ def test_trial_fresh_then_skipped_then_resumed_for_more_steps(tmp_path, fake_com
     assert rep.run_trial(trial)["state"] == "done"  # a finished trial is skipped
     assert len(calls.read_text().splitlines()) == n_calls
     # Asking for more steps resumes the run from its checkpoint, then re-evaluates.
-    longer = make_trial(tmp_path, total=2000)
+    longer = make_trial(tmp_path, fake_python, total=2000)
     assert rep.trial_state(longer) == "resume"
     rep.run_trial(longer)
     last_train = [c for c in calls.read_text().splitlines() if c != "eval"][-1]
     assert "--resume" in last_train
-    assert json.loads(longer.checkpoint.read_text()) == {"step": 2000, "resumed_from": 1000}
+    assert json.loads(longer.checkpoint.read_text())["resumed_from"] == 1000
     assert rep.trial_state(longer) == "done"
     marker = json.loads((trial.run_dir / "reproduce.json").read_text())
     assert len(marker["attempts"]) == 2 and marker["attempts"][1]["resume"]
@@ -308,8 +305,8 @@ def test_trial_fresh_then_skipped_then_resumed_for_more_steps(tmp_path, fake_com
     assert rec["wall_clock_s"] == marker["train_wall_clock_s"] > 0
 
 
-def test_trial_evaluates_only_when_trained_but_not_evaluated(tmp_path, fake_commands):
-    trial = make_trial(tmp_path)
+def test_trial_evaluates_only_when_trained_but_not_evaluated(tmp_path, fake_python):
+    trial = make_trial(tmp_path, fake_python)
     rep.run_trial(trial)
     (trial.run_dir / "eval.json").unlink()
     assert rep.trial_state(trial) == "evaluate"
@@ -320,8 +317,8 @@ def test_trial_evaluates_only_when_trained_but_not_evaluated(tmp_path, fake_comm
     assert rep.trial_state(more) == "done"
 
 
-def test_failed_trial_raises_with_the_log_tail(tmp_path, fake_commands):
-    trial = make_trial(tmp_path, train_args=("--fail",))
+def test_failed_trial_raises_with_the_log_tail(tmp_path, fake_python):
+    trial = make_trial(tmp_path, fake_python, train_args=("--fail",))
     with pytest.raises(rep.TrialFailed, match="boom: something broke"):
         rep.run_trial(trial)
     assert rep.trial_state(trial) == "fresh"

@@ -87,6 +87,8 @@ class Trial:
     env_seed: int = 1
     train_args: tuple[str, ...] = ()
     """Extra arguments appended to ``safenav train`` (config overrides)."""
+    python: str | None = None
+    """Interpreter that runs ``-m safenav`` (default: the Ray worker's own ``sys.executable``)."""
 
     @property
     def name(self) -> str:
@@ -102,9 +104,10 @@ class Trial:
 
     def train_command(self, resume: bool, overwrite: bool = False) -> list[str]:
         """``python -m safenav train ...`` for this trial."""
-        cmd = [sys.executable, "-m", "safenav", "train", "--algo", self.algo, "--env",
-               "SafeNav-v0", "--seed", str(self.seed), "--total-steps", str(self.total_steps),
-               "--run-dir", str(self.run_dir), "--device", self.device]  # fmt: skip
+        cmd = [self.python or sys.executable, "-m", "safenav", "train", "--algo", self.algo,
+               "--env", "SafeNav-v0", "--seed", str(self.seed), "--total-steps",
+               str(self.total_steps), "--run-dir", str(self.run_dir),
+               "--device", self.device]  # fmt: skip
         if self.preset is not None:
             cmd += ["--preset", self.preset]
         if resume:
@@ -115,9 +118,9 @@ class Trial:
 
     def eval_command(self) -> list[str]:
         """``python -m safenav eval CHECKPOINT ...`` writing ``eval.json`` into the run dir."""
-        return [sys.executable, "-m", "safenav", "eval", str(self.checkpoint), "--env-seed",
-                str(self.env_seed), "--episodes", str(self.eval_episodes), "--device",
-                self.device, "--json", str(self.run_dir / "eval.json")]  # fmt: skip
+        return [self.python or sys.executable, "-m", "safenav", "eval", str(self.checkpoint),
+                "--env-seed", str(self.env_seed), "--episodes", str(self.eval_episodes),
+                "--device", self.device, "--json", str(self.run_dir / "eval.json")]  # fmt: skip
 
 
 def trial_state(trial: Trial) -> str:
@@ -315,6 +318,7 @@ class SweepConfig:
     variants: tuple[str, ...] = ()
     plots: bool = True
     progress: bool = True
+    python: str | None = None
     command: str = ""
     extra_meta: dict[str, Any] = field(default_factory=dict)
 
@@ -348,7 +352,8 @@ def plan(cfg: SweepConfig) -> list[Trial]:
               run_dir=out / "runs" / label / f"seed{seed}", log_dir=out / "logs",
               preset=cfg.preset, device=cfg.device, cpus=cfg.cpus_per_trial,
               gpus=cfg.gpus_per_trial, eval_episodes=cfg.eval_episodes, env_seed=cfg.env_seed,
-              train_args=tuple(cfg.train_args) + variants.get(label, ("", ()))[1])
+              train_args=tuple(cfg.train_args) + variants.get(label, ("", ()))[1],
+              python=cfg.python)
         for seed in range(cfg.first_seed, cfg.first_seed + cfg.seeds)
         for label in labels
     ]  # fmt: skip
@@ -424,6 +429,10 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
 
     console = Console(stderr=True)
     trials = plan(cfg)
+    local_cpus = cfg.num_cpus or os.cpu_count() or 1
+    if not (cfg.address or os.environ.get("RAY_ADDRESS")) and cfg.cpus_per_trial > local_cpus:
+        raise SafenavError(f"--cpus-per-trial {cfg.cpus_per_trial} exceeds the {local_cpus} CPUs "
+                           "of the local Ray instance: lower it or raise --num-cpus")  # fmt: skip
     out = Path(cfg.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     states = {t.name: trial_state(t) for t in trials}
@@ -448,13 +457,27 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
             ray.shutdown()
     sweep_s = time.perf_counter() - sweep_t0
 
-    records = [
-        seed_record(t.run_dir, algo=t.label, seed=t.seed)
-        for t in trials
-        if t.name not in failures and (t.run_dir / "eval.json").exists()
-    ]
+    records = []
+    for t in trials:
+        if t.name not in failures and (t.run_dir / "eval.json").exists():
+            rec = seed_record(t.run_dir, algo=t.label, seed=t.seed)
+            rec["run_dir"] = os.path.relpath(t.run_dir, out)  # results stay valid when moved
+            records.append(rec)
     submitted = [o for o in outcomes.values() if "submitted" in o]
     latency = [o["started"] - o["submitted"] for o in submitted]
+    ray_meta = {
+        "address": cfg.address or os.environ.get("RAY_ADDRESS") or "local",
+        "cpus_per_trial": cfg.cpus_per_trial,
+        "gpus_per_trial": cfg.gpus_per_trial,
+        **cluster,
+        "init_s": round(init_s, 2),
+        "first_task_start_s": round(min(latency), 3) if latency else None,
+        "trials_run": len(todo),
+    }
+    previous = read_json(out / "results.json") or {}
+    if not todo and "ray" in previous:
+        # Nothing ran this time (a re-aggregation): keep the record of the sweep that did.
+        ray_meta, sweep_s = previous["ray"], previous.get("sweep_wall_clock_s", sweep_s)
     meta = {
         "command": cfg.command,
         "machine": machine_description(),
@@ -462,14 +485,7 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
         "preset": cfg.preset,
         "total_steps": {t.label: t.total_steps for t in trials},
         "evaluation": {"env_seed": cfg.env_seed, "episodes": cfg.eval_episodes},
-        "ray": {
-            "address": cfg.address or os.environ.get("RAY_ADDRESS") or "local",
-            "cpus_per_trial": cfg.cpus_per_trial,
-            "gpus_per_trial": cfg.gpus_per_trial,
-            **cluster,
-            "init_s": round(init_s, 2),
-            "first_task_start_s": round(min(latency), 3) if latency else None,
-        },
+        "ray": ray_meta,
         "sweep_wall_clock_s": round(sweep_s, 1),
         "failed": sorted(failures),
         **cfg.extra_meta,

@@ -1,0 +1,73 @@
+"""safenav reproduce on a local Ray instance, with a stand-in trainer (seconds, no learning).
+
+Checks the Ray side: trials as tasks with their CPUs, results.json/md and figures written, a
+rerun skips finished trials without starting Ray, a failed trial is reported and the others kept.
+The same sweep with the real ``safenav train`` is test_reproduce_e2e.py.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from safenav.experiments import reproduce as rep
+from test_reproduce import fake_python  # noqa: F401  (fixture)
+
+pytest.importorskip("ray")
+
+
+def sweep(tmp_path, python, **kw) -> rep.SweepConfig:
+    return rep.SweepConfig(out=tmp_path / "out", algos=("csac", "sac"), seeds=2,
+                           total_steps=("1000",), preset="easy", cpus_per_trial=1, num_cpus=2,
+                           eval_episodes=10, progress=False, python=python,
+                           command="safenav reproduce (test)", **kw)  # fmt: skip
+
+
+def test_sweep_on_local_ray_then_rerun_skips(tmp_path, fake_python, monkeypatch):  # noqa: F811
+    cfg = sweep(tmp_path, fake_python)
+    results = rep.run_sweep(cfg)
+    out = cfg.out
+    data = json.loads((out / "results.json").read_text())
+    assert data == json.loads(json.dumps(results))
+    assert list(data["algos"]) == ["csac", "sac"]
+    csac = data["algos"]["csac"]
+    # The stand-in's test success is 0.8 + 0.05 * seed: seeds 0, 1 -> 0.825 ± 0.0354.
+    assert csac["seeds"] == 2 and csac["success_rate"]["mean"] == pytest.approx(0.825)
+    assert csac["success_rate"]["std"] == pytest.approx(0.05 / 2**0.5)
+    assert csac["env_steps"] == 1000 and csac["time_to_target"]["reached"] == 2
+    assert data["ray"]["cpus_per_trial"] == 1 and data["ray"]["parallel_trials"] == 2
+    assert data["ray"]["init_s"] > 0 and data["failed"] == []
+    assert "| CSAC | 2 | 82.5 ± 3.5 % | 84.7 % |" in (out / "results.md").read_text()
+    for name in ("fig3_learning_curves.png", "fig4_test_results.png", "constraint_lambda_d.png"):
+        assert (out / "figures" / name).stat().st_size > 10_000
+    assert (out / "logs" / "sac-seed1.train.log").exists()
+    calls = (out / "runs" / "csac" / "calls.txt").read_text().splitlines()
+    assert len(calls) == 4  # two seeds: train + eval each
+    assert csac["per_seed"][0]["run_dir"] == "runs/csac/seed0"
+    # Rerun: everything is done, nothing runs again and Ray is not even started.
+    import ray
+
+    monkeypatch.setattr(ray, "init", lambda *a, **k: pytest.fail("Ray started for nothing"))
+    again = rep.run_sweep(cfg)
+    assert again["algos"]["csac"]["seeds"] == 2 and again["ray"] == data["ray"]
+    assert (out / "runs" / "csac" / "calls.txt").read_text().splitlines() == calls
+
+
+def test_failed_trial_is_reported_and_the_rest_aggregated(tmp_path, fake_python):  # noqa: F811
+    cfg = sweep(tmp_path, fake_python, variants=("broken=sac --fail",))
+    cfg.algos = ("csac",)
+    with pytest.raises(rep.TrialFailed, match=r"2 of 4 trials failed: \['broken-seed0'"):
+        rep.run_sweep(cfg)
+    data = json.loads((cfg.out / "results.json").read_text())
+    assert list(data["algos"]) == ["csac"] and data["failed"] == ["broken-seed0", "broken-seed1"]
+    assert "boom: something broke" in (cfg.out / "logs" / "broken-seed0.train.log").read_text()
+
+
+def test_cpus_per_trial_larger_than_any_node_is_refused(tmp_path, fake_python):  # noqa: F811
+    from safenav.errors import SafenavError
+
+    cfg = sweep(tmp_path, fake_python)
+    cfg.cpus_per_trial = 3
+    with pytest.raises(SafenavError, match="exceeds the 2 CPUs of the local Ray instance"):
+        rep.run_sweep(cfg)
