@@ -1,0 +1,107 @@
+"""``safenav fly``: fly an exported policy on PX4 in OFFBOARD over MAVLink (MAVSDK)."""
+
+from __future__ import annotations
+
+import json as jsonlib
+import logging
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import tyro
+
+from safenav.cli import app
+
+EXIT_ABORTED = 3
+
+
+@app.command(name="fly")
+def fly(
+    policy: Path | None = None,
+    connect: str = "udpin://127.0.0.1:14540",
+    goal: tuple[float, float, float] | None = None,
+    perception: str = "127.0.0.1:14660",
+    rate: float = 20.0,
+    shield: bool = False,
+    takeoff_altitude: float = 1.5,
+    origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    link_timeout: float = 1.0,
+    max_flight_time: float = 120.0,
+    no_land: bool = False,
+    json_out: Annotated[Path | None, tyro.conf.arg(name="json")] = None,
+    demo: bool = False,
+    checkpoint: Path = Path("checkpoints/csac-paper.pt"),
+    scripted: bool = False,
+    preset: str = "paper",
+    episode: int = 0,
+    gif: Path | None = None,
+    verbose: bool = False,
+) -> None:
+    """Connect to PX4 (``--connect``, a MAVSDK URL), arm, take off, fly the ONNX ``--policy`` to
+    ``--goal X Y Z`` (world ENU metres) in OFFBOARD with NED velocity setpoints at ``--rate`` Hz,
+    then hold and land. Perception (depth images, tracked obstacles) comes from
+    ``--perception HOST:PORT`` (the simulator's stream; see docs/deployment.md for real sensors).
+
+    Watchdog: a missed control deadline or stale / invalid perception sends zero velocity; link
+    loss (no telemetry for ``--link-timeout`` s) stops the flight with exit status 3.
+    ``--shield`` adds the velocity-obstacle safety shield.
+
+    ``--demo`` starts ``safenav sim-vehicle`` itself and flies test episode ``--episode`` of the
+    ``--preset`` scenario with ``--checkpoint`` (exported on the fly; ``--scripted`` flies the
+    scripted go-to-goal actor instead), printing a summary, writing ``--json`` and a GIF
+    (``--gif``, default flight.gif).
+    """
+    from safenav.deploy.fly import FlightAborted
+    from safenav.errors import SafenavError
+
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, stream=sys.stderr,
+                        format="%(asctime)s %(name)s: %(message)s", datefmt="%H:%M:%S")  # fmt: skip
+    if not verbose:
+        logging.getLogger("safenav.mavsdk").setLevel(logging.WARNING)
+    try:
+        if demo:
+            from safenav.deploy.demo import run_demo
+
+            summary = run_demo(policy=policy, checkpoint=checkpoint, scripted=scripted, preset=preset,
+                               episode=episode, rate=rate, shield=shield, gif=gif or Path("flight.gif"),
+                               max_flight_time=max_flight_time)  # fmt: skip
+        else:
+            if policy is None or goal is None:
+                raise SafenavError("pass --policy policy.onnx and --goal X Y Z (or --demo)")
+            summary = fly_policy(policy, connect, goal, perception, rate, shield, takeoff_altitude, origin,
+                                 link_timeout, max_flight_time, not no_land)  # fmt: skip
+    except FlightAborted as err:
+        print(f"safenav fly: aborted: {err}", file=sys.stderr, flush=True)
+        raise SystemExit(EXIT_ABORTED) from None
+    print(jsonlib.dumps(summary, indent=2))
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(jsonlib.dumps(summary, indent=2) + "\n")
+
+
+def fly_policy(policy: Path, connect: str, goal, perception: str, rate: float, shield: bool,
+               takeoff_altitude: float, origin, link_timeout: float, max_flight_time: float, land: bool) -> dict:  # fmt: skip
+    from safenav.deploy.export import OnnxPolicy, load_sidecar
+    from safenav.deploy.fly import FlightController, FlyConfig, MavsdkLink
+    from safenav.deploy.runtime import OnboardRuntime, RuntimeConfig
+    from safenav.deploy.shield import ShieldConfig
+    from safenav.deploy.sim_vehicle import parse_hostport
+
+    if not policy.exists():
+        from safenav.errors import SafenavError
+
+        raise SafenavError(
+            f"{policy} not found: export one with `safenav export CHECKPOINT --onnx {policy}`"
+        )
+    _, cfg = load_sidecar(policy)
+    runtime = OnboardRuntime(OnnxPolicy(policy), cfg,
+                             RuntimeConfig(shield=ShieldConfig.for_env(cfg) if shield else None))  # fmt: skip
+    link = MavsdkLink(connect)
+    ctl = FlightController(runtime, link, FlyConfig(
+        goal=tuple(goal), rate_hz=rate, takeoff_altitude=takeoff_altitude, origin=tuple(origin),
+        goal_tolerance=cfg.goal_tolerance, link_timeout_s=link_timeout, max_flight_s=max_flight_time, land=land,
+    ), perception=parse_hostport(perception) if perception else None)  # fmt: skip
+    try:
+        return ctl.fly().summary()
+    finally:
+        link.close()

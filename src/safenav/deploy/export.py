@@ -1,0 +1,294 @@
+"""Export the deterministic actor to ONNX with a JSON sidecar of its conventions, and run it.
+
+The sidecar (``policy.onnx.json`` next to ``policy.onnx``) is everything a runtime needs besides
+the network: the observation layout and scaling, the action scaling and frame, ``v_max``, the
+rate the policy was trained at, and the full env configuration (:class:`EnvConfig`).
+
+Inputs of the ONNX graph (batch dimension ``N`` dynamic, float32): ``state (N, 8)``, ``lidar (N, 4,
+36)``, ``dynamic (N, 5, 10)``; output ``action (N, 3)`` in ``[-1, 1]``, the goal-frame velocity
+divided by ``v_max``. Exported with the TorchScript-based exporter (``dynamo=False``): one static
+graph, no onnxscript rewriting, identical on every torch version that still ships it; the dynamo
+exporter is the fallback.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from safenav.envs.config import EnvConfig
+from safenav.envs.nav import DIST_SCALE, Z_SCALE
+from safenav.errors import SafenavError
+
+SIDECAR_FORMAT = "safenav-policy/1"
+INPUT_NAMES = ("state", "lidar", "dynamic")
+OUTPUT_NAME = "action"
+
+
+def sidecar_path(onnx_path: str | Path) -> Path:
+    p = Path(onnx_path)
+    return p.with_name(p.name + ".json")
+
+
+def observation_shapes(cfg: EnvConfig) -> dict[str, tuple[int, ...]]:
+    return {"state": (8,), "lidar": (len(cfg.lidar_v_angles), cfg.lidar_h_beams),
+            "dynamic": (cfg.num_tracked, 10)}  # fmt: skip
+
+
+def policy_conventions(cfg: EnvConfig) -> dict[str, Any]:
+    """The observation and action conventions of SafeNav-v0, as written into the sidecar."""
+    return {
+        "observation": {
+            "state": {
+                "shape": [8],
+                "layout": ["unit_to_goal_x", "unit_to_goal_y", "unit_to_goal_z",
+                           "horizontal_distance_to_goal", "z_distance_to_goal",
+                           "velocity_x", "velocity_y", "velocity_z"],
+                "frame": "goal",
+                "scale": {"horizontal_distance_to_goal_m": DIST_SCALE, "z_distance_to_goal_m": Z_SCALE,
+                          "velocity_m_s": cfg.v_max},
+            },
+            "lidar": {
+                "shape": [len(cfg.lidar_v_angles), cfg.lidar_h_beams],
+                "value": "(range - min(hit_distance, range)) / range",
+                "range_m": cfg.lidar_range,
+                "rows_elevation_deg": list(cfg.lidar_v_angles),
+                "columns_azimuth_deg": [360.0 * j / cfg.lidar_h_beams for j in range(cfg.lidar_h_beams)],
+                "azimuth_zero": "goal-frame x (toward the goal), counter-clockwise",
+                "grid_resolution_m": cfg.grid_resolution,
+            },
+            "dynamic": {
+                "shape": [cfg.num_tracked, 10],
+                "layout": ["unit_rel_x", "unit_rel_y", "unit_rel_z", "horizontal_distance",
+                           "z_distance", "velocity_x", "velocity_y", "velocity_z", "width_class",
+                           "is_cuboid"],
+                "frame": "goal",
+                "scale": {"distance_m": cfg.lidar_range, "velocity_m_s": cfg.v_max},
+                "rows": f"the {cfg.num_tracked} horizontally nearest moving obstacles within "
+                        f"{cfg.lidar_range} m, nearest first; zero rows beyond",
+            },
+        },
+        "action": {
+            "shape": [3], "range": [-1.0, 1.0], "frame": "goal", "scale_m_s": cfg.v_max,
+            "meaning": "velocity command = action * v_max per goal-frame axis (x toward the goal, z up)",
+        },
+        "goal_frame": "x from start to goal with z zeroed, z up; yaw fixed when the goal is set",
+        "v_max": cfg.v_max,
+        "control_hz": cfg.control_hz,
+    }  # fmt: skip
+
+
+class _Actor(nn.Module):
+    """Named-input wrapper: ``forward(state, lidar, dynamic) -> action`` clamped to [-1, 1]."""
+
+    def __init__(self, actor: nn.Module) -> None:
+        super().__init__()
+        self.actor = actor
+
+    def forward(
+        self, state: torch.Tensor, lidar: torch.Tensor, dynamic: torch.Tensor
+    ) -> torch.Tensor:
+        return torch.clamp(self.actor(state, lidar, dynamic), -1.0, 1.0)
+
+
+def random_observations(cfg: EnvConfig, n: int, seed: int = 0) -> dict[str, torch.Tensor]:
+    """Random observations spanning the env's value ranges (for export checks)."""
+    g = torch.Generator().manual_seed(seed)
+    shapes = observation_shapes(cfg)
+    state = torch.rand(n, *shapes["state"], generator=g) * 2 - 1
+    lidar = torch.rand(n, *shapes["lidar"], generator=g)
+    dynamic = torch.rand(n, *shapes["dynamic"], generator=g) * 2 - 1
+    return {"state": state, "lidar": lidar, "dynamic": dynamic}
+
+
+def export_onnx(
+    actor: nn.Module,
+    cfg: EnvConfig,
+    onnx_path: str | Path,
+    *,
+    opset: int = 17,
+    checkpoint: str | None = None,
+    check_observations: dict[str, torch.Tensor] | None = None,
+    atol: float = 1e-5,
+) -> dict[str, Any]:
+    """Write ``onnx_path`` and its sidecar; check ONNX Runtime against torch within ``atol`` on
+    random observations (and ``check_observations``, e.g. real ones from the env).
+
+    Returns the sidecar dict (with ``"check"``: the largest absolute difference found).
+    """
+    onnx_path = Path(onnx_path)
+    onnx_path.parent.mkdir(parents=True, exist_ok=True)
+    model = _Actor(actor).eval().to("cpu")
+    example = random_observations(cfg, 2)
+    args = tuple(example[k] for k in INPUT_NAMES)
+    axes = {k: {0: "batch"} for k in (*INPUT_NAMES, OUTPUT_NAME)}
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            torch.onnx.export(model, args, str(onnx_path), input_names=list(INPUT_NAMES),
+                              output_names=[OUTPUT_NAME], dynamic_axes=axes, opset_version=opset,
+                              dynamo=False)  # fmt: skip
+            exporter = "torchscript"
+        except Exception:  # noqa: BLE001 -- the legacy exporter may be gone: use dynamo
+            batch = torch.export.Dim("batch", min=1)
+            torch.onnx.export(model, args, str(onnx_path), input_names=list(INPUT_NAMES),
+                              output_names=[OUTPUT_NAME], opset_version=max(opset, 18), dynamo=True,
+                              dynamic_shapes={k: {0: batch} for k in INPUT_NAMES}, external_data=False)  # fmt: skip
+            exporter = "dynamo"
+    worst = 0.0
+    runner = OnnxPolicy(onnx_path)
+    sets = [random_observations(cfg, 64, seed=1)]
+    if check_observations is not None:
+        sets.append(
+            {k: torch.as_tensor(v, dtype=torch.float32) for k, v in check_observations.items()}
+        )
+    for obs in sets:
+        with torch.no_grad():
+            ref = model(*(obs[k] for k in INPUT_NAMES)).numpy()
+        got = runner(*(obs[k].numpy() for k in INPUT_NAMES))
+        worst = max(worst, float(np.abs(got - ref).max()))
+    if not worst <= atol:
+        raise SafenavError(
+            f"ONNX export of {onnx_path} differs from torch by {worst:.2e} > {atol:.0e}"
+        )
+    sidecar = {
+        "format": SIDECAR_FORMAT,
+        "onnx": onnx_path.name,
+        "sha256": hashlib.sha256(onnx_path.read_bytes()).hexdigest(),
+        "inputs": list(INPUT_NAMES),
+        "output": OUTPUT_NAME,
+        "opset": opset if exporter == "torchscript" else max(opset, 18),
+        "exporter": exporter,
+        "checkpoint": checkpoint,
+        **policy_conventions(cfg),
+        "env_config": dataclasses.asdict(cfg),
+        "check": {"max_abs_diff": worst, "atol": atol},
+    }
+    sidecar_path(onnx_path).write_text(json.dumps(sidecar, indent=2) + "\n")
+    return sidecar
+
+
+def load_sidecar(onnx_path: str | Path) -> tuple[dict[str, Any], EnvConfig]:
+    """The sidecar of ``onnx_path`` and its env configuration."""
+    path = sidecar_path(onnx_path)
+    if not path.exists():
+        raise SafenavError(
+            f"{path} not found: export the policy with `safenav export CHECKPOINT --onnx {onnx_path}`"
+        )
+    meta = json.loads(path.read_text())
+    if meta.get("format") != SIDECAR_FORMAT:
+        raise SafenavError(
+            f"{path} is not a {SIDECAR_FORMAT} sidecar (format={meta.get('format')!r})"
+        )
+    return meta, env_config_from_dict(meta["env_config"])
+
+
+def env_config_from_dict(d: dict[str, Any]) -> EnvConfig:
+    known = {f.name for f in dataclasses.fields(EnvConfig)}
+    kwargs = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in known}
+    return EnvConfig(**kwargs)
+
+
+class OnnxPolicy:
+    """ONNX Runtime inference of an exported actor on the CPU (``threads`` intra-op threads)."""
+
+    def __init__(self, onnx_path: str | Path, threads: int = 1) -> None:
+        import onnxruntime as ort
+
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = threads
+        opts.inter_op_num_threads = 1
+        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        opts.log_severity_level = 3
+        self.session = ort.InferenceSession(
+            str(onnx_path), sess_options=opts, providers=["CPUExecutionProvider"]
+        )
+        self.path = Path(onnx_path)
+
+    def __call__(self, state: np.ndarray, lidar: np.ndarray, dynamic: np.ndarray) -> np.ndarray:
+        feeds = {"state": np.ascontiguousarray(state, dtype=np.float32),
+                 "lidar": np.ascontiguousarray(lidar, dtype=np.float32),
+                 "dynamic": np.ascontiguousarray(dynamic, dtype=np.float32)}  # fmt: skip
+        return self.session.run(None, feeds)[0]
+
+
+class TorchPolicy:
+    """Torch inference of an actor module (eager or TorchScript), same call as :class:`OnnxPolicy`."""
+
+    def __init__(self, actor: nn.Module) -> None:
+        self.actor = actor.eval()
+
+    def __call__(self, state: np.ndarray, lidar: np.ndarray, dynamic: np.ndarray) -> np.ndarray:
+        with torch.inference_mode():
+            out = self.actor(torch.from_numpy(np.asarray(state, dtype=np.float32)),
+                             torch.from_numpy(np.asarray(lidar, dtype=np.float32)),
+                             torch.from_numpy(np.asarray(dynamic, dtype=np.float32)))  # fmt: skip
+        return torch.clamp(out, -1.0, 1.0).numpy()
+
+
+def _meta_env_config(meta: Any) -> EnvConfig | None:
+    if isinstance(meta, EnvConfig):
+        return meta
+    candidates = []
+    if isinstance(meta, dict):
+        candidates = [meta.get(k) for k in ("env_config", "env", "config", "env_cfg")] + [meta]
+    else:
+        candidates = [getattr(meta, k, None) for k in ("env_config", "env", "config", "env_cfg")]
+    for c in candidates:
+        if isinstance(c, EnvConfig):
+            return c
+        if isinstance(c, dict):
+            inner = c.get("env") if isinstance(c.get("env"), dict) else c
+            if any(k in inner for k in ("map_size", "v_max", "lidar_range")):
+                return env_config_from_dict(inner)
+    return None
+
+
+def load_actor(checkpoint: str | Path, device: str = "cpu") -> tuple[nn.Module, EnvConfig]:
+    """The deterministic actor of a training checkpoint and its env configuration, through
+    ``safenav.algos.policy.load_policy``."""
+    path = Path(checkpoint)
+    if not path.exists():
+        raise SafenavError(f"checkpoint {path} not found")
+    try:
+        from safenav.algos.policy import load_policy  # type: ignore[import-not-found]
+    except ImportError as err:
+        raise SafenavError(
+            f"cannot read {path}: safenav.algos.policy.load_policy is not available in this install ({err})"
+        ) from None
+    policy = load_policy(str(path), device=device)
+    cfg = None
+    if callable(getattr(policy, "env_config", None)):
+        cfg = policy.env_config()
+        cfg = cfg if isinstance(cfg, EnvConfig) else _meta_env_config(cfg)
+    if cfg is None:
+        cfg = _meta_env_config(getattr(policy, "meta", None))
+    if cfg is None:
+        raise SafenavError(f"{path}: the checkpoint's metadata carries no env configuration")
+    return policy.actor, cfg
+
+
+__all__ = [
+    "INPUT_NAMES",
+    "OUTPUT_NAME",
+    "SIDECAR_FORMAT",
+    "OnnxPolicy",
+    "TorchPolicy",
+    "env_config_from_dict",
+    "export_onnx",
+    "load_actor",
+    "load_sidecar",
+    "observation_shapes",
+    "policy_conventions",
+    "random_observations",
+    "sidecar_path",
+]

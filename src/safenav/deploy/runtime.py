@@ -1,0 +1,368 @@
+"""The onboard runtime: sensor data -> observation -> policy -> velocity setpoint, with guards.
+
+:class:`OnboardRuntime` builds the observation exactly as ``SafeNav-v0`` does, from what a drone
+has instead of the simulator's ground truth:
+
+- **range image**: an occupancy grid (:class:`~safenav.deploy.mapping.HeightMap`, the env's grid
+  layout) updated from depth images (intrinsics + camera pose) or point clouds, ray-cast by the
+  very same :func:`safenav.envs.sensors.raycast_height_map`;
+- **dynamic**: tracked moving obstacles (centre, velocity, width, height) turned into the env's
+  features by the very same :func:`safenav.envs.sensors.dynamic_obstacle_features`;
+- **state**: the vehicle's position and velocity (world ENU) and the goal.
+
+:meth:`OnboardRuntime.step` returns a :class:`Setpoint`: a world-frame (ENU) velocity, clamped to
+``v_max`` per goal-frame axis as in the env, and its NED form for PX4 (``(v_y, v_x, -v_z)``, see
+:mod:`safenav.deploy.frames`). Guards, each giving a hover setpoint (zero velocity) and a reason,
+logged when it changes: no goal; missing, stale (older than ``max_*_age_s``), future-stamped or
+non-finite vehicle state; missing or stale map / tracker input; a perception input that was
+rejected (non-finite camera pose, non-finite tracked obstacle) until the next good one; a
+non-finite observation or policy output. Depth pixels that are NaN, 0 or beyond range are "no
+return" (the camera convention) and are skipped, not an error.
+
+Thread safety: ``update_*`` may be called from sensor threads while ``step`` runs in the control
+loop; one lock serialises them.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from safenav.deploy.frames import enu_to_ned, goal_frame_yaw, yaw_enu_to_ned
+from safenav.deploy.mapping import HeightMap
+from safenav.deploy.perception_link import DepthImage, PerceptionFrame, TrackedObstacle
+from safenav.deploy.shield import ShieldConfig, shield_action
+from safenav.envs.config import EnvConfig
+from safenav.envs.dynamics import goal_frame_to_world, world_to_goal_frame
+from safenav.envs.nav import DIST_SCALE, Z_SCALE
+from safenav.envs.sensors import RangeImageSpec, dynamic_obstacle_features, raycast_height_map
+from safenav.envs.world import GridSpec
+
+log = logging.getLogger("safenav.deploy.runtime")
+
+PolicyFn = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+
+
+@dataclass
+class RuntimeConfig:
+    """Guards and perception settings of the onboard runtime."""
+
+    max_state_age_s: float = 0.25
+    """Vehicle state older than this (s) -> hover."""
+    max_map_age_s: float = 0.5
+    """No depth image / point cloud for this long (s) -> hover."""
+    max_obstacle_age_s: float = 0.5
+    """No tracker output for this long (s) -> hover (``require_tracker``)."""
+    require_tracker: bool = True
+    """Hover without fresh tracker output; False flies on the map alone."""
+    future_tolerance_s: float = 0.1
+    """Inputs stamped further in the future than this are rejected (clock mismatch)."""
+    depth_stride: int = 1
+    """Use every n-th depth pixel in both directions."""
+    depth_max_range: float = 8.0
+    """Depth returns beyond this range (m) are skipped."""
+    cuboid_below_height: float = 2.5
+    """Tracked obstacles shorter than this (m) are the env's floating cuboids, taller ones its
+    standing cylinders (the env has 1 m cuboids and 5 m cylinders), unless the tracker says."""
+    shield: ShieldConfig | None = None
+    """Velocity-obstacle shield applied to the policy's action (None: off)."""
+
+
+@dataclass
+class Setpoint:
+    """What :meth:`OnboardRuntime.step` returns."""
+
+    velocity: np.ndarray
+    """World ENU velocity, m/s (zero when hovering)."""
+    velocity_ned: np.ndarray
+    """The same in PX4's NED frame: (north, east, down)."""
+    yaw_ned_deg: float
+    """Heading to hold: the goal frame's x axis, NED degrees (nan before a goal is set)."""
+    hover: bool
+    reason: str = ""
+    action: np.ndarray | None = None
+    """Normalised goal-frame action after the shield."""
+    policy_action: np.ndarray | None = None
+    """The policy's own action."""
+    shielded: bool = False
+    observation: dict[str, np.ndarray] | None = None
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+class OnboardRuntime:
+    """Sensor data -> velocity setpoint (see the module docstring).
+
+    Args:
+        policy: ``(state (1, 8), lidar (1, 4, 36), dynamic (1, 5, 10)) -> action (1, 3)`` NumPy
+            float32, e.g. :class:`~safenav.deploy.export.OnnxPolicy`.
+        env_config: the policy's env configuration (beam layout, scales, v_max, grid).
+        config: guards and perception settings.
+        grid: the map's extent (default: the env's map plus padding, world-fixed).
+        clock: monotonic time source, seconds; stamps of inputs are on this clock.
+    """
+
+    def __init__(
+        self,
+        policy: PolicyFn,
+        env_config: EnvConfig,
+        config: RuntimeConfig | None = None,
+        grid: GridSpec | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.policy = policy
+        self.cfg = env_config
+        self.config = config or RuntimeConfig()
+        self.clock = clock
+        self.spec = RangeImageSpec.for_config(env_config)
+        self.map = HeightMap(grid or GridSpec.for_config(env_config))
+        self._lock = threading.Lock()
+        self._goal: np.ndarray | None = None
+        self._yaw = 0.0
+        self._pos: np.ndarray | None = None
+        self._vel: np.ndarray | None = None
+        self._state_stamp = -math.inf
+        self._map_stamp = -math.inf
+        self._obstacles = np.zeros((0, 9), dtype=np.float32)  # p(3) v(3) width height cuboid
+        self._obstacle_stamp = -math.inf
+        self._faults: dict[str, str] = {}
+        self._last_reason = ""
+        self.steps = 0
+        self.hover_steps = 0
+
+    # ------------------------------------------------------------------ inputs
+    def set_goal(self, goal, start=None) -> None:
+        """Set the goal (world ENU); the goal frame's yaw is fixed from ``start`` (default: the
+        current position) toward it, as the env fixes it at reset."""
+        goal = np.asarray(goal, dtype=np.float64).reshape(3)
+        if not np.isfinite(goal).all():
+            raise ValueError(f"goal {goal.tolist()} is not finite")
+        with self._lock:
+            if start is None:
+                if self._pos is None:
+                    raise ValueError(
+                        "set_goal needs a start position before the first vehicle state"
+                    )
+                start = self._pos
+            self._goal = goal
+            self._yaw = goal_frame_yaw(start, goal)
+
+    @property
+    def goal(self) -> np.ndarray | None:
+        return None if self._goal is None else self._goal.copy()
+
+    @property
+    def goal_yaw(self) -> float:
+        """Yaw (ENU, rad) of the goal frame."""
+        return self._yaw
+
+    def _stamp_ok(self, source: str, stamp: float) -> bool:
+        if not math.isfinite(stamp) or stamp > self.clock() + self.config.future_tolerance_s:
+            self._faults[source] = f"{source} stamp {stamp!r} is not finite or in the future"
+            return False
+        return True
+
+    def update_state(self, position, velocity, stamp: float | None = None) -> None:
+        """Vehicle position and velocity, world ENU (from PX4's local NED: see frames)."""
+        stamp = self.clock() if stamp is None else float(stamp)
+        p = np.asarray(position, dtype=np.float64).reshape(3)
+        v = np.asarray(velocity, dtype=np.float64).reshape(3)
+        with self._lock:
+            if not self._stamp_ok("state", stamp):
+                return
+            if not (np.isfinite(p).all() and np.isfinite(v).all()):
+                self._faults["state"] = "non-finite vehicle state"
+                return
+            self._faults.pop("state", None)
+            self._pos, self._vel, self._state_stamp = p, v, stamp
+
+    def _obstacle_boxes(self) -> torch.Tensor:
+        ob = torch.from_numpy(self._obstacles)
+        if ob.shape[0] == 0:
+            return torch.zeros(0, 2, 3)
+        half = torch.stack([ob[:, 6] / 2, ob[:, 6] / 2, ob[:, 7] / 2], -1)
+        return torch.stack([ob[:, 0:3] - half, ob[:, 0:3] + half], 1)
+
+    def update_depth(self, images: Sequence[DepthImage], stamp: float | None = None) -> int:
+        """Insert depth images (one capture, e.g. all cameras of the rig) into the map; points
+        inside tracked obstacles are left out. Returns the points inserted."""
+        stamp = self.clock() if stamp is None else float(stamp)
+        with self._lock:
+            if not self._stamp_ok("map", stamp):
+                return 0
+            for img in images:
+                if not (np.isfinite(np.asarray(img.R)).all() and np.isfinite(np.asarray(img.t)).all()
+                        and all(math.isfinite(x) and x != 0 for x in (img.fx, img.fy))):  # fmt: skip
+                    self._faults["map"] = "depth image with a non-finite camera pose or intrinsics"
+                    return 0
+            n = self.map.insert_depth(images, self.config.depth_stride, self.config.depth_max_range,
+                                      self._obstacle_boxes())  # fmt: skip
+            self._faults.pop("map", None)
+            self._map_stamp = stamp
+            return n
+
+    def update_points(self, points, stamp: float | None = None) -> int:
+        """Insert a world-frame point cloud ``(P, 3)``; non-finite points are skipped."""
+        stamp = self.clock() if stamp is None else float(stamp)
+        pts = torch.as_tensor(np.asarray(points, dtype=np.float32).reshape(-1, 3))
+        with self._lock:
+            if not self._stamp_ok("map", stamp):
+                return 0
+            n = self.map.insert_points(pts, self._obstacle_boxes())
+            self._faults.pop("map", None)
+            self._map_stamp = stamp
+            return n
+
+    def update_obstacles(
+        self, obstacles: Sequence[TrackedObstacle], stamp: float | None = None
+    ) -> None:
+        """Replace the tracked moving obstacles (world ENU centres and velocities)."""
+        stamp = self.clock() if stamp is None else float(stamp)
+        rows = []
+        for o in obstacles:
+            cuboid = (
+                o.cuboid if o.cuboid is not None else o.height < self.config.cuboid_below_height
+            )
+            rows.append([*np.asarray(o.p, dtype=float).reshape(3), *np.asarray(o.v, dtype=float).reshape(3),
+                         float(o.width), float(o.height), float(bool(cuboid))])  # fmt: skip
+        arr = np.asarray(rows, dtype=np.float32).reshape(-1, 9)
+        with self._lock:
+            if not self._stamp_ok("tracker", stamp):
+                return
+            if not np.isfinite(arr).all() or (arr[:, 6:8] < 0).any():
+                self._faults["tracker"] = "non-finite or negative-size tracked obstacle"
+                return
+            self._faults.pop("tracker", None)
+            self._obstacles, self._obstacle_stamp = arr, stamp
+
+    def update_frame(self, frame: PerceptionFrame) -> None:
+        """Everything in one perception frame: tracked obstacles first, then depth and points."""
+        if frame.obstacles is not None:
+            self.update_obstacles(frame.obstacles, frame.stamp)
+        if frame.depth:
+            self.update_depth(frame.depth, frame.stamp)
+        if frame.points is not None:
+            self.update_points(frame.points, frame.stamp)
+
+    # ------------------------------------------------------------------ output
+    def _hover(self, reason: str) -> Setpoint:
+        self.hover_steps += 1
+        if reason != self._last_reason:
+            log.warning("hover: %s", reason)
+            self._last_reason = reason
+        yaw = yaw_enu_to_ned(self._yaw) if self._goal is not None else math.nan
+        return Setpoint(np.zeros(3), np.zeros(3), math.degrees(yaw), hover=True, reason=reason)
+
+    def _check_inputs(self, now: float) -> str:
+        c = self.config
+        if self._goal is None:
+            return "no goal set"
+        if self._faults:
+            return "; ".join(sorted(self._faults.values()))
+        for name, stamp, limit, needed in (
+            ("vehicle state", self._state_stamp, c.max_state_age_s, True),
+            ("map (depth / point cloud)", self._map_stamp, c.max_map_age_s, True),
+            ("obstacle tracker", self._obstacle_stamp, c.max_obstacle_age_s, c.require_tracker),
+        ):
+            if not needed:
+                continue
+            if stamp == -math.inf:
+                return f"no {name} input yet"
+            if now - stamp > limit:
+                return f"stale {name}: {now - stamp:.2f} s old > {limit:.2f} s"
+        return ""
+
+    def observation(self) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        """The env-layout observation (batch of 1) and the raw range image (metres), now."""
+        cfg = self.cfg
+        pos = torch.tensor(self._pos, dtype=torch.float32)[None]
+        vel = torch.tensor(self._vel, dtype=torch.float32)[None]
+        goal = torch.tensor(self._goal, dtype=torch.float32)[None]
+        yaw = torch.tensor([self._yaw], dtype=torch.float32)
+        cos_y, sin_y = torch.cos(yaw), torch.sin(yaw)
+        ranges = raycast_height_map(
+            self.map.cast_map, self.map.grid.origin, self.map.grid.size, pos, yaw, self.spec
+        )
+        ob = torch.from_numpy(self._obstacles)
+        dynamic, _, _ = dynamic_obstacle_features(
+            (ob[:, 0:3] - pos[0])[None], ob[None, :, 3:6], ob[None, :, 6], ob[None, :, 8] > 0.5,
+            cos_y, sin_y, cfg.num_tracked, cfg.lidar_range, cfg.v_max,
+        )  # fmt: skip
+        state = state_features(pos, vel, goal, cos_y, sin_y, cfg.v_max)
+        obs = {
+            "state": state,
+            "lidar": (cfg.lidar_range - ranges) / cfg.lidar_range,
+            "dynamic": dynamic,
+        }
+        return obs, ranges
+
+    def distance_to_goal(self) -> float:
+        with self._lock:
+            if self._goal is None or self._pos is None:
+                return math.inf
+            return float(np.linalg.norm(self._goal - self._pos))
+
+    def step(self, now: float | None = None) -> Setpoint:
+        """One control step: the velocity setpoint for ``now`` (default: the clock)."""
+        now = self.clock() if now is None else float(now)
+        self.steps += 1
+        with self._lock, torch.inference_mode():
+            reason = self._check_inputs(now)
+            if reason:
+                return self._hover(reason)
+            t0 = time.perf_counter()
+            obs, _ = self.observation()
+            t1 = time.perf_counter()
+            np_obs = {k: v.numpy() for k, v in obs.items()}
+            if not all(np.isfinite(v).all() for v in np_obs.values()):
+                return self._hover("non-finite observation")
+            raw = np.asarray(
+                self.policy(np_obs["state"], np_obs["lidar"], np_obs["dynamic"]), dtype=np.float32
+            )
+            t2 = time.perf_counter()
+            if raw.shape != (1, 3) or not np.isfinite(raw).all():
+                return self._hover(
+                    f"policy output not finite or of shape {raw.shape} (expected (1, 3))"
+                )
+            action = torch.from_numpy(np.clip(raw, -1.0, 1.0))
+            shielded = False
+            if self.config.shield is not None:
+                action, corrected = shield_action(obs, action, self.config.shield)
+                shielded = bool(corrected[0])
+            t3 = time.perf_counter()
+            yaw = torch.tensor([self._yaw])
+            v_world = goal_frame_to_world(
+                action[0] * self.cfg.v_max, torch.cos(yaw)[0], torch.sin(yaw)[0]
+            )
+            v = v_world.double().numpy()
+            if self._last_reason:
+                log.info("resuming: inputs are good again")
+                self._last_reason = ""
+            return Setpoint(
+                velocity=v, velocity_ned=enu_to_ned(v), yaw_ned_deg=math.degrees(yaw_enu_to_ned(self._yaw)),
+                hover=False, action=action[0].numpy().copy(), policy_action=raw[0].copy(), shielded=shielded,
+                observation={k: v[0].copy() for k, v in np_obs.items()},
+                timings_ms={"observation": (t1 - t0) * 1e3, "policy": (t2 - t1) * 1e3, "shield": (t3 - t2) * 1e3},
+            )  # fmt: skip
+
+
+def state_features(pos, vel, goal, cos_y, sin_y, v_max: float) -> torch.Tensor:
+    """The env's ``state`` observation ``(N, 8)`` (see ``SafeNavVectorEnv``; tested equal)."""
+    to_goal = goal - pos
+    dist = to_goal.norm(dim=-1)
+    unit_goal = to_goal / dist[:, None].clamp(min=1e-6)
+    return torch.cat([
+        world_to_goal_frame(unit_goal, cos_y, sin_y),
+        (to_goal[:, :2].norm(dim=-1) / DIST_SCALE)[:, None],
+        (to_goal[:, 2] / Z_SCALE)[:, None],
+        world_to_goal_frame(vel, cos_y, sin_y) / v_max,
+    ], -1)  # fmt: skip
+
+
+__all__ = ["OnboardRuntime", "PolicyFn", "RuntimeConfig", "Setpoint", "state_features"]

@@ -1,0 +1,288 @@
+"""Velocity-obstacle safety shield (as NavRL deploys one): correct the policy's velocity only when
+it lies inside a velocity obstacle, by the smallest change that leaves all of them.
+
+Velocity obstacle (truncated at the time horizon ``tau``): an obstacle at relative position ``p``
+(obstacle - UAV), moving at ``u``, with combined radius ``R`` (obstacle + UAV + margin) forbids
+every velocity ``v`` with
+
+    min_{0 <= t <= tau} | p - (v - u) t | < R,
+
+i.e. a collision within ``tau`` seconds if both keep their velocities. Already closer than ``R``,
+``v`` is forbidden while it still approaches (``p . (v - u) > 0``). Standing cylinders (and pillars)
+are tested in the horizontal plane.
+
+If the policy's velocity ``v_des`` is outside every velocity obstacle it is returned **unchanged**.
+Otherwise the shield returns the admissible candidate nearest to ``v_des``; candidates are scaled
+copies of ``v_des``, a fixed fan of directions x speeds x climb rates, and, for the nearest
+obstacles, the closest points on the boundary of their own velocity obstacle (cone side and
+cut-off cap; the exact minimal correction when one obstacle is involved). When no candidate is
+admissible it takes the one with the latest time to collision.
+
+All functions are pure and batched over ``N`` (vector envs, or ``N = 1`` on board) and work in any
+frame in which positions and velocities are given consistently; :func:`shield_action` works on the
+env's observation and action directly (goal frame):
+
+>>> import torch
+>>> from safenav.deploy.shield import ShieldConfig, shield_action
+>>> obs = {"state": torch.zeros(2, 8), "lidar": torch.zeros(2, 4, 36), "dynamic": torch.zeros(2, 5, 10)}
+>>> obs["lidar"][0, :, [34, 35, 0, 1, 2]] = 0.8   # env 0: a wall ~0.8 m ahead (value (4 - d) / 4)
+>>> action = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+>>> safe, corrected = shield_action(obs, action, ShieldConfig())
+>>> corrected.tolist(), bool(torch.equal(safe[1], action[1])), float(safe[0, 0]) < 0.5
+([True, False], True, True)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from safenav.envs.config import EnvConfig
+from safenav.envs.sensors import RangeImageSpec
+from safenav.envs.world import CUBOID_HEIGHT, DYN_WIDTHS
+
+
+@dataclass(frozen=True)
+class ShieldConfig:
+    """Parameters of the velocity-obstacle shield."""
+
+    time_horizon: float = 1.5
+    """Velocity obstacles are truncated at this many seconds (``tau``)."""
+    uav_radius: float = 0.3
+    """The UAV's collision radius (m), as in the env."""
+    margin: float = 0.1
+    """Extra clearance (m) added to every combined radius."""
+    v_max: float = 2.0
+    """Velocity bound per axis (m/s); candidates are clipped to ``[-v_max, v_max]^3``."""
+    lidar_range: float = 4.0
+    """Range of the range image (m): beams at this distance are free."""
+    lidar_v_angles: tuple[float, ...] = (-10.0, 0.0, 10.0, 20.0)
+    """Beam elevations of the range image, degrees."""
+    lidar_h_beams: int = 36
+    """Beams per row of the range image."""
+    max_static: int = 24
+    """Only the nearest this many beam hits are treated as obstacles (the rest cannot matter)."""
+    projected: int = 8
+    """Nearest obstacles whose own minimal boundary corrections become candidates."""
+    n_azimuth: int = 16
+    """Directions of the fixed candidate fan."""
+    speed_fractions: tuple[float, ...] = (1 / 3, 2 / 3, 1.0)
+    """Horizontal speeds of the fan, as fractions of ``v_max``."""
+    climb_fractions: tuple[float, ...] = (-0.5, 0.0, 0.5)
+    """Vertical speeds of the fan, as fractions of ``v_max``."""
+
+    @staticmethod
+    def for_env(cfg: EnvConfig, **overrides) -> ShieldConfig:
+        base = dict(uav_radius=cfg.uav_radius, v_max=cfg.v_max, lidar_range=cfg.lidar_range,
+                    lidar_v_angles=tuple(cfg.lidar_v_angles), lidar_h_beams=cfg.lidar_h_beams)  # fmt: skip
+        return ShieldConfig(**{**base, **overrides})
+
+
+def _vo_test(v: torch.Tensor, rel: torch.Tensor, ovel: torch.Tensor, radius: torch.Tensor,
+             valid: torch.Tensor, planar: torch.Tensor, tau: float) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """For candidates ``v`` ``(N, C, 3)``: inside-any-VO ``(N, C)`` and min time to collision."""
+    vr = v[:, :, None, :] - ovel[:, None, :, :]  # (N, C, M, 3)
+    p = rel[:, None, :, :].expand_as(vr)
+    flat = planar[:, None, :, None]
+    vr = torch.where(flat, vr * vr.new_tensor([1.0, 1.0, 0.0]), vr)
+    p = torch.where(flat, p * p.new_tensor([1.0, 1.0, 0.0]), p)
+    r2 = (radius * radius)[:, None, :]
+    pv = (p * vr).sum(-1)
+    vv = (vr * vr).sum(-1).clamp(min=1e-12)
+    pp = (p * p).sum(-1)
+    t = (pv / vv).clamp(0.0, tau)
+    d2 = pp - 2 * t * pv + t * t * vv  # |p - vr t|^2
+    penetrating = pp < r2
+    inside = torch.where(penetrating, pv > 0, d2 < r2) & valid[:, None, :]
+    # Time to collision: smallest t >= 0 with |p - vr t| = R (inf if none / receding).
+    disc = pv * pv - vv * (pp - r2)
+    ttc = (pv - disc.clamp(min=0).sqrt()) / vv
+    ttc = torch.where(penetrating, torch.where(pv > 0, 0.0, math.inf), ttc)
+    ttc = torch.where((disc < 0) | (pv <= 0) | ~valid[:, None, :], math.inf, ttc.clamp(min=0))
+    return inside.any(-1), ttc.amin(-1) if ttc.shape[-1] else torch.full(inside.shape[:2], math.inf)
+
+
+def _boundary_candidates(v_des, rel, ovel, radius, valid, planar, tau, k):
+    """Closest points on the VO boundary (cone side and cap) of the ``k`` nearest obstacles."""
+    n, m = rel.shape[:2]
+    k = min(k, m)
+    dist = torch.where(valid, rel.norm(dim=-1), math.inf)
+    _, idx = torch.topk(dist, k, dim=-1, largest=False)
+    g3 = lambda t: torch.gather(t, 1, idx[..., None].expand(-1, -1, 3))  # noqa: E731
+    p, u = g3(rel), g3(ovel)
+    r = torch.gather(radius, 1, idx)
+    flat = torch.gather(planar, 1, idx)[..., None]
+    mask = p.new_tensor([1.0, 1.0, 0.0])
+    p = torch.where(flat, p * mask, p)
+    vr = v_des[:, None, :] - u
+    vr_z = vr[..., 2:3]
+    vr = torch.where(flat, vr * mask, vr)
+    dist = p.norm(dim=-1, keepdim=True).clamp(min=1e-6)
+    ph = p / dist
+    # Cone side: rotate vr's direction just outside the cone of half-angle alpha about ph.
+    alpha = torch.asin((r[..., None] / dist).clamp(max=1.0)) + 0.03
+    a = (vr * ph).sum(-1, keepdim=True)
+    radial = vr - a * ph
+    rho = radial.norm(dim=-1, keepdim=True)
+    side = torch.cross(ph, ph.new_tensor([0.0, 0.0, 1.0]).expand_as(ph), dim=-1)
+    side = torch.where(
+        side.norm(dim=-1, keepdim=True) < 1e-6, ph.new_tensor([0.0, 1.0, 0.0]).expand_as(ph), side
+    )
+    rh = torch.where(
+        rho > 1e-6, radial / rho.clamp(min=1e-9), side / side.norm(dim=-1, keepdim=True)
+    )
+    alpha = alpha.clamp(max=math.pi / 2)
+    s = (a * torch.cos(alpha) + rho * torch.sin(alpha)).clamp(min=0.0)
+    leg = s * (torch.cos(alpha) * ph + torch.sin(alpha) * rh)
+    # Cut-off cap: push radially out of the sphere of radius R / tau around p / tau.
+    c = p / tau
+    w = vr - c
+    wn = w.norm(dim=-1, keepdim=True)
+    wh = torch.where(wn > 1e-6, w / wn.clamp(min=1e-9), -ph)
+    cap = c + wh * (r[..., None] / tau) * 1.05
+    # Planar obstacles leave the vertical component as it was.
+    leg = torch.where(flat, leg + vr_z * ph.new_tensor([0.0, 0.0, 1.0]), leg)
+    cap = torch.where(flat, cap + vr_z * ph.new_tensor([0.0, 0.0, 1.0]), cap)
+    return torch.cat([u + leg, u + cap], dim=1)  # (N, 2k, 3)
+
+
+def _fan(cfg: ShieldConfig, device, dtype) -> torch.Tensor:
+    az = torch.arange(cfg.n_azimuth, device=device, dtype=dtype) * (2 * math.pi / cfg.n_azimuth)
+    sp = torch.tensor(cfg.speed_fractions, device=device, dtype=dtype) * cfg.v_max
+    cl = torch.tensor(cfg.climb_fractions, device=device, dtype=dtype) * cfg.v_max
+    a, s, c = torch.meshgrid(az, sp, cl, indexing="ij")
+    return torch.stack([s * torch.cos(a), s * torch.sin(a), c], -1).reshape(-1, 3)
+
+
+def velocity_obstacle_shield(
+    v_des: torch.Tensor,
+    rel: torch.Tensor,
+    obs_vel: torch.Tensor,
+    radius: torch.Tensor,
+    valid: torch.Tensor,
+    planar: torch.Tensor | None = None,
+    cfg: ShieldConfig = ShieldConfig(),
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Shield desired velocities ``v_des`` ``(N, 3)`` against ``M`` obstacles per env.
+
+    Args:
+        rel: ``(N, M, 3)`` obstacle position - UAV position; obs_vel: ``(N, M, 3)`` their velocities.
+        radius: ``(N, M)`` combined radii (obstacle + UAV + margin); valid: ``(N, M)`` mask.
+        planar: ``(N, M)`` obstacles that span all altitudes (tested in the horizontal plane).
+
+    Returns ``(v, corrected)``: the shielded velocities ``(N, 3)`` (``v_des`` itself, bit for bit,
+    where it was admissible) and which envs were corrected ``(N,)``.
+    """
+    n, dev, dt = v_des.shape[0], v_des.device, v_des.dtype
+    if planar is None:
+        planar = torch.zeros_like(valid)
+    if rel.shape[1] == 0:
+        return v_des.clone(), torch.zeros(n, dtype=torch.bool, device=dev)
+    tau, vm = cfg.time_horizon, cfg.v_max
+    inside_des, _ = _vo_test(v_des[:, None, :], rel, obs_vel, radius, valid, planar, tau)
+    corrected = inside_des[:, 0]
+    out = v_des.clone()
+    if not bool(corrected.any()):
+        return out, corrected
+    # Only the envs that need a correction go through the candidate search.
+    rows = corrected.nonzero().squeeze(1)
+    v_des, rel, obs_vel = v_des[rows], rel[rows], obs_vel[rows]
+    radius, valid, planar = radius[rows], valid[rows], planar[rows]
+    scales = v_des.new_tensor([0.75, 0.5, 0.25, 0.0])
+    cands = torch.cat([
+        v_des[:, None, :] * scales[None, :, None],
+        _fan(cfg, dev, dt)[None].expand(rows.shape[0], -1, -1),
+        _boundary_candidates(v_des, rel, obs_vel, radius, valid, planar, tau, cfg.projected),
+    ], dim=1).clamp(-vm, vm)  # fmt: skip
+    inside, ttc = _vo_test(cands, rel, obs_vel, radius, valid, planar, tau)
+    cost = (cands - v_des[:, None, :]).square().sum(-1)
+    best = torch.argmin(torch.where(inside, math.inf, cost), dim=-1)
+    # Nothing admissible: latest time to collision, then nearest to v_des.
+    fallback = torch.argmax(ttc.clamp(max=1e6) - 1e-3 * cost, dim=-1)
+    choice = torch.where(inside.all(-1), fallback, best)
+    out[rows] = torch.gather(cands, 1, choice[:, None, None].expand(-1, 1, 3))[:, 0]
+    return out, corrected
+
+
+def static_obstacles_from_ranges(
+    ranges: torch.Tensor, spec: RangeImageSpec, k: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The ``k`` nearest beam hits of range images ``(N, V, H)`` (metres) as points relative to
+    the sensor, in the sensor's heading frame (column 0 along +x): ``(rel, valid, planar)``.
+
+    Hits of level and upward beams are columns (``planar``): static obstacles are pillars standing
+    on the ground, so the column extends below the hit. Hits of downward beams may be the ground and
+    stay points."""
+    n = ranges.shape[0]
+    dev = ranges.device
+    az = spec.azimuths(dev)  # (H,)
+    el = spec.elevations(dev)  # (V,)
+    dirs = torch.stack([
+        torch.cos(el)[:, None] * torch.cos(az)[None, :],
+        torch.cos(el)[:, None] * torch.sin(az)[None, :],
+        torch.sin(el)[:, None].expand(-1, az.shape[0]),
+    ], -1).reshape(-1, 3)  # fmt: skip
+    d = ranges.reshape(n, -1)
+    hit = d < spec.max_range - 1e-3
+    k = min(k, d.shape[1])
+    dsel, idx = torch.topk(torch.where(hit, d, math.inf), k, dim=-1, largest=False)
+    rel = dirs[idx] * dsel.clamp(max=spec.max_range)[..., None]
+    upward = (spec.elevations(dev) >= 0)[:, None].expand(-1, az.shape[0]).reshape(-1)
+    return rel, torch.isfinite(dsel), upward[idx]
+
+
+def dynamic_obstacles_from_features(dynamic: torch.Tensor, lidar_range: float, v_max: float):
+    """Decode the env's ``dynamic`` features ``(N, k, 10)`` back into geometry in the goal frame:
+    ``(rel, vel, radius, valid, planar)``; radius is the obstacle's own (no UAV radius)."""
+    unit = dynamic[..., 0:3]
+    d2 = dynamic[..., 3] * lidar_range
+    dz = dynamic[..., 4] * lidar_range
+    rel = unit * torch.sqrt(d2 * d2 + dz * dz)[..., None]
+    vel = dynamic[..., 5:8] * v_max
+    width = (dynamic[..., 8] * (len(DYN_WIDTHS) - 1) + 1.0) * DYN_WIDTHS[0]
+    cuboid = dynamic[..., 9] > 0.5
+    half = width / 2
+    radius = torch.where(cuboid, torch.sqrt(2 * half * half + (CUBOID_HEIGHT / 2) ** 2), half)
+    valid = dynamic.abs().sum(-1) > 0
+    return rel, vel, radius, valid, ~cuboid
+
+
+def shield_action(
+    obs: dict[str, torch.Tensor], action: torch.Tensor, cfg: ShieldConfig
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Shield normalised goal-frame actions ``(N, 3)`` in ``[-1, 1]`` using the env's own
+    observation (``state``, ``lidar``, ``dynamic`` tensors, batched). Returns ``(action,
+    corrected)``; unchanged actions are returned bit for bit.
+
+    Static obstacles are the range image's beam hits; moving obstacles are the tracked ones,
+    decoded from the ``dynamic`` features. This is exactly what the onboard runtime runs.
+    """
+    spec = RangeImageSpec(h_beams=cfg.lidar_h_beams, v_angles=tuple(cfg.lidar_v_angles),
+                          max_range=cfg.lidar_range)  # fmt: skip
+    lidar, dyn = obs["lidar"], obs["dynamic"]
+    ranges = cfg.lidar_range * (1.0 - lidar.to(action.dtype))
+    s_rel, s_valid, s_planar = static_obstacles_from_ranges(ranges, spec, cfg.max_static)
+    d_rel, d_vel, d_rad, d_valid, d_planar = dynamic_obstacles_from_features(
+        dyn.to(action.dtype), cfg.lidar_range, cfg.v_max)  # fmt: skip
+    base = cfg.uav_radius + cfg.margin
+    rel = torch.cat([s_rel, d_rel], 1)
+    vel = torch.cat([torch.zeros_like(s_rel), d_vel], 1)
+    radius = torch.cat([torch.full_like(s_rel[..., 0], base), d_rad + base], 1)
+    valid = torch.cat([s_valid, d_valid], 1)
+    planar = torch.cat([s_planar, d_planar], 1)
+    v, corrected = velocity_obstacle_shield(
+        action * cfg.v_max, rel, vel, radius, valid, planar, cfg
+    )
+    out = torch.where(corrected[:, None], (v / cfg.v_max).clamp(-1.0, 1.0), action)
+    return out, corrected
+
+
+__all__ = [
+    "ShieldConfig",
+    "dynamic_obstacles_from_features",
+    "shield_action",
+    "static_obstacles_from_ranges",
+    "velocity_obstacle_shield",
+]
