@@ -512,6 +512,9 @@ def _run_on_ray(cfg: SweepConfig, todo: list[Trial], states: dict[str, str], con
     from rich import progress as rp
 
     remote = ray.remote(run_trial)
+    for trial in todo:  # a status left by an interrupted sweep would show before the task runs
+        trial.log("status").unlink(missing_ok=True)
+    started: set[str] = set()
     pending: dict[Any, Trial] = {}
     submitted: dict[str, float] = {}
     for trial in todo:
@@ -525,7 +528,8 @@ def _run_on_ray(cfg: SweepConfig, todo: list[Trial], states: dict[str, str], con
                rp.TextColumn("{task.fields[status]:<10}"), rp.TimeElapsedColumn())  # fmt: skip
     with rp.Progress(*columns, console=console, disable=not cfg.progress,
                   refresh_per_second=2) as bar:  # fmt: skip
-        rows = {t.name: bar.add_task(t.name, total=t.total_steps, status="queued",
+        overall = bar.add_task("all trials", total=len(todo), status="")
+        rows = {t.name: bar.add_task(t.name, total=t.total_steps, status="queued", start=False,
                                      completed=last_step(t.run_dir)) for t in todo}  # fmt: skip
         try:
             while pending:
@@ -543,9 +547,14 @@ def _run_on_ray(cfg: SweepConfig, todo: list[Trial], states: dict[str, str], con
                         status = "failed"
                     bar.update(rows[trial.name], completed=last_step(trial.run_dir),
                                status=status)  # fmt: skip
+                    bar.stop_task(rows[trial.name])
+                    bar.advance(overall)
                 for trial in pending.values():
                     status_file = trial.log("status")
                     status = status_file.read_text().strip() if status_file.exists() else "queued"
+                    if status != "queued" and trial.name not in started:
+                        bar.start_task(rows[trial.name])  # the clock runs from the task's start
+                        started.add(trial.name)
                     bar.update(rows[trial.name], completed=last_step(trial.run_dir),
                                status=status if status != "done" else "finishing")  # fmt: skip
         except KeyboardInterrupt:
