@@ -58,6 +58,10 @@ def fly(
                         format="%(asctime)s %(name)s: %(message)s", datefmt="%H:%M:%S")  # fmt: skip
     if not verbose:
         logging.getLogger("safenav.mavsdk").setLevel(logging.WARNING)
+    if rate < 10.0:
+        raise SafenavError(
+            f"--rate {rate} Hz is too low: PX4 offboard needs a steady setpoint stream, use >= 10 Hz"
+        )
     try:
         if demo:
             from safenav.deploy.demo import run_demo
@@ -71,6 +75,10 @@ def fly(
             summary = fly_policy(policy, connect, goal, perception, rate, shield, takeoff_altitude, origin,
                                  link_timeout, max_flight_time, not no_land)  # fmt: skip
     except FlightAborted as err:
+        summary = getattr(err, "summary", None)
+        if json_out is not None and summary is not None:
+            json_out.parent.mkdir(parents=True, exist_ok=True)
+            json_out.write_text(jsonlib.dumps(summary, indent=2) + "\n")
         print(f"safenav fly: aborted: {err}", file=sys.stderr, flush=True)
         raise SystemExit(EXIT_ABORTED) from None
     print(jsonlib.dumps(summary, indent=2))
@@ -81,8 +89,10 @@ def fly(
 
 def fly_policy(policy: Path, connect: str, goal, perception: str, rate: float, shield: bool,
                takeoff_altitude: float, origin, link_timeout: float, max_flight_time: float, land: bool) -> dict:  # fmt: skip
+    import torch
+
     from safenav.deploy.export import OnnxPolicy, load_sidecar
-    from safenav.deploy.fly import FlightController, FlyConfig, MavsdkLink
+    from safenav.deploy.fly import FlightAborted, FlightController, FlyConfig, MavsdkLink
     from safenav.deploy.runtime import OnboardRuntime, RuntimeConfig
     from safenav.deploy.shield import ShieldConfig
     from safenav.deploy.sim_vehicle import parse_hostport
@@ -94,6 +104,7 @@ def fly_policy(policy: Path, connect: str, goal, perception: str, rate: float, s
             f"{policy} not found: export one with `safenav export CHECKPOINT --onnx {policy}`"
         )
     _, cfg = load_sidecar(policy)
+    torch.set_num_threads(1)  # the runtime is single-threaded by design; leave the other cores
     runtime = OnboardRuntime(OnnxPolicy(policy), cfg,
                              RuntimeConfig(shield=ShieldConfig.for_env(cfg) if shield else None))  # fmt: skip
     link = MavsdkLink(connect)
@@ -103,5 +114,8 @@ def fly_policy(policy: Path, connect: str, goal, perception: str, rate: float, s
     ), perception=parse_hostport(perception) if perception else None)  # fmt: skip
     try:
         return ctl.fly().summary()
+    except FlightAborted as err:
+        err.summary = ctl.log.summary()
+        raise
     finally:
         link.close()

@@ -33,6 +33,9 @@ def sim_vehicle(
     ``COM_OF_LOSS_T=1.0`` or ``COM_OBL_RC_ACT=4`` (land on offboard loss; 5 = hold).
     """
     from safenav.deploy.sim_vehicle import SimVehicle, SimVehicleConfig
+    import torch
+
+    torch.set_num_threads(1)  # one core for the autopilot loop, the rest for the others
     from safenav.errors import SafenavError
 
     params = {}

@@ -104,63 +104,72 @@ def render_depth(
 
 
 def backproject(
-    depth: torch.Tensor,
-    fx: torch.Tensor | float,
-    fy: torch.Tensor | float,
-    cx: torch.Tensor | float,
-    cy: torch.Tensor | float,
-    R: torch.Tensor,
-    t: torch.Tensor,
+    depth,
+    fx,
+    fy,
+    cx,
+    cy,
+    R,
+    t,
     stride: int = 1,
     max_range: float = math.inf,
     with_normals: bool = False,
-) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """World points ``(P, 3)`` of the valid pixels (finite, > 0, within ``max_range`` of the
-    camera) of depth images ``(H, W)`` or a batch ``(B, H, W)`` (intrinsics ``(B,)``, poses
-    ``(B, 3, 3)`` and ``(B, 3)``), every ``stride``-th pixel in both directions.
+    camera) of depth images ``(H, W)`` or a batch ``(B, H, W)`` (intrinsics scalars or ``(B,)``,
+    poses ``(B, 3, 3)`` and ``(B, 3)``), every ``stride``-th pixel in both directions. NumPy
+    float32 in and out (array-likes and CPU tensors are accepted).
 
     ``with_normals``: also return unit surface normals ``(P, 3)`` facing the camera, from forward
     differences to the neighbouring pixels; where a neighbour is missing or farther than a quarter
     of the depth (an edge, or a surface seen at more than ~84 degrees), the reversed viewing ray.
 
-    Computed on the valid pixels only, coordinate by coordinate (reductions over a trailing axis of
-    3 are slow on CPUs).
+    Computed on the valid pixels only, coordinate by coordinate, in NumPy: the arrays are small and
+    per-operation overhead is what costs.
     """
-    if depth.dim() == 2:
+    f32 = lambda x: np.asarray(x, dtype=np.float32)  # noqa: E731
+    depth, R, t = f32(depth), f32(R), f32(t)
+    if depth.ndim == 2:
         depth, R, t = depth[None], R[None], t[None]
     b = depth.shape[0]
-    as_b = lambda x: torch.as_tensor(x, dtype=torch.float32).reshape(-1).expand(b)[:, None, None]  # noqa: E731
-    fx, fy, cx, cy = as_b(fx), as_b(fy), as_b(cx), as_b(cy)
-    d = depth[:, ::stride, ::stride].to(torch.float32)
+    fx, fy, cx, cy = (
+        np.broadcast_to(f32(v).reshape(-1), (b,))[:, None, None] for v in (fx, fy, cx, cy)
+    )
+    d = depth[:, ::stride, ::stride]
     _, h, w = d.shape
     # World-frame ray of every pixel, R @ ((u - cx) / fx, (v - cy) / fy, 1): a point is t + z * ray.
-    x = (torch.arange(0, depth.shape[2], stride, dtype=torch.float32)[None, None, :] - cx) / fx
-    y = (torch.arange(0, depth.shape[1], stride, dtype=torch.float32)[None, :, None] - cy) / fy
-    Rf = R.to(torch.float32)[:, :, :, None, None]
-    rays = [(Rf[:, i, 0] * x + Rf[:, i, 1] * y + Rf[:, i, 2]).reshape(-1) for i in range(3)]
-    valid = torch.isfinite(d) & (d > 0)
-    if math.isfinite(max_range):
-        valid &= d * torch.sqrt(1.0 + x * x + y * y) <= max_range
-    flat_d = torch.where(valid, d, 0.0).reshape(-1)
-    idx = valid.reshape(-1).nonzero().squeeze(1)  # valid pixels, flat index into (B, h, w)
-    tb = t.to(torch.float32).index_select(0, torch.div(idx, h * w, rounding_mode="floor"))
+    x = (
+        np.arange(0, depth.shape[2], stride, dtype=np.float32)[None, None, :] - cx
+    ) / fx  # (B, 1, w)
+    y = (
+        np.arange(0, depth.shape[1], stride, dtype=np.float32)[None, :, None] - cy
+    ) / fy  # (B, h, 1)
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(d) & (d > 0)
+        if math.isfinite(max_range):
+            valid &= d * np.sqrt(1.0 + x * x + y * y) <= max_range
+    idx = np.flatnonzero(valid)
+    flat_d = np.where(valid, d, 0.0).reshape(-1)
+    Rb = R[:, :, :, None, None]
+    rays = [(Rb[:, i, 0] * x + Rb[:, i, 1] * y + Rb[:, i, 2]).reshape(-1) for i in range(3)]
+    cam = idx // (h * w)
 
-    def offsets(index: torch.Tensor) -> list[torch.Tensor]:  # z * ray, the point minus t
-        z = flat_d.index_select(0, index)
-        return [r.index_select(0, index) * z for r in rays]
+    def offsets(index: np.ndarray) -> list[np.ndarray]:  # z * ray = the point minus t
+        z = flat_d[index]
+        return [r[index] * z for r in rays]
 
     c = offsets(idx)
-    pts = torch.stack(c, -1) + tb
+    pts = np.stack(c, -1) + t[cam]
     if not with_normals:
         return pts
-    inner = torch.zeros_like(valid)  # pixels whose right and lower neighbours are valid
+    inner = np.zeros_like(valid)  # pixels whose right and lower neighbours are valid
     inner[:, :-1, :-1] = valid[:, :-1, :-1] & valid[:, :-1, 1:] & valid[:, 1:, :-1]
-    last = flat_d.numel() - 1
-    r, dn = offsets((idx + 1).clamp(max=last)), offsets((idx + w).clamp(max=last))
+    last = flat_d.size - 1
+    r, dn = offsets(np.minimum(idx + 1, last)), offsets(np.minimum(idx + w, last))
     du = [r[i] - c[i] for i in range(3)]
     dv = [dn[i] - c[i] for i in range(3)]
-    lim = (0.25 * flat_d.index_select(0, idx)) ** 2
-    ok = inner.reshape(-1).index_select(0, idx)
+    lim = (0.25 * flat_d[idx]) ** 2
+    ok = inner.reshape(-1)[idx]
     ok &= (du[0] ** 2 + du[1] ** 2 + du[2] ** 2 < lim) & (
         dv[0] ** 2 + dv[1] ** 2 + dv[2] ** 2 < lim
     )
@@ -169,12 +178,12 @@ def backproject(
         du[2] * dv[0] - du[0] * dv[2],
         du[0] * dv[1] - du[1] * dv[0],
     )
-    inv = torch.rsqrt((n[0] ** 2 + n[1] ** 2 + n[2] ** 2).clamp(min=1e-20))
+    inv = 1.0 / np.sqrt(np.maximum(n[0] ** 2 + n[1] ** 2 + n[2] ** 2, 1e-20))
     # Face the camera (n . (p - t) < 0); elsewhere the reversed viewing ray.
-    sign = torch.where(n[0] * c[0] + n[1] * c[1] + n[2] * c[2] > 0, -inv, inv)
-    back = -torch.rsqrt((c[0] ** 2 + c[1] ** 2 + c[2] ** 2).clamp(min=1e-20))
-    normals = torch.stack([torch.where(ok, n[i] * sign, c[i] * back) for i in range(3)], -1)
-    return pts, normals
+    sign = np.where(n[0] * c[0] + n[1] * c[1] + n[2] * c[2] > 0, -inv, inv)
+    back = -1.0 / np.sqrt(np.maximum(c[0] ** 2 + c[1] ** 2 + c[2] ** 2, 1e-20))
+    normals = np.stack([np.where(ok, n[i] * sign, c[i] * back) for i in range(3)], -1)
+    return pts, normals.astype(np.float32)
 
 
 __all__ = ["R_BODY_OPTICAL", "PinholeCamera", "backproject", "render_depth", "rig_poses", "rotz"]

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 from PIL import Image, ImageDraw
 
 from safenav.envs.config import EnvConfig, make_config
@@ -95,7 +96,7 @@ def run_demo(
 ) -> dict[str, Any]:
     """Fly test episode ``episode`` of ``preset`` (world ``world_seed``) against a simulated PX4."""
     from safenav.deploy.export import OnnxPolicy, load_sidecar
-    from safenav.deploy.fly import FlightController, FlyConfig, MavsdkLink
+    from safenav.deploy.fly import FlightAborted, FlightController, FlyConfig, MavsdkLink
     from safenav.deploy.runtime import OnboardRuntime, RuntimeConfig
     from safenav.deploy.shield import ShieldConfig
 
@@ -105,6 +106,7 @@ def run_demo(
     with tempfile.TemporaryDirectory(prefix="safenav-fly-") as tmp:
         onnx = resolve_onnx(policy, checkpoint, scripted, cfg, Path(tmp))
         _, pcfg = load_sidecar(onnx)
+        torch.set_num_threads(1)  # the runtime is single-threaded by design
         port, pport = free_port(), free_port(socket.SOCK_STREAM)
         with sim_vehicle_process(
             "--preset",
@@ -129,6 +131,9 @@ def run_demo(
             t0 = time.monotonic()
             try:
                 flight = ctl.fly()
+            except FlightAborted as err:
+                err.summary = {**ctl.log.summary(), "collisions": ctl.log.truth.get("collisions")}
+                raise
             finally:
                 link.close()
             wall = time.monotonic() - t0

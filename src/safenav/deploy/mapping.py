@@ -57,50 +57,73 @@ class HeightMap:
         # The map in the ray caster's storage format (uint8 quanta if the env uses them).
         self.cast_map = _QUANTIZE(self.heights) if _QUANTIZE is not None else self.heights
         self.points_inserted = 0
+        self._mask: np.ndarray | None = None  # scratch grid for the obstacle exclusion
 
     def clear(self) -> None:
         self.heights.zero_()
         self.cast_map.zero_()
         self.points_inserted = 0
 
-    def insert_points(
-        self,
-        points: torch.Tensor,
-        exclude_boxes: torch.Tensor | None = None,
-        normals: torch.Tensor | None = None,
-    ) -> int:
+    def insert_points(self, points, exclude_boxes=None, normals=None) -> int:
         """Raise the columns under ``points`` ``(P, 3)`` (world); returns how many were used.
 
         ``exclude_boxes``: ``(M, 2, 3)`` ``[lo, hi]`` corners of tracked obstacles; points inside
         (inflated by ``exclusion_margin``) are not inserted. Non-finite points are skipped.
         ``normals``: ``(P, 3)`` unit surface normals facing the sensor (or the reversed viewing
         rays); points on steep surfaces are moved ``surface_offset`` horizontally into them.
+        Array-likes (NumPy, CPU tensors) are accepted.
         """
-        pts = points.to(torch.float32).reshape(-1, 3)
-        if normals is not None and self.surface_offset > 0:
-            nxy = normals.to(torch.float32).reshape(-1, 3)[:, :2]
-            nn = nxy.norm(dim=-1, keepdim=True)
-            shift = torch.where(nn > 0.5, nxy * (-self.surface_offset / nn.clamp(min=1e-6)), 0.0)
-            pts = torch.cat([pts[:, :2] + shift, pts[:, 2:]], -1)
-        keep = torch.isfinite(pts).all(-1) & (pts[:, 2] > self.ground_band)
-        if exclude_boxes is not None and exclude_boxes.numel() > 0:
-            lo = exclude_boxes[:, 0].to(torch.float32) - self.exclusion_margin
-            hi = exclude_boxes[:, 1].to(torch.float32) + self.exclusion_margin
-            inside = ((pts[:, None, :] >= lo[None]) & (pts[:, None, :] <= hi[None])).all(-1).any(-1)
-            keep &= ~inside
+        pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+        g, res, origin = self.grid.size, self.grid.resolution, self.grid.origin
+        with np.errstate(invalid="ignore"):
+            keep = np.isfinite(pts).all(-1) & (pts[:, 2] > self.ground_band)
         pts = pts[keep]
-        g, res = self.grid.size, self.grid.resolution
-        ix = torch.floor((pts[:, 0] - self.grid.origin) / res).long()
-        iy = torch.floor((pts[:, 1] - self.grid.origin) / res).long()
+        x, y, z = pts[:, 0], pts[:, 1], pts[:, 2]
+        if normals is not None and self.surface_offset > 0:
+            nxy = np.asarray(normals, dtype=np.float32).reshape(-1, 3)[keep, :2]
+            nn = np.sqrt(nxy[:, 0] ** 2 + nxy[:, 1] ** 2)
+            k = np.where(nn > 0.5, -self.surface_offset / np.maximum(nn, 1e-6), 0.0)
+            x, y = x + nxy[:, 0] * k, y + nxy[:, 1] * k
+        ix = np.floor((x - origin) / res).astype(np.int64)
+        iy = np.floor((y - origin) / res).astype(np.int64)
         on = (ix >= 0) & (ix < g) & (iy >= 0) & (iy < g)
-        flat, z = ix[on] * g + iy[on], pts[on, 2]
-        if flat.numel() == 0:
+        if exclude_boxes is not None and len(exclude_boxes):
+            on &= ~self._inside_boxes(
+                ix, iy, x, y, z, on, np.asarray(exclude_boxes, dtype=np.float32)
+            )
+        flat = ix[on] * g + iy[on]
+        if flat.size == 0:
             return 0
-        self.heights.scatter_reduce_(0, flat, z, reduce="amax")
+        cells = torch.from_numpy(flat)
+        self.heights.scatter_reduce_(
+            0, cells, torch.from_numpy(np.ascontiguousarray(z[on])), reduce="amax"
+        )
         if _QUANTIZE is not None:
-            self.cast_map[flat] = _QUANTIZE(self.heights[flat])
-        self.points_inserted += int(flat.numel())
-        return int(flat.numel())
+            self.cast_map[cells] = _QUANTIZE(self.heights[cells])
+        self.points_inserted += int(flat.size)
+        return int(flat.size)
+
+    def _inside_boxes(self, ix, iy, x, y, z, on, boxes: np.ndarray) -> np.ndarray:
+        """Which points lie inside the inflated boxes: cells under the boxes' footprints first
+        (a mask on the grid), then the exact test on those few points."""
+        g, res, origin = self.grid.size, self.grid.resolution, self.grid.origin
+        lo = boxes[:, 0] - self.exclusion_margin
+        hi = boxes[:, 1] + self.exclusion_margin
+        c0 = np.clip(np.floor((lo[:, :2] - origin) / res).astype(np.int64), 0, g)
+        c1 = np.clip(np.floor((hi[:, :2] - origin) / res).astype(np.int64) + 1, 0, g)
+        if self._mask is None:
+            self._mask = np.zeros((g, g), dtype=bool)
+        for (a0, b0), (a1, b1) in zip(c0, c1, strict=True):
+            self._mask[a0:a1, b0:b1] = True
+        cand = np.flatnonzero(on)
+        cand = cand[self._mask[ix[cand], iy[cand]]]
+        for (a0, b0), (a1, b1) in zip(c0, c1, strict=True):
+            self._mask[a0:a1, b0:b1] = False
+        inside = np.zeros(ix.shape, dtype=bool)
+        if cand.size:
+            p = np.stack([x[cand], y[cand], z[cand]], -1)[:, None, :]
+            inside[cand] = ((p >= lo[None]) & (p <= hi[None])).all(-1).any(-1)
+        return inside
 
     def insert_depth(
         self,
@@ -116,13 +139,11 @@ class HeightMap:
         for img in images:
             groups.setdefault(tuple(np.shape(img.depth)), []).append(img)
         for imgs in groups.values():
-            f32 = lambda xs: torch.as_tensor(np.asarray(xs, dtype=np.float32))  # noqa: E731
-            depth = f32([im.depth for im in imgs])
-            t = f32([np.asarray(im.t).reshape(3) for im in imgs])
             pts, normals = backproject(
-                depth, f32([im.fx for im in imgs]), f32([im.fy for im in imgs]),
-                f32([im.cx for im in imgs]), f32([im.cy for im in imgs]),
-                f32([np.asarray(im.R).reshape(3, 3) for im in imgs]), t,
+                np.stack([np.asarray(im.depth, dtype=np.float32) for im in imgs]),
+                [im.fx for im in imgs], [im.fy for im in imgs], [im.cx for im in imgs], [im.cy for im in imgs],
+                np.stack([np.asarray(im.R, dtype=np.float32).reshape(3, 3) for im in imgs]),
+                np.stack([np.asarray(im.t, dtype=np.float32).reshape(3) for im in imgs]),
                 stride=stride, max_range=max_range, with_normals=True,
             )  # fmt: skip
             n += self.insert_points(pts, exclude_boxes, normals)

@@ -40,7 +40,7 @@ from safenav.deploy.mapping import HeightMap
 from safenav.deploy.perception_link import DepthImage, PerceptionFrame, TrackedObstacle
 from safenav.deploy.shield import ShieldConfig, shield_action
 from safenav.envs.config import EnvConfig
-from safenav.envs.dynamics import goal_frame_to_world, world_to_goal_frame
+from safenav.envs.dynamics import goal_frame_to_world
 from safenav.envs.nav import DIST_SCALE, Z_SCALE
 from safenav.envs.sensors import RangeImageSpec, dynamic_obstacle_features, raycast_height_map
 from safenav.envs.world import GridSpec
@@ -64,8 +64,9 @@ class RuntimeConfig:
     """Hover without fresh tracker output; False flies on the map alone."""
     future_tolerance_s: float = 0.1
     """Inputs stamped further in the future than this are rejected (clock mismatch)."""
-    depth_stride: int = 1
-    """Use every n-th depth pixel in both directions."""
+    depth_stride: int = 2
+    """Use every n-th depth pixel in both directions (2: a quarter of the pixels; the map still
+    fills in, since successive frames see every cell from slightly different places)."""
     depth_max_range: float = 8.0
     """Depth returns beyond this range (m) are skipped."""
     cuboid_below_height: float = 2.5
@@ -182,12 +183,10 @@ class OnboardRuntime:
             self._faults.pop("state", None)
             self._pos, self._vel, self._state_stamp = p, v, stamp
 
-    def _obstacle_boxes(self) -> torch.Tensor:
-        ob = torch.from_numpy(self._obstacles)
-        if ob.shape[0] == 0:
-            return torch.zeros(0, 2, 3)
-        half = torch.stack([ob[:, 6] / 2, ob[:, 6] / 2, ob[:, 7] / 2], -1)
-        return torch.stack([ob[:, 0:3] - half, ob[:, 0:3] + half], 1)
+    def _obstacle_boxes(self) -> np.ndarray:
+        ob = self._obstacles
+        half = np.stack([ob[:, 6] / 2, ob[:, 6] / 2, ob[:, 7] / 2], -1)
+        return np.stack([ob[:, 0:3] - half, ob[:, 0:3] + half], 1)
 
     def update_depth(self, images: Sequence[DepthImage], stamp: float | None = None) -> int:
         """Insert depth images (one capture, e.g. all cameras of the rig) into the map; points
@@ -210,7 +209,7 @@ class OnboardRuntime:
     def update_points(self, points, stamp: float | None = None) -> int:
         """Insert a world-frame point cloud ``(P, 3)``; non-finite points are skipped."""
         stamp = self.clock() if stamp is None else float(stamp)
-        pts = torch.as_tensor(np.asarray(points, dtype=np.float32).reshape(-1, 3))
+        pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
         with self._lock:
             if not self._stamp_ok("map", stamp):
                 return 0
@@ -282,21 +281,22 @@ class OnboardRuntime:
         """The env-layout observation (batch of 1) and the raw range image (metres), now."""
         cfg = self.cfg
         pos = torch.tensor(self._pos, dtype=torch.float32)[None]
-        vel = torch.tensor(self._vel, dtype=torch.float32)[None]
-        goal = torch.tensor(self._goal, dtype=torch.float32)[None]
         yaw = torch.tensor([self._yaw], dtype=torch.float32)
-        cos_y, sin_y = torch.cos(yaw), torch.sin(yaw)
         ranges = raycast_height_map(
             self.map.cast_map, self.map.grid.origin, self.map.grid.size, pos, yaw, self.spec
         )
         ob = torch.from_numpy(self._obstacles)
-        dynamic, _, _ = dynamic_obstacle_features(
-            (ob[:, 0:3] - pos[0])[None], ob[None, :, 3:6], ob[None, :, 6], ob[None, :, 8] > 0.5,
-            cos_y, sin_y, cfg.num_tracked, cfg.lidar_range, cfg.v_max,
-        )  # fmt: skip
-        state = state_features(pos, vel, goal, cos_y, sin_y, cfg.v_max)
+        if ob.shape[0]:
+            cos_y, sin_y = torch.cos(yaw), torch.sin(yaw)
+            dynamic, _, _ = dynamic_obstacle_features(
+                (ob[:, 0:3] - pos[0])[None], ob[None, :, 3:6], ob[None, :, 6], ob[None, :, 8] > 0.5,
+                cos_y, sin_y, cfg.num_tracked, cfg.lidar_range, cfg.v_max,
+            )  # fmt: skip
+        else:
+            dynamic = torch.zeros(1, cfg.num_tracked, 10)
+        state = state_features(self._pos, self._vel, self._goal, self._yaw, cfg.v_max)
         obs = {
-            "state": state,
+            "state": torch.from_numpy(state)[None],
             "lidar": (cfg.lidar_range - ranges) / cfg.lidar_range,
             "dynamic": dynamic,
         }
@@ -352,17 +352,19 @@ class OnboardRuntime:
             )  # fmt: skip
 
 
-def state_features(pos, vel, goal, cos_y, sin_y, v_max: float) -> torch.Tensor:
-    """The env's ``state`` observation ``(N, 8)`` (see ``SafeNavVectorEnv``; tested equal)."""
-    to_goal = goal - pos
-    dist = to_goal.norm(dim=-1)
-    unit_goal = to_goal / dist[:, None].clamp(min=1e-6)
-    return torch.cat([
-        world_to_goal_frame(unit_goal, cos_y, sin_y),
-        (to_goal[:, :2].norm(dim=-1) / DIST_SCALE)[:, None],
-        (to_goal[:, 2] / Z_SCALE)[:, None],
-        world_to_goal_frame(vel, cos_y, sin_y) / v_max,
-    ], -1)  # fmt: skip
+def state_features(pos, vel, goal, yaw: float, v_max: float) -> np.ndarray:
+    """The env's ``state`` observation ``(8,)`` float32 for one vehicle (see ``SafeNavVectorEnv``;
+    tested equal to it): unit vector to the goal in the goal frame, horizontal distance / 20 m,
+    z distance / 4 m, velocity in the goal frame / v_max."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    to_goal = np.asarray(goal, dtype=np.float32) - np.asarray(pos, dtype=np.float32)
+    v = np.asarray(vel, dtype=np.float32)
+    unit = to_goal / max(float(np.sqrt(np.dot(to_goal, to_goal))), 1e-6)
+    return np.array([
+        c * unit[0] + s * unit[1], -s * unit[0] + c * unit[1], unit[2],
+        math.hypot(to_goal[0], to_goal[1]) / DIST_SCALE, to_goal[2] / Z_SCALE,
+        (c * v[0] + s * v[1]) / v_max, (-s * v[0] + c * v[1]) / v_max, v[2] / v_max,
+    ], dtype=np.float32)  # fmt: skip
 
 
 __all__ = ["OnboardRuntime", "PolicyFn", "RuntimeConfig", "Setpoint", "state_features"]

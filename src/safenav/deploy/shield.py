@@ -34,6 +34,7 @@ env's observation and action directly (goal frame):
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -148,6 +149,7 @@ def _boundary_candidates(v_des, rel, ovel, radius, valid, planar, tau, k):
     return torch.cat([u + leg, u + cap], dim=1)  # (N, 2k, 3)
 
 
+@functools.lru_cache(maxsize=16)
 def _fan(cfg: ShieldConfig, device, dtype) -> torch.Tensor:
     az = torch.arange(cfg.n_azimuth, device=device, dtype=dtype) * (2 * math.pi / cfg.n_azimuth)
     sp = torch.tensor(cfg.speed_fractions, device=device, dtype=dtype) * cfg.v_max
@@ -206,6 +208,20 @@ def velocity_obstacle_shield(
     return out, corrected
 
 
+@functools.lru_cache(maxsize=16)
+def _beams(spec: RangeImageSpec, device) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unit directions ``(V * H, 3)`` of the range image's beams and which point level or up."""
+    az = spec.azimuths(device)  # (H,)
+    el = spec.elevations(device)  # (V,)
+    dirs = torch.stack([
+        torch.cos(el)[:, None] * torch.cos(az)[None, :],
+        torch.cos(el)[:, None] * torch.sin(az)[None, :],
+        torch.sin(el)[:, None].expand(-1, az.shape[0]),
+    ], -1).reshape(-1, 3)  # fmt: skip
+    upward = (el >= 0)[:, None].expand(-1, az.shape[0]).reshape(-1)
+    return dirs, upward
+
+
 def static_obstacles_from_ranges(
     ranges: torch.Tensor, spec: RangeImageSpec, k: int
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -216,21 +232,15 @@ def static_obstacles_from_ranges(
     on the ground, so the column extends below the hit. Hits of downward beams may be the ground and
     stay points."""
     n = ranges.shape[0]
-    dev = ranges.device
-    az = spec.azimuths(dev)  # (H,)
-    el = spec.elevations(dev)  # (V,)
-    dirs = torch.stack([
-        torch.cos(el)[:, None] * torch.cos(az)[None, :],
-        torch.cos(el)[:, None] * torch.sin(az)[None, :],
-        torch.sin(el)[:, None].expand(-1, az.shape[0]),
-    ], -1).reshape(-1, 3)  # fmt: skip
+    dirs, upward = _beams(spec, ranges.device)
     d = ranges.reshape(n, -1)
-    hit = d < spec.max_range - 1e-3
     k = min(k, d.shape[1])
-    dsel, idx = torch.topk(torch.where(hit, d, math.inf), k, dim=-1, largest=False)
-    rel = dirs[idx] * dsel.clamp(max=spec.max_range)[..., None]
-    upward = (spec.elevations(dev) >= 0)[:, None].expand(-1, az.shape[0]).reshape(-1)
-    return rel, torch.isfinite(dsel), upward[idx]
+    dsel, idx = torch.topk(
+        torch.where(d < spec.max_range - 1e-3, d, math.inf), k, dim=-1, largest=False
+    )
+    valid = torch.isfinite(dsel)
+    rel = dirs[idx] * torch.where(valid, dsel, 0.0)[..., None]
+    return rel, valid, upward[idx]
 
 
 def dynamic_obstacles_from_features(dynamic: torch.Tensor, lidar_range: float, v_max: float):

@@ -240,7 +240,6 @@ class SimVehicle:
             self.tcp.listen(4)
             self.tcp.setblocking(False)
             self.perception_address = self.tcp.getsockname()
-        self._clients: dict[socket.socket, bytearray] = {}
 
     # ------------------------------------------------------------------ life cycle
     def start(self) -> SimVehicle:
@@ -255,11 +254,10 @@ class SimVehicle:
         self.close()
 
     def close(self) -> None:
-        for s in [self.udp, self.tcp, *self._clients]:
-            if s is not None:
+        for sock in (self.udp, self.tcp):
+            if sock is not None:
                 with contextlib.suppress(OSError):
-                    s.close()
-        self._clients.clear()
+                    sock.close()
 
     @property
     def mode_name(self) -> str:
@@ -275,27 +273,25 @@ class SimVehicle:
         c = self.config
         sel = selectors.DefaultSelector()
         sel.register(self.udp, selectors.EVENT_READ, "udp")
-        if self.tcp is not None:
-            sel.register(self.tcp, selectors.EVENT_READ, "listen")
+        perception = None
+        if self.tcp is not None:  # its own thread: rendering must never stall the autopilot
+            perception = threading.Thread(
+                target=self._perception_loop, name="sim-perception", daemon=True
+            )
+            perception.start()
         dt = 1.0 / c.physics_hz
         t0 = time.monotonic()
         next_phys = t0
         rates = {"heartbeat": 1.0, "sys_status": 2.0, "ext_sys_state": 5.0, "local_pos": 50.0,
                  "attitude": 50.0, "global_pos": 20.0, "gps": 5.0, "home": 0.5}  # fmt: skip
         next_send = dict.fromkeys(rates, t0)
-        next_perc = t0
         end = math.inf if duration is None else t0 + duration
         try:
             while not self._stop.is_set() and time.monotonic() < end:
                 now = time.monotonic()
-                timeout = max(0.0, min(next_phys, next_perc, *next_send.values()) - now)
-                for key, _ in sel.select(timeout=min(timeout, 0.05)):
-                    if key.data == "udp":
-                        self._receive()
-                    elif key.data == "listen":
-                        self._accept(sel)
-                    else:
-                        self._client_io(key.fileobj, sel)
+                timeout = max(0.0, min(next_phys, *next_send.values()) - now)
+                if sel.select(timeout=min(timeout, 0.05)):
+                    self._receive()
                 now = time.monotonic()
                 steps = 0
                 while now >= next_phys and steps < 10:
@@ -309,12 +305,11 @@ class SimVehicle:
                     if now >= next_send[name]:
                         self._send_telemetry(name)
                         next_send[name] = max(next_send[name] + 1.0 / rate, now)
-                if self.tcp is not None and now >= next_perc:
-                    if self._clients:
-                        self._publish_perception(sel)
-                    next_perc = max(next_perc + 1.0 / c.perception_hz, now)
         finally:
+            self._stop.set()
             sel.close()
+            if perception is not None:
+                perception.join(timeout=2.0)
 
     # ------------------------------------------------------------------ MAVLink I/O
     def _send(self, msg) -> None:
@@ -424,10 +419,11 @@ class SimVehicle:
         self.setpoint_pos = ned_to_enu(pos) if use_pos else None
         if not (mask & (1 << 10)) and math.isfinite(msg.yaw):
             self.yaw_target = math.pi / 2 - msg.yaw  # NED yaw -> ENU yaw
-        self.setpoint_time = self.sim_time
+        self.setpoint_time = time.monotonic()
 
     def _offboard_signal(self) -> bool:
-        return self.sim_time - self.setpoint_time <= self.params["COM_OF_LOSS_T"]
+        """Setpoints arrived within COM_OF_LOSS_T (wall clock, as on the real autopilot)."""
+        return time.monotonic() - self.setpoint_time <= self.params["COM_OF_LOSS_T"]
 
     def _set_mode(self, main: int, sub: int) -> int:
         if main == px4.MainMode.OFFBOARD:
@@ -721,31 +717,6 @@ class SimVehicle:
         self._in_contact = contact
 
     # ------------------------------------------------------------------ perception
-    def _accept(self, sel) -> None:
-        try:
-            conn, _ = self.tcp.accept()
-        except OSError:
-            return
-        conn.setblocking(False)
-        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        self._clients[conn] = bytearray()
-        sel.register(conn, selectors.EVENT_READ, "client")
-
-    def _drop_client(self, conn, sel) -> None:
-        with contextlib.suppress(KeyError, ValueError):
-            sel.unregister(conn)
-        self._clients.pop(conn, None)
-        conn.close()
-
-    def _client_io(self, conn, sel) -> None:
-        try:
-            if not conn.recv(4096):  # clients send nothing; EOF = gone
-                self._drop_client(conn, sel)
-        except BlockingIOError:
-            pass
-        except OSError:
-            self._drop_client(conn, sel)
-
     def perception_frame(self) -> PerceptionFrame:
         """Depth images of the rig and the tracked obstacles, now."""
         with self._lock:
@@ -754,58 +725,76 @@ class SimVehicle:
             ovel = self.obstacles.vel[0, : self.n_dynamic].clone()
             stats = dataclasses.replace(self.stats, path=[])
             in_contact = self._in_contact
+            mode, armed = self.mode_name, self.armed
         width = self.obstacles.width[: self.n_dynamic]
         cuboid = self.obstacles.is_cuboid[: self.n_dynamic]
         height = torch.where(cuboid, CUBOID_HEIGHT, CYLINDER_HEIGHT)
         half = torch.stack([width / 2, width / 2, height / 2], -1)
-        # Moving obstacles are boxes to the cameras (cylinders by their bounding boxes).
-        near = (opos[:, :2] - torch.tensor(pos[:2], dtype=torch.float32)).norm(
-            dim=-1
-        ) < self.config.camera_range + 1
-        pn = (self.box_lo[:, :2] + self.box_hi[:, :2]) / 2 - torch.tensor(
-            pos[:2], dtype=torch.float32
-        )
-        pnear = pn.norm(dim=-1) < self.config.camera_range + 1
-        lo = torch.cat([self.box_lo[pnear], (opos - half)[near]])
-        hi = torch.cat([self.box_hi[pnear], (opos + half)[near]])
-        images = []
+        # Every box the cameras can see: pillars, and moving obstacles by their bounding boxes.
+        lo = torch.cat([self.box_lo, opos - half])
+        hi = torch.cat([self.box_hi, opos + half])
+        here = torch.tensor(pos, dtype=torch.float32)
+        rel = (lo[:, :2] + hi[:, :2]) / 2 - here[:2]
+        dist = rel.norm(dim=-1)
+        radius = ((hi[:, :2] - lo[:, :2]) / 2).norm(dim=-1)
+        bearing = torch.atan2(rel[:, 1], rel[:, 0])
+        reach = dist - radius < self.config.camera_range
         cam = self.camera
-        for R, t in rig_poses(pos, yaw, self.config.cameras):
-            images.append(
-                DepthImage(render_depth(cam, R, t, lo, hi), cam.fx, cam.fy, cam.cx, cam.cy, R, t)
-            )
-        horiz = (opos[:, :2] - torch.tensor(pos[:2], dtype=torch.float32)).norm(dim=-1)
+        half_fov = math.atan((cam.width / 2) / cam.fx)
+        images = []
+        for i, (R, t) in enumerate(rig_poses(pos, yaw, self.config.cameras)):
+            # Frustum culling: boxes whose bounding circle overlaps this camera's horizontal sector.
+            axis = yaw + 2 * math.pi * i / self.config.cameras
+            off = torch.remainder(bearing - axis + math.pi, 2 * math.pi) - math.pi
+            spread = torch.asin((radius / dist.clamp(min=1e-3)).clamp(max=1.0))
+            keep = reach & ((off.abs() <= half_fov + spread + 0.02) | (dist <= radius + 0.5))
+            depth = render_depth(cam, R, t, lo[keep], hi[keep])
+            images.append(DepthImage(depth, cam.fx, cam.fy, cam.cx, cam.cy, R, t))
+        horiz = (opos[:, :2] - here[:2]).norm(dim=-1)
         tracked = [
-            TrackedObstacle(opos[i].numpy().astype(float), ovel[i].numpy().astype(float), float(width[i]),
-                            float(height[i]), bool(cuboid[i]))
+            TrackedObstacle(opos[i].numpy().astype(float), ovel[i].numpy().astype(float),
+                            float(width[i]), float(height[i]), bool(cuboid[i]))
             for i in torch.nonzero(horiz < self.config.tracker_range).squeeze(1).tolist()
         ]  # fmt: skip
         truth = {"pos": pos.tolist(), "collisions": stats.collisions, "min_clearance": stats.min_clearance,
-                 "flight_time": stats.flight_time, "in_contact": in_contact, "mode": self.mode_name,
-                 "armed": self.armed, "dyn_pos": opos[:, :2].numpy().round(3).tolist(),
-                 "world_seed": self.config.world_seed, "preset": self.config.preset}  # fmt: skip
+                 "flight_time": stats.flight_time, "in_contact": in_contact, "mode": mode, "armed": armed,
+                 "dyn_pos": opos[:, :2].numpy().round(3).tolist(), "world_seed": self.config.world_seed,
+                 "preset": self.config.preset}  # fmt: skip
         return PerceptionFrame(stamp=time.monotonic(), depth=images, obstacles=tracked, truth=truth)
 
-    def _publish_perception(self, sel) -> None:
-        data = encode_frame(self.perception_frame())
-        for conn, pending in list(self._clients.items()):
-            if pending:  # the client has not taken the previous frame: drop this one for it
-                self._flush(conn, sel)
-                continue
-            pending += data
-            self._flush(conn, sel)
-
-    def _flush(self, conn, sel) -> None:
-        pending = self._clients.get(conn)
-        if not pending:
-            return
-        try:
-            n = conn.send(pending)
-            del pending[:n]
-        except BlockingIOError:
-            pass
-        except OSError:
-            self._drop_client(conn, sel)
+    def _perception_loop(self) -> None:
+        """Serve perception frames to every connected client at ``perception_hz``; a client that
+        cannot take a frame within a period is dropped (it reconnects)."""
+        period = 1.0 / self.config.perception_hz
+        clients: list[socket.socket] = []
+        self.tcp.settimeout(0.0)
+        next_t = time.monotonic()
+        while not self._stop.is_set():
+            while True:
+                try:
+                    conn, _ = self.tcp.accept()
+                except (BlockingIOError, OSError):
+                    break
+                conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                conn.settimeout(period)
+                clients.append(conn)
+            if clients:
+                try:
+                    data = encode_frame(self.perception_frame())
+                except Exception as err:  # noqa: BLE001 -- keep serving
+                    log.warning("perception frame failed: %s", err)
+                    data = b""
+                for conn in list(clients):
+                    try:
+                        if data:
+                            conn.sendall(data)
+                    except OSError:
+                        clients.remove(conn)
+                        conn.close()
+            next_t = max(next_t + period, time.monotonic())
+            self._stop.wait(max(0.0, next_t - time.monotonic()))
+        for conn in clients:
+            conn.close()
 
 
 __all__ = ["MovingObstacles", "SimStats", "SimVehicle", "SimVehicleConfig", "parse_hostport"]

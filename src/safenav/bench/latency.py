@@ -1,0 +1,198 @@
+"""``safenav bench latency``: batch-1 policy latency and sensor -> setpoint latency, one CPU thread.
+
+Backends: torch eager, TorchScript (traced, frozen) and ONNX Runtime (one intra-op thread) on the
+same actor. The pipeline is what the onboard runtime does per perception frame and control step:
+insert one frame of the 4-camera depth rig into the height map, ray-cast the range image, build
+the tracked-obstacle and state features, run the ONNX policy and the velocity-obstacle shield.
+Depth frames are pre-rendered from the paper world (seed 1) along a test-episode path, so the
+renderer is not timed. Target: pipeline p99 <= 2 ms.
+
+The actor is the trained CSAC checkpoint if ``checkpoints/csac-paper.pt`` loads, else a
+randomly initialised network of the paper's architecture (III-D: a 3-layer CNN on the range image
+-> 128, an MLP on the moving obstacles -> 64, with the state into an MLP head); weights do not
+change latency.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from safenav.envs.config import EnvConfig, make_config
+
+TARGET_PIPELINE_P99_MS = 2.0
+
+
+class ReferenceActor(nn.Module):
+    """The paper's actor architecture (III-D), for timing when no checkpoint is at hand."""
+
+    def __init__(self, cfg: EnvConfig) -> None:
+        super().__init__()
+        nv, nh = len(cfg.lidar_v_angles), cfg.lidar_h_beams
+        self.cnn = nn.Sequential(
+            nn.Conv2d(1, 4, (5, 3), padding=(2, 1)), nn.ELU(),
+            nn.Conv2d(4, 16, (5, 3), stride=(2, 1), padding=(2, 1)), nn.ELU(),
+            nn.Conv2d(16, 16, (5, 3), stride=(2, 2), padding=(2, 1)), nn.ELU(),
+            nn.Flatten(),
+        )  # fmt: skip
+        with torch.no_grad():
+            n = self.cnn(torch.zeros(1, 1, nv, nh)).shape[1]
+        self.lidar_head = nn.Sequential(nn.Linear(n, 128), nn.LayerNorm(128))
+        self.dyn = nn.Sequential(nn.Flatten(), nn.Linear(cfg.num_tracked * 10, 128), nn.ELU(), nn.Linear(128, 64))
+        self.head = nn.Sequential(nn.Linear(128 + 64 + 8, 256), nn.ELU(), nn.Linear(256, 256), nn.ELU(),
+                                  nn.Linear(256, 3))  # fmt: skip
+
+    def forward(self, state: torch.Tensor, lidar: torch.Tensor, dynamic: torch.Tensor) -> torch.Tensor:
+        f = torch.cat([self.lidar_head(self.cnn(lidar[:, None])), self.dyn(dynamic), state], -1)
+        return torch.tanh(self.head(f))
+
+
+def _percentiles(samples: list[float]) -> tuple[float, float]:
+    a = np.asarray(samples) * 1e3
+    return float(np.percentile(a, 50)), float(np.percentile(a, 99))
+
+
+def _time(fn, iterations: int, warmup: int) -> tuple[float, float]:
+    for _ in range(warmup):
+        fn()
+    ts = []
+    for _ in range(iterations):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return _percentiles(ts)
+
+
+def _actor(checkpoint: Path | None) -> tuple[nn.Module, EnvConfig, str]:
+    if checkpoint is not None and checkpoint.exists():
+        try:
+            from safenav.deploy.export import load_actor
+
+            actor, cfg = load_actor(checkpoint)
+            return actor.eval().cpu(), cfg, str(checkpoint)
+        except Exception:  # noqa: BLE001 -- fall back to the reference network
+            pass
+    cfg = make_config("paper")
+    torch.manual_seed(0)
+    return ReferenceActor(cfg).eval(), cfg, "reference (random weights, paper architecture)"
+
+
+def _sensor_frames(cfg: EnvConfig, n: int):
+    """``n`` perception frames along test episode 0 of the paper world (seed 1)."""
+    from safenav.deploy.sim_vehicle import SimVehicle, SimVehicleConfig
+
+    sim = SimVehicle(SimVehicleConfig(preset="paper", perception_port=-1))
+    try:
+        start = sim.pos.copy()
+        goal = sim.scenario_goal
+        frames = []
+        for i in range(n):
+            a = 0.1 + 0.8 * i / max(1, n - 1)
+            sim.pos = start + a * (goal - start)
+            sim.pos[2] = 1.5
+            for _ in range(2):
+                sim.obstacles.step()
+            frames.append((sim.pos.copy(), sim.perception_frame()))
+        return frames, goal
+    finally:
+        sim.close()
+
+
+def bench_latency(
+    json_out: Path | None = None,
+    iterations: int = 2000,
+    warmup: int = 200,
+    frames: int = 40,
+    checkpoint: Path | None = Path("checkpoints/csac-paper.pt"),
+    quiet: bool = False,
+) -> dict[str, Any]:
+    """Measure and return (and write to ``json_out``) p50/p99 latencies in milliseconds."""
+    from safenav.deploy.export import OnnxPolicy, export_onnx
+    from safenav.deploy.runtime import OnboardRuntime, RuntimeConfig
+    from safenav.deploy.shield import ShieldConfig
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        actor, cfg, source = _actor(checkpoint)
+        obs = {k: torch.as_tensor(v) for k, v in {
+            "state": np.zeros((1, 8), np.float32), "lidar": np.zeros((1, len(cfg.lidar_v_angles), cfg.lidar_h_beams), np.float32),
+            "dynamic": np.zeros((1, cfg.num_tracked, 10), np.float32)}.items()}  # fmt: skip
+        args = (obs["state"], obs["lidar"], obs["dynamic"])
+        out: dict[str, Any] = {}
+        with torch.inference_mode():
+            out["torch_p50_ms"], out["torch_p99_ms"] = _time(lambda: actor(*args), iterations, warmup)
+        with torch.no_grad():
+            scripted = torch.jit.optimize_for_inference(torch.jit.freeze(torch.jit.trace(actor, args).eval()))
+        with torch.inference_mode():
+            out["torchscript_p50_ms"], out["torchscript_p99_ms"] = _time(lambda: scripted(*args), iterations, warmup)
+        with tempfile.TemporaryDirectory() as tmp:
+            onnx_path = Path(tmp) / "policy.onnx"
+            export_onnx(actor, cfg, onnx_path)
+            policy = OnnxPolicy(onnx_path, threads=1)
+            np_args = tuple(a.numpy() for a in args)
+            out["onnx_p50_ms"], out["onnx_p99_ms"] = _time(lambda: policy(*np_args), iterations, warmup)
+
+            # The whole sensor -> setpoint step.
+            sensor, goal = _sensor_frames(cfg, frames)
+            rcfg = RuntimeConfig(shield=ShieldConfig.for_env(cfg), max_state_age_s=1e9, max_map_age_s=1e9,
+                                 max_obstacle_age_s=1e9)  # fmt: skip
+            runtime = OnboardRuntime(policy, cfg, rcfg)
+            runtime.update_state(sensor[0][0], np.zeros(3))
+            runtime.set_goal(goal)
+            parts: dict[str, list[float]] = {"map_update": [], "observation": [], "policy": [], "shield": []}
+            total: list[float] = []
+            vel = np.array([1.0, 0.5, 0.0])
+            for i in range(warmup + iterations):
+                pos, frame = sensor[i % len(sensor)]
+                t0 = time.perf_counter()
+                runtime.update_state(pos, vel)
+                runtime.update_obstacles(frame.obstacles)
+                runtime.update_depth(frame.depth)
+                t1 = time.perf_counter()
+                sp = runtime.step()
+                t2 = time.perf_counter()
+                if sp.hover:
+                    raise RuntimeError(f"pipeline hovered: {sp.reason}")
+                if i >= warmup:
+                    total.append(t2 - t0)
+                    parts["map_update"].append(t1 - t0)
+                    for k in ("observation", "policy", "shield"):
+                        parts[k].append(sp.timings_ms[k] / 1e3)
+            out["pipeline_p50_ms"], out["pipeline_p99_ms"] = _percentiles(total)
+            for k, v in parts.items():
+                out[f"{k}_p50_ms"], out[f"{k}_p99_ms"] = _percentiles(v)
+            depth_px = sum(im.depth.size for im in sensor[0][1].depth)
+    finally:
+        torch.set_num_threads(threads)
+    out = {k: round(v, 4) for k, v in out.items()}
+    out.update({
+        "target_pipeline_p99_ms": TARGET_PIPELINE_P99_MS,
+        "pipeline_meets_target": out["pipeline_p99_ms"] <= TARGET_PIPELINE_P99_MS,
+        "actor": source, "threads": 1, "iterations": iterations,
+        "pipeline": {"cameras": len(sensor[0][1].depth), "depth_pixels": depth_px,
+                     "depth_stride": rcfg.depth_stride, "shield": True, "world": "paper, seed 1"},
+        "machine": {"python": platform.python_version(), "torch": torch.__version__,
+                    "processor": platform.processor() or platform.machine()},
+    })  # fmt: skip
+    if not quiet:
+        print(f"{'backend':<14}{'p50 ms':>9}{'p99 ms':>9}")
+        for name in ("torch", "torchscript", "onnx", "pipeline", "map_update", "observation", "policy", "shield"):
+            print(f"{name:<14}{out[name + '_p50_ms']:>9.3f}{out[name + '_p99_ms']:>9.3f}")
+        print(f"pipeline p99 target {TARGET_PIPELINE_P99_MS} ms: {'met' if out['pipeline_meets_target'] else 'NOT met'}")
+    if json_out is not None:
+        json_out = Path(json_out)
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(json.dumps(out, indent=2) + "\n")
+    return out
+
+
+__all__ = ["ReferenceActor", "bench_latency"]
