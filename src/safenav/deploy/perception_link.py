@@ -108,7 +108,15 @@ def encode_frame(frame: PerceptionFrame, depth_as_uint16: bool = True) -> bytes:
 
 
 def decode_frame(body: bytes) -> PerceptionFrame:
-    """Inverse of :func:`encode_frame` (``body`` without the leading total length)."""
+    """Inverse of :func:`encode_frame` (``body`` without the leading total length); any malformed
+    frame raises ``ValueError``."""
+    try:
+        return _decode(body)
+    except (KeyError, TypeError, IndexError, AttributeError) as err:
+        raise ValueError(f"malformed perception frame: {err!r}") from None
+
+
+def _decode(body: bytes) -> PerceptionFrame:
     if len(body) < 4:
         raise ValueError("perception frame too short")
     (hlen,) = struct.unpack(">I", body[:4])
@@ -213,7 +221,7 @@ class PerceptionClient:
                     body = self._recv_exact(sock, length)
                     try:
                         frame = decode_frame(body)
-                    except (ValueError, KeyError, TypeError, json.JSONDecodeError) as err:
+                    except ValueError as err:
                         self.on_error(f"bad perception frame dropped: {err}")
                         continue
                     self.frames += 1

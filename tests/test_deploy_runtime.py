@@ -1,0 +1,292 @@
+"""The onboard runtime: the observation it builds from sensor data is the env's observation."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from safenav.deploy.camera import PinholeCamera, render_depth, rig_poses
+from safenav.deploy.frames import (
+    enu_to_ned,
+    local_ned_to_world,
+    ned_to_enu,
+    world_to_local_ned,
+    yaw_enu_to_ned,
+)
+from safenav.deploy.perception_link import (
+    DepthImage,
+    PerceptionFrame,
+    TrackedObstacle,
+    decode_frame,
+    encode_frame,
+)
+from safenav.deploy.runtime import OnboardRuntime, RuntimeConfig
+from safenav.envs import SafeNavVectorEnv, make_config
+from safenav.envs.sensors import (
+    RangeImageSpec,
+    pillar_clearance,
+    quantize_heights,
+    raycast_height_map,
+)
+from safenav.envs.world import height_map
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """One torch thread: on a loaded 2-core machine OpenMP oversubscription costs 50x."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def const_policy(value=(0.5, 0.0, 0.0)):
+    return lambda s, l, d: np.asarray([value], dtype=np.float32)  # noqa: E741
+
+
+@pytest.fixture(scope="module")
+def easy_env():
+    cfg = make_config("easy")
+    env = SafeNavVectorEnv(4, config=cfg, output="torch")
+    env.reset(seed=3)
+    return env
+
+
+def pillar_boxes(env, w=0):
+    ps = env.n_static
+    xy, h, top = env.pillar_xy[w, :ps], env.pillar_half[w, :ps], env.pillar_height[w, :ps]
+    lo = torch.cat([xy - h[:, None], torch.zeros(ps, 1)], -1)
+    hi = torch.cat([xy + h[:, None], top[:, None]], -1)
+    return lo, hi
+
+
+def tracked(env, w):
+    nd = env.n_dynamic
+    return [
+        TrackedObstacle(env.dyn_pos[w, i].numpy(), env.dyn_vel[w, i].numpy(), float(env.dyn_width[w, i]),
+                        1.0 if bool(env.dyn_is_cuboid[w, i]) else 5.0, bool(env.dyn_is_cuboid[w, i]))
+        for i in range(nd)
+    ]  # fmt: skip
+
+
+def test_observation_equals_the_envs_given_its_map_and_obstacles() -> None:
+    """Same map, same obstacles, same state -> the runtime's observation is the env's, exactly
+    for the range image (same ray caster) and to float precision for the features."""
+    cfg = make_config("easy", num_dynamic=40)  # many moving obstacles: tracked rows are non-zero
+    env = SafeNavVectorEnv(4, config=cfg, output="torch", num_worlds=2)
+    env.reset(seed=5)
+    gen = torch.Generator().manual_seed(0)
+    g2 = env.grid.size**2
+    nonzero_dynamic = 0
+    for _ in range(15):
+        obs, _, term, trunc, _ = env.step(torch.rand(4, 3, generator=gen) * 2 - 1)
+        for i in range(4):
+            if bool(term[i] | trunc[i]):
+                continue
+            w = int(env.world_idx[i])
+            rt = OnboardRuntime(const_policy(), cfg, RuntimeConfig(require_tracker=True))
+            rt.map.cast_map = env.heights[w * g2 : (w + 1) * g2].clone()
+            rt.update_state(env.pos[i].numpy(), env.vel[i].numpy())
+            rt.set_goal(env.goal[i].numpy(), start=env.start[i].numpy())
+            rt.update_obstacles(tracked(env, w))
+            mine, _ = rt.observation()
+            assert torch.equal(mine["lidar"][0], obs["lidar"][i])
+            torch.testing.assert_close(mine["state"][0], obs["state"][i], atol=2e-6, rtol=1e-5)
+            torch.testing.assert_close(mine["dynamic"][0], obs["dynamic"][i], atol=2e-6, rtol=1e-5)
+            nonzero_dynamic += int(obs["dynamic"][i].abs().sum() > 0)
+    assert nonzero_dynamic > 0
+
+
+def _bracket_maps(env):
+    """The true height map grown and shrunk by one cell (and raised/lowered by one cell height):
+    a range image within the map resolution of the truth lies between their range images."""
+    truth = height_map(env.worlds[0], env.n_static)
+    dil = F.max_pool2d(truth[None, None], 3, 1, 1)[0, 0]
+    ero = -F.max_pool2d(-truth[None, None], 3, 1, 1)[0, 0]
+    res = env.cfg.grid_resolution
+    dil = torch.where(dil > 0, dil + res, 0.0)
+    ero = torch.where(ero > 0, (ero - res).clamp(min=0.01), 0.0)
+    return quantize_heights(truth), quantize_heights(dil), quantize_heights(ero)
+
+
+@pytest.mark.parametrize("stride, min_bracketed, min_one_cell", [(1, 0.995, 0.98), (2, 0.98, 0.96)])
+def test_depth_images_give_the_simulators_range_image_within_the_map_resolution(
+    easy_env, stride, min_bracketed, min_one_cell
+) -> None:
+    """Depth images rendered from the simulator's own world (4 pinhole cameras, 90 degrees each)
+    -> height map -> ray cast, against the simulator's range image from its true map."""
+    env, cfg = easy_env, easy_env.cfg
+    truth, dil, ero = _bracket_maps(env)
+    lo, hi = pillar_boxes(env)
+    xy, h, top = (
+        env.pillar_xy[0, : env.n_static],
+        env.pillar_half[0, : env.n_static],
+        env.pillar_height[0, : env.n_static],
+    )
+    spec = RangeImageSpec.for_config(cfg)
+    cam = PinholeCamera.from_fov(80, 60, 90.0)
+    rng = np.random.default_rng(0)
+    bracketed = one_cell = total = poses = 0
+    while poses < 30:
+        p = np.array(
+            [rng.uniform(-8, 8), rng.uniform(-8, 8), rng.uniform(0.5, 3.0)], dtype=np.float32
+        )
+        if pillar_clearance(torch.tensor(p)[None], xy, h, top)[0] < cfg.uav_radius:
+            continue  # inside or touching a pillar: no range image to compare
+        poses += 1
+        rt = OnboardRuntime(
+            const_policy(), cfg, RuntimeConfig(require_tracker=False, depth_stride=stride)
+        )
+        rt.update_state(p, np.zeros(3))
+        rt.set_goal(np.array([rng.uniform(-9, 9), rng.uniform(-9, 9), 1.5]), start=p)
+        images = [DepthImage(render_depth(cam, R, t, lo, hi), cam.fx, cam.fy, cam.cx, cam.cy, R, t)
+                  for R, t in rig_poses(p, yaw=rng.uniform(-3, 3))]  # fmt: skip
+        assert rt.update_depth(images) > 0
+        _, mine = rt.observation()
+        pos, yaw = torch.tensor(p)[None], torch.tensor([rt.goal_yaw], dtype=torch.float32)
+        r_true, r_dil, r_ero = (raycast_height_map(m, env.grid.origin, env.grid.size, pos, yaw, spec)
+                                for m in (truth, dil, ero))  # fmt: skip
+        bracketed += int(((mine >= r_dil - 1e-4) & (mine <= r_ero + 1e-4)).sum())
+        cell = cfg.grid_resolution / torch.cos(spec.elevations())[None, :, None] + 1e-4
+        one_cell += int(((mine - r_true).abs() <= cell).sum())
+        total += mine.numel()
+    assert bracketed / total >= min_bracketed, bracketed / total
+    assert one_cell / total >= min_one_cell, one_cell / total
+
+
+def test_tracked_obstacles_stay_out_of_the_map() -> None:
+    cfg = make_config("easy")
+    cam = PinholeCamera.from_fov(80, 60, 90.0)
+    p = np.array([0.0, 0.0, 1.5])
+    box_c = np.array([1.5, 0.0, 1.5])  # a 1 m floating cuboid 1.5 m ahead, nothing else
+    lo = torch.tensor(np.array([box_c - 0.5]), dtype=torch.float32)
+    hi = torch.tensor(np.array([box_c + 0.5]), dtype=torch.float32)
+    images = [DepthImage(render_depth(cam, R, t, lo, hi), cam.fx, cam.fy, cam.cx, cam.cy, R, t)
+              for R, t in rig_poses(p, 0.0)]  # fmt: skip
+    seen = OnboardRuntime(const_policy(), cfg, RuntimeConfig(require_tracker=False))
+    seen.update_depth(images)
+    assert float(seen.map.heights.max()) > 1.5
+    excluded = OnboardRuntime(const_policy(), cfg)
+    excluded.update_obstacles([TrackedObstacle(box_c, np.zeros(3), 1.0, 1.0, True)])
+    excluded.update_depth(images)
+    assert float(excluded.map.heights.max()) == 0.0
+
+
+def _ready_runtime(policy=None, **cfg_kwargs):
+    cfg = make_config("easy")
+    clock = [100.0]
+    rt = OnboardRuntime(
+        policy or const_policy(), cfg, RuntimeConfig(**cfg_kwargs), clock=lambda: clock[0]
+    )
+    rt.update_state([0.0, 0.0, 1.5], [0.0, 0.0, 0.0])
+    rt.set_goal([5.0, 0.0, 1.5])
+    rt.update_points(np.zeros((0, 3)))
+    rt.update_obstacles([])
+    return rt, clock
+
+
+def test_runtime_flies_when_inputs_are_good_and_converts_to_ned() -> None:
+    rt, _ = _ready_runtime(const_policy((0.5, 0.25, -0.1)))
+    sp = rt.step()
+    assert not sp.hover and sp.reason == ""
+    # Goal due east: goal-frame x = east. v = action * v_max.
+    np.testing.assert_allclose(sp.velocity, [1.0, 0.5, -0.2], atol=1e-6)
+    np.testing.assert_allclose(sp.velocity_ned, [0.5, 1.0, 0.2], atol=1e-6)
+    assert sp.yaw_ned_deg == pytest.approx(90.0)  # facing east
+
+
+def test_runtime_clamps_to_v_max_per_goal_frame_axis() -> None:
+    rt, _ = _ready_runtime(const_policy((7.0, -3.0, 2.0)))
+    sp = rt.step()
+    np.testing.assert_allclose(sp.velocity, [2.0, -2.0, 2.0], atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "spoil, reason",
+    [
+        (lambda rt, c: c.__setitem__(0, c[0] + 0.3), "stale vehicle state"),
+        (lambda rt, c: rt.update_state([np.nan, 0, 1.5], [0, 0, 0]), "non-finite vehicle state"),
+        (lambda rt, c: rt.update_state([0, 0, 1.5], [np.inf, 0, 0]), "non-finite vehicle state"),
+        (lambda rt, c: rt.update_state([0, 0, 1.5], [0, 0, 0], stamp=c[0] + 5.0), "in the future"),
+        (lambda rt, c: (c.__setitem__(0, c[0] + 0.6), rt.update_state([0, 0, 1.5], [0, 0, 0])), "stale map"),
+        (lambda rt, c: (c.__setitem__(0, c[0] + 0.6), rt.update_state([0, 0, 1.5], [0, 0, 0]),
+                        rt.update_points(np.zeros((0, 3)))), "stale obstacle tracker"),
+        (lambda rt, c: rt.update_obstacles([TrackedObstacle(np.array([np.nan, 0, 0]), np.zeros(3), 0.5, 1.0)]),
+         "non-finite or negative-size tracked obstacle"),
+        (lambda rt, c: rt.update_depth([DepthImage(np.ones((4, 4), np.float32), 2, 2, 2, 2,
+                                                   np.full((3, 3), np.nan), np.zeros(3))]), "non-finite camera pose"),
+    ],
+)  # fmt: skip
+def test_runtime_hovers_on_stale_or_invalid_inputs(spoil, reason) -> None:
+    rt, clock = _ready_runtime()
+    assert not rt.step().hover
+    spoil(rt, clock)
+    sp = rt.step()
+    assert sp.hover and reason in sp.reason
+    assert np.all(sp.velocity == 0) and np.all(sp.velocity_ned == 0)
+
+
+def test_runtime_hovers_before_a_goal_and_on_bad_policy_output() -> None:
+    cfg = make_config("easy")
+    rt = OnboardRuntime(const_policy(), cfg)
+    assert rt.step().reason == "no goal set"
+    rt, _ = _ready_runtime(const_policy((np.nan, 0.0, 0.0)))
+    sp = rt.step()
+    assert sp.hover and "policy output" in sp.reason
+
+
+def test_runtime_recovers_when_inputs_are_good_again() -> None:
+    rt, clock = _ready_runtime()
+    rt.update_obstacles([TrackedObstacle(np.array([np.nan, 0, 0]), np.zeros(3), 0.5, 1.0)])
+    assert rt.step().hover
+    rt.update_obstacles([TrackedObstacle(np.array([3.0, 0, 1.5]), np.zeros(3), 0.5, 1.0)])
+    assert not rt.step().hover
+
+
+def test_nan_depth_pixels_are_no_return_not_a_fault() -> None:
+    rt, _ = _ready_runtime()
+    cam = PinholeCamera.from_fov(16, 12, 90.0)
+    d = np.full((12, 16), np.nan, np.float32)
+    d[6, 8] = 1.0
+    (R, t), *_ = rig_poses([0, 0, 1.5], 0.0)
+    assert rt.update_depth([DepthImage(d, cam.fx, cam.fy, cam.cx, cam.cy, R, t)]) == 1
+    assert not rt.step().hover
+
+
+def test_frames() -> None:
+    v = np.array([1.0, 2.0, 3.0])  # east, north, up
+    np.testing.assert_allclose(enu_to_ned(v), [2.0, 1.0, -3.0])
+    np.testing.assert_allclose(ned_to_enu(enu_to_ned(v)), v)
+    origin = np.array([10.0, -5.0, 0.0])
+    np.testing.assert_allclose(local_ned_to_world(world_to_local_ned(v, origin), origin), v)
+    assert yaw_enu_to_ned(0.0) == pytest.approx(math.pi / 2)  # east
+    assert yaw_enu_to_ned(math.pi / 2) == pytest.approx(0.0)  # north
+
+
+def test_perception_frames_round_trip_and_reject_garbage() -> None:
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(0.3, 9.0, (6, 8)).astype(np.float32)
+    depth[0, 0] = np.nan
+    R, t = rig_poses([1.0, 2.0, 1.5], 0.3)[1]
+    frame = PerceptionFrame(
+        stamp=12.5, depth=[DepthImage(depth, 4.0, 4.0, 3.5, 2.5, R, t)],
+        points=rng.normal(size=(5, 3)).astype(np.float32),
+        obstacles=[TrackedObstacle(np.array([1.0, 2, 3]), np.array([0.5, 0, 0]), 0.5, 5.0)],
+        truth={"collisions": 0},
+    )  # fmt: skip
+    for as_uint16, tol in ((True, 5e-4), (False, 0.0)):
+        data = encode_frame(frame, depth_as_uint16=as_uint16)
+        back = decode_frame(data[4:])
+        got = back.depth[0].depth
+        assert got[0, 0] == 0 or np.isnan(got[0, 0])  # no return stays no return
+        np.testing.assert_allclose(got[1:], depth[1:], atol=tol)
+        np.testing.assert_allclose(back.depth[0].R, R)
+        np.testing.assert_allclose(back.points, frame.points)
+        assert back.obstacles[0].height == 5.0 and back.truth == {"collisions": 0}
+    for bad in (b"", b"\x00\x00\x00\x09{}", b"\x00\x00\x00\x02{}", b"\x00\x00\x00\x02{]xx"):
+        with pytest.raises(ValueError):
+            decode_frame(bad)
