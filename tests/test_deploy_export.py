@@ -1,0 +1,124 @@
+"""``safenav export``: the deterministic actor as ONNX; ONNX Runtime equals torch within 1e-5."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+import types
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from safenav.bench.latency import ReferenceActor
+from safenav.deploy.export import (
+    OnnxPolicy,
+    TorchPolicy,
+    export_onnx,
+    load_actor,
+    load_sidecar,
+    random_observations,
+)
+from safenav.deploy.scripted import GoToGoalActor
+from safenav.envs import make_config
+
+pytest.importorskip("onnxruntime")
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def real_observations(cfg, steps=10, n=8):
+    from safenav.commands.export import env_observations
+
+    return env_observations(cfg, steps=steps, num_envs=n)
+
+
+@pytest.mark.parametrize("make_actor", [ReferenceActor, GoToGoalActor])
+def test_onnx_runtime_equals_torch(tmp_path: Path, make_actor) -> None:
+    cfg = make_config("easy")
+    torch.manual_seed(0)
+    actor = make_actor(cfg).eval()
+    real = real_observations(cfg)
+    meta = export_onnx(actor, cfg, tmp_path / "policy.onnx", check_observations=real)
+    assert meta["check"]["max_abs_diff"] <= 1e-5
+    ort_policy, torch_policy = OnnxPolicy(tmp_path / "policy.onnx"), TorchPolicy(actor)
+    for obs in (real, {k: v.numpy() for k, v in random_observations(cfg, 33, seed=7).items()}):
+        got = ort_policy(obs["state"], obs["lidar"], obs["dynamic"])
+        ref = torch_policy(obs["state"], obs["lidar"], obs["dynamic"])
+        assert got.shape == (len(obs["state"]), 3)
+        np.testing.assert_allclose(got, ref, atol=1e-5, rtol=0)
+    one = {k: v[:1] for k, v in real.items()}  # batch 1, as on board
+    np.testing.assert_allclose(
+        ort_policy(*one.values()), torch_policy(*one.values()), atol=1e-5, rtol=0
+    )
+
+
+def test_sidecar_describes_the_conventions(tmp_path: Path) -> None:
+    cfg = make_config("medium", v_max=1.5, control_hz=20.0)
+    export_onnx(GoToGoalActor(cfg), cfg, tmp_path / "p.onnx", checkpoint="x.pt")
+    meta, back = load_sidecar(tmp_path / "p.onnx")
+    assert back == cfg
+    assert meta["v_max"] == 1.5 and meta["control_hz"] == 20.0 and meta["checkpoint"] == "x.pt"
+    obs = meta["observation"]
+    assert (
+        obs["state"]["shape"] == [8]
+        and obs["lidar"]["shape"] == [4, 36]
+        and obs["dynamic"]["shape"] == [5, 10]
+    )
+    assert obs["state"]["scale"] == {"horizontal_distance_to_goal_m": 20.0, "z_distance_to_goal_m": 4.0,
+                                     "velocity_m_s": 1.5}  # fmt: skip
+    assert obs["lidar"]["rows_elevation_deg"] == [-10.0, 0.0, 10.0, 20.0]
+    assert meta["action"]["scale_m_s"] == 1.5 and meta["action"]["frame"] == "goal"
+    assert len(meta["sha256"]) == 64
+
+
+def test_cli_export_scripted_and_errors(tmp_path: Path, capsys) -> None:
+    from safenav.cli import main
+
+    out = tmp_path / "policy.onnx"
+    main(["export", "--scripted", "--preset", "easy", "--onnx", str(out)])
+    assert (
+        out.exists()
+        and json.loads(Path(str(out) + ".json").read_text())["format"] == "safenav-policy/1"
+    )
+    for argv, msg in ((["export", "--onnx", str(out)], "no CHECKPOINT"),
+                      (["export", str(tmp_path / "missing.pt")], "not found")):  # fmt: skip
+        with pytest.raises(SystemExit) as e:
+            main(argv)
+        assert e.value.code == 2
+        assert msg in capsys.readouterr().err
+
+
+def test_load_actor_reads_the_trainers_policy(tmp_path: Path, monkeypatch) -> None:
+    """The adapter to ``safenav.algos.policy.load_policy`` (``Policy.actor``, env config in
+    ``Policy.env_config()`` or ``Policy.meta``)."""
+    cfg = make_config("easy")
+    actor = GoToGoalActor(cfg)
+
+    class WithMethod:
+        def __init__(self):
+            self.actor = actor
+
+        def env_config(self):
+            return cfg
+
+    class WithMeta:
+        actor = GoToGoalActor(cfg)
+        meta = {"env_config": dataclasses.asdict(cfg), "algo": "csac"}
+
+    ckpt = tmp_path / "c.pt"
+    ckpt.write_bytes(b"x")
+    for policy in (WithMethod(), WithMeta()):
+        module = types.ModuleType("safenav.algos.policy")
+        module.load_policy = lambda path, device="cpu", _p=policy: _p
+        monkeypatch.setitem(sys.modules, "safenav.algos.policy", module)
+        got_actor, got_cfg = load_actor(ckpt)
+        assert got_actor is policy.actor and got_cfg == cfg

@@ -1,0 +1,134 @@
+"""The velocity-obstacle safety shield: unchanged when safe, minimal correction otherwise."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from safenav.deploy.shield import (
+    ShieldConfig,
+    _vo_test,
+    shield_action,
+    velocity_obstacle_shield,
+)
+from safenav.envs import SafeNavVectorEnv, make_config
+from safenav.envs.scripted import go_to_goal
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def scene(points, vels=None, radius=0.4, planar=False):
+    rel = torch.tensor([points], dtype=torch.float32)
+    vel = torch.zeros_like(rel) if vels is None else torch.tensor([vels], dtype=torch.float32)
+    m = rel.shape[1]
+    return (
+        rel,
+        vel,
+        torch.full((1, m), radius),
+        torch.ones(1, m, dtype=torch.bool),
+        torch.full((1, m), planar),
+    )
+
+
+def admissible(v, rel, vel, rad, valid, planar, cfg):
+    inside, _ = _vo_test(v[:, None, :], rel, vel, rad, valid, planar, cfg.time_horizon)
+    return ~inside[:, 0]
+
+
+def test_safe_velocity_is_returned_bit_for_bit() -> None:
+    cfg = ShieldConfig()
+    v = torch.tensor([[1.3, -0.2, 0.1]])
+    rel, vel, rad, valid, planar = scene([[0.0, 3.0, 0.0], [-2.0, 0.0, 0.0]])  # beside and behind
+    out, corrected = velocity_obstacle_shield(v, rel, vel, rad, valid, planar, cfg)
+    assert not bool(corrected[0]) and torch.equal(out, v)
+
+
+def test_head_on_static_obstacle_is_avoided_with_a_small_change() -> None:
+    cfg = ShieldConfig()
+    v = torch.tensor([[2.0, 0.0, 0.0]])
+    rel, vel, rad, valid, planar = scene([[1.5, 0.05, 0.0]], planar=True)  # a pillar 1.5 m ahead
+    out, corrected = velocity_obstacle_shield(v, rel, vel, rad, valid, planar, cfg)
+    assert bool(corrected[0])
+    assert bool(admissible(out, rel, vel, rad, valid, planar, cfg)[0])
+    # The correction is the smallest of its candidates: no admissible fan velocity is closer.
+    ang = torch.linspace(0, 2 * math.pi, 721)[:-1]
+    for speed in (0.5, 1.0, 1.5, 2.0):
+        fan = torch.stack(
+            [speed * torch.cos(ang), speed * torch.sin(ang), torch.zeros_like(ang)], -1
+        )
+        ok = admissible(fan, rel.expand(720, -1, -1), vel.expand(720, -1, -1), rad.expand(720, -1),
+                        valid.expand(720, -1), planar.expand(720, -1), cfg)  # fmt: skip
+        closest = (fan[ok] - v).norm(dim=-1).min()
+        assert (out - v).norm() <= closest + 0.05
+
+
+def test_approaching_moving_obstacle_makes_the_shield_move_away() -> None:
+    cfg = ShieldConfig()
+    v = torch.zeros(1, 3)  # hovering ...
+    rel, vel, rad, valid, planar = scene(
+        [[2.0, 0.0, 0.0]], vels=[[-1.5, 0.0, 0.0]], radius=0.8
+    )  # ... it comes
+    out, corrected = velocity_obstacle_shield(v, rel, vel, rad, valid, planar, cfg)
+    assert bool(corrected[0])
+    assert bool(admissible(out, rel, vel, rad, valid, planar, cfg)[0])
+    assert out.norm() > 0.1
+
+
+def test_penetrating_obstacle_only_allows_moving_away() -> None:
+    cfg = ShieldConfig()
+    rel, vel, rad, valid, planar = scene([[0.2, 0.0, 0.0]])
+    out, corrected = velocity_obstacle_shield(
+        torch.tensor([[1.0, 0.0, 0.0]]), rel, vel, rad, valid, planar, cfg
+    )
+    assert bool(corrected[0]) and float(out[0, 0]) <= 0.0
+
+
+def test_batched_rows_are_independent() -> None:
+    cfg = ShieldConfig()
+    gen = torch.Generator().manual_seed(0)
+    n, m = 12, 7
+    v = (torch.rand(n, 3, generator=gen) * 2 - 1) * 2
+    rel = (torch.rand(n, m, 3, generator=gen) * 2 - 1) * 3
+    vel = torch.rand(n, m, 3, generator=gen) - 0.5
+    rad = torch.rand(n, m, generator=gen) * 0.5 + 0.3
+    valid = torch.rand(n, m, generator=gen) > 0.3
+    planar = torch.rand(n, m, generator=gen) > 0.5
+    out, corrected = velocity_obstacle_shield(v, rel, vel, rad, valid, planar, cfg)
+    for i in range(n):
+        oi, ci = velocity_obstacle_shield(v[i : i + 1], rel[i : i + 1], vel[i : i + 1], rad[i : i + 1],
+                                          valid[i : i + 1], planar[i : i + 1], cfg)  # fmt: skip
+        assert bool(ci[0]) == bool(corrected[i])
+        torch.testing.assert_close(oi[0], out[i])
+    assert corrected.any() and (~corrected).any()
+    assert bool((out.abs() <= cfg.v_max + 1e-6).all())
+
+
+def test_shield_action_on_the_vector_env_cuts_collisions() -> None:
+    """The batched API on the env's own tensors: a straight-to-goal policy collides far less."""
+    cfg = make_config("easy")
+    sc = ShieldConfig.for_env(cfg)
+    collisions = {}
+    for use in (False, True):
+        env = SafeNavVectorEnv(64, config=cfg, output="torch")
+        obs, _ = env.reset(seed=0)
+        n = 0
+        for _ in range(150):
+            a = go_to_goal(obs)
+            if use:
+                safe, corrected = shield_action(obs, a, sc)
+                assert torch.equal(safe[~corrected], a[~corrected])  # untouched rows unchanged
+                assert bool((safe.abs() <= 1.0).all())
+                a = safe
+            obs, _, _, _, info = env.step(a)
+            n += int(info["collision"].sum())
+        collisions[use] = n
+    assert collisions[False] > 20
+    assert collisions[True] < 0.5 * collisions[False], collisions
