@@ -19,7 +19,8 @@ def test_bench_latency_reports_every_backend_and_the_pipeline(tmp_path: Path) ->
     res = bench_latency(out, iterations=30, warmup=5, frames=3, checkpoint=None, quiet=True)
     assert torch.get_num_threads() == threads  # restored
     assert json.loads(out.read_text()) == res
-    for name in ("torch", "torchscript", "onnx", "pipeline", "map_update", "observation", "policy", "shield"):
+    for name in ("torch", "torchscript", "onnx", "pipeline", "pipeline_one_camera", "map_update", "control_step",
+                 "observation", "policy", "shield"):  # fmt: skip
         p50, p99 = res[f"{name}_p50_ms"], res[f"{name}_p99_ms"]
         assert 0 < p50 <= p99 < 1000
     assert res["threads"] == 1 and res["target_pipeline_p99_ms"] == 2.0

@@ -132,3 +132,15 @@ def test_shield_action_on_the_vector_env_cuts_collisions() -> None:
         collisions[use] = n
     assert collisions[False] > 20
     assert collisions[True] < 0.5 * collisions[False], collisions
+
+
+def test_env_shield_in_the_evaluation_protocol() -> None:
+    """``safenav eval --shield`` calls ``env_shield(env, obs, action)`` each step."""
+    from safenav.deploy.shield import env_shield
+    from safenav.experiments.evaluate import evaluate
+
+    cfg = make_config("easy")
+    plain = evaluate(go_to_goal, cfg, episodes=24)
+    shielded = evaluate(go_to_goal, cfg, episodes=24, shield=env_shield)
+    assert shielded["collision_rate"] < plain["collision_rate"]
+    assert shielded["success_rate"] >= plain["success_rate"]

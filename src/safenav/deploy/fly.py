@@ -317,7 +317,9 @@ class FlightController:
             self.runtime.set_goal(c.goal, start=local_ned_to_world(tel.position_ned, c.origin))
             yaw = self.runtime.step().yaw_ned_deg
             self.link.start_offboard(yaw)
-            log.info("OFFBOARD: flying to %s at %.0f Hz", list(c.goal), c.rate_hz)
+            log.info(
+                "OFFBOARD: flying to %s at %.0f Hz", [round(float(x), 2) for x in c.goal], c.rate_hz
+            )
             self._control_loop()
             self._finish()
         except FlightAborted as err:

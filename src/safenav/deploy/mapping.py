@@ -120,9 +120,12 @@ class HeightMap:
         for (a0, b0), (a1, b1) in zip(c0, c1, strict=True):
             self._mask[a0:a1, b0:b1] = False
         inside = np.zeros(ix.shape, dtype=bool)
-        if cand.size:
-            p = np.stack([x[cand], y[cand], z[cand]], -1)[:, None, :]
-            inside[cand] = ((p >= lo[None]) & (p <= hi[None])).all(-1).any(-1)
+        if cand.size:  # one box at a time: reductions over short trailing axes are slow in NumPy
+            xc, yc, zc = x[cand], y[cand], z[cand]
+            hit = np.zeros(cand.size, dtype=bool)
+            for (x0, y0, z0), (x1, y1, z1) in zip(lo, hi, strict=True):
+                hit |= (xc >= x0) & (xc <= x1) & (yc >= y0) & (yc <= y1) & (zc >= z0) & (zc <= z1)
+            inside[cand] = hit
         return inside
 
     def insert_depth(

@@ -40,7 +40,6 @@ from safenav.deploy.mapping import HeightMap
 from safenav.deploy.perception_link import DepthImage, PerceptionFrame, TrackedObstacle
 from safenav.deploy.shield import ShieldConfig, shield_action
 from safenav.envs.config import EnvConfig
-from safenav.envs.dynamics import goal_frame_to_world
 from safenav.envs.nav import DIST_SCALE, Z_SCALE
 from safenav.envs.sensors import RangeImageSpec, dynamic_obstacle_features, raycast_height_map
 from safenav.envs.world import GridSpec
@@ -336,11 +335,10 @@ class OnboardRuntime:
                 action, corrected = shield_action(obs, action, self.config.shield)
                 shielded = bool(corrected[0])
             t3 = time.perf_counter()
-            yaw = torch.tensor([self._yaw])
-            v_world = goal_frame_to_world(
-                action[0] * self.cfg.v_max, torch.cos(yaw)[0], torch.sin(yaw)[0]
-            )
-            v = v_world.double().numpy()
+            # Goal frame -> world (as goal_frame_to_world): rotate by the goal yaw about z.
+            a = action[0].numpy().astype(np.float64) * self.cfg.v_max
+            c, s = math.cos(self._yaw), math.sin(self._yaw)
+            v = np.array([c * a[0] - s * a[1], s * a[0] + c * a[1], a[2]])
             if self._last_reason:
                 log.info("resuming: inputs are good again")
                 self._last_reason = ""

@@ -85,14 +85,13 @@ def _vo_test(v: torch.Tensor, rel: torch.Tensor, ovel: torch.Tensor, radius: tor
              valid: torch.Tensor, planar: torch.Tensor, tau: float) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
     """For candidates ``v`` ``(N, C, 3)``: inside-any-VO ``(N, C)`` and min time to collision."""
     vr = v[:, :, None, :] - ovel[:, None, :, :]  # (N, C, M, 3)
-    p = rel[:, None, :, :].expand_as(vr)
-    flat = planar[:, None, :, None]
-    vr = torch.where(flat, vr * vr.new_tensor([1.0, 1.0, 0.0]), vr)
-    p = torch.where(flat, p * p.new_tensor([1.0, 1.0, 0.0]), p)
+    p = rel[:, None, :, :]
+    # Planar obstacles (columns) are tested in the horizontal plane: drop z from p and vr.
+    keep_z = (~planar).to(v.dtype)[:, None, :]  # (N, 1, M)
+    pv = (p[..., 0] * vr[..., 0] + p[..., 1] * vr[..., 1]) + keep_z * (p[..., 2] * vr[..., 2])
+    vv = (vr[..., 0] ** 2 + vr[..., 1] ** 2 + keep_z * vr[..., 2] ** 2).clamp(min=1e-12)
+    pp = p[..., 0] ** 2 + p[..., 1] ** 2 + keep_z * p[..., 2] ** 2
     r2 = (radius * radius)[:, None, :]
-    pv = (p * vr).sum(-1)
-    vv = (vr * vr).sum(-1).clamp(min=1e-12)
-    pp = (p * p).sum(-1)
     t = (pv / vv).clamp(0.0, tau)
     d2 = pp - 2 * t * pv + t * t * vv  # |p - vr t|^2
     penetrating = pp < r2
@@ -259,6 +258,13 @@ def dynamic_obstacles_from_features(dynamic: torch.Tensor, lidar_range: float, v
     return rel, vel, radius, valid, ~cuboid
 
 
+@functools.lru_cache(maxsize=16)
+def _spec(cfg: ShieldConfig) -> RangeImageSpec:
+    return RangeImageSpec(
+        h_beams=cfg.lidar_h_beams, v_angles=tuple(cfg.lidar_v_angles), max_range=cfg.lidar_range
+    )
+
+
 def shield_action(
     obs: dict[str, torch.Tensor], action: torch.Tensor, cfg: ShieldConfig
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -269,19 +275,19 @@ def shield_action(
     Static obstacles are the range image's beam hits; moving obstacles are the tracked ones,
     decoded from the ``dynamic`` features. This is exactly what the onboard runtime runs.
     """
-    spec = RangeImageSpec(h_beams=cfg.lidar_h_beams, v_angles=tuple(cfg.lidar_v_angles),
-                          max_range=cfg.lidar_range)  # fmt: skip
+    spec = _spec(cfg)
     lidar, dyn = obs["lidar"], obs["dynamic"]
     ranges = cfg.lidar_range * (1.0 - lidar.to(action.dtype))
-    s_rel, s_valid, s_planar = static_obstacles_from_ranges(ranges, spec, cfg.max_static)
-    d_rel, d_vel, d_rad, d_valid, d_planar = dynamic_obstacles_from_features(
-        dyn.to(action.dtype), cfg.lidar_range, cfg.v_max)  # fmt: skip
+    rel, valid, planar = static_obstacles_from_ranges(ranges, spec, cfg.max_static)
     base = cfg.uav_radius + cfg.margin
-    rel = torch.cat([s_rel, d_rel], 1)
-    vel = torch.cat([torch.zeros_like(s_rel), d_vel], 1)
-    radius = torch.cat([torch.full_like(s_rel[..., 0], base), d_rad + base], 1)
-    valid = torch.cat([s_valid, d_valid], 1)
-    planar = torch.cat([s_planar, d_planar], 1)
+    vel = torch.zeros_like(rel)
+    radius = torch.full_like(rel[..., 0], base)
+    if bool((dyn != 0).any()):  # tracked moving obstacles (rows of zeros are empty slots)
+        d_rel, d_vel, d_rad, d_valid, d_planar = dynamic_obstacles_from_features(
+            dyn.to(action.dtype), cfg.lidar_range, cfg.v_max)  # fmt: skip
+        rel, vel = torch.cat([rel, d_rel], 1), torch.cat([vel, d_vel], 1)
+        radius = torch.cat([radius, d_rad + base], 1)
+        valid, planar = torch.cat([valid, d_valid], 1), torch.cat([planar, d_planar], 1)
     v, corrected = velocity_obstacle_shield(
         action * cfg.v_max, rel, vel, radius, valid, planar, cfg
     )
@@ -289,8 +295,17 @@ def shield_action(
     return out, corrected
 
 
+def env_shield(env, obs: dict[str, torch.Tensor], action: torch.Tensor) -> torch.Tensor:
+    """The shield as evaluation calls it: ``action = env_shield(env, obs, action)`` for a
+    :class:`~safenav.envs.nav.SafeNavVectorEnv` with torch output (its ``cfg`` sets radii, v_max
+    and the beam layout)."""
+    out, _ = shield_action(obs, action, ShieldConfig.for_env(env.cfg))
+    return out
+
+
 __all__ = [
     "ShieldConfig",
+    "env_shield",
     "dynamic_obstacles_from_features",
     "shield_action",
     "static_obstacles_from_ranges",
