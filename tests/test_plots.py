@@ -49,6 +49,14 @@ def test_mean_curve_over_seeds_of_different_length(tmp_path):
     assert std == pytest.approx(np.abs(b - a) / np.sqrt(2))
 
 
+def test_last_value_holds_to_the_last_logged_step():
+    steps = np.array([100.0, 200.0, 300.0])
+    values = np.array([0.5, 0.7, np.nan])  # no episode ended in the last interval
+    grid = np.array([100.0, 250.0, 300.0, 350.0])
+    out = plots.resample(steps, values, grid, until=300.0)
+    assert out[:3].tolist() == [0.5, 0.7, 0.7] and np.isnan(out[3])
+
+
 def test_smooth_is_a_trailing_nan_aware_mean():
     x = np.array([1.0, 3.0, np.nan, 5.0])
     assert plots.smooth(x, 2).tolist() == [1.0, 2.0, 3.0, 5.0]

@@ -44,6 +44,7 @@ COLORS: dict[str, str] = {
     "sac_lag": "#ff7f0e",
 }
 _EXTRA_COLORS = ("#8c564b", "#e377c2", "#17becf", "#bcbd22", "#7f7f7f")
+LINESTYLES: dict[str, str] = {"csac": "-", "sac": "--", "ppo": "-.", "ppo_lag": ":", "sac_lag": ":"}
 #: Algorithms without a Lagrange multiplier; their constraint columns (if any) are not plotted.
 UNCONSTRAINED = frozenset({"sac", "ppo"})
 
@@ -116,11 +117,17 @@ def smooth(values: np.ndarray, window: int) -> np.ndarray:
 
 
 def resample(
-    steps: np.ndarray, values: np.ndarray, grid: np.ndarray, hold: bool = False
+    steps: np.ndarray,
+    values: np.ndarray,
+    grid: np.ndarray,
+    hold: bool = False,
+    until: float | None = None,
 ) -> np.ndarray:
     """``values`` logged at ``steps`` interpolated onto ``grid``; NaN outside the logged range.
 
     ``hold``: keep the last logged value until the next (for step functions such as ``d``).
+    ``until``: the last value holds up to this step (a run's last rows may have no value, e.g.
+    no episode ended in that interval); default: the last step with a value.
     """
     ok = np.isfinite(steps) & np.isfinite(values)
     if ok.sum() == 0:
@@ -132,7 +139,8 @@ def resample(
         out = v[np.clip(np.searchsorted(s, grid, side="right") - 1, 0, len(s) - 1)]
     else:
         out = np.interp(grid, s, v)
-    out[(grid < s[0]) | (grid > s[-1])] = np.nan
+    end = s[-1] if until is None else max(until, s[-1])
+    out[(grid < s[0]) | (grid > end)] = np.nan
     return out
 
 
@@ -141,20 +149,20 @@ def mean_curve(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int] | None:
     """``(grid, mean, std, seeds)`` of ``column`` over ``runs``, or None if none logged it.
 
-    The grid spans the steps every seed covers (first logged step of the earliest to the last
-    logged step of the shortest seed), so the mean never jumps where a seed ends.
+    The grid spans the steps every seed covers (from the earliest first value to the shortest
+    seed's last logged step), so the mean never jumps where a seed ends.
     """
     series = []
     for r in runs:
         if column in r.progress and np.isfinite(r.progress[column]).any():
             steps = r.progress["global_step"]
-            series.append((steps, smooth(r.progress[column], window)))
+            series.append((steps, smooth(r.progress[column], window), float(np.nanmax(steps))))
     if not series:
         return None
-    lo = min(np.nanmin(s[np.isfinite(v)]) for s, v in series)
-    hi = min(np.nanmax(s[np.isfinite(v)]) for s, v in series)
+    lo = min(np.nanmin(s[np.isfinite(v)]) for s, v, _ in series)
+    hi = min(last for _, _, last in series)
     grid = np.linspace(lo, hi, points) if hi > lo else np.array([hi])
-    stack = np.stack([resample(s, v, grid, hold) for s, v in series])
+    stack = np.stack([resample(s, v, grid, hold, last) for s, v, last in series])
     count = np.isfinite(stack).sum(axis=0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns: no seed covers them
@@ -189,7 +197,7 @@ def _curve_panel(ax, groups, column, ylabel, title, percent, window, hold=False)
         scale = 100.0 if percent else 1.0
         color = color_of(algo, order)
         label = f"{display_name(algo)} ({n} seed{'s' if n != 1 else ''})"
-        ax.plot(grid, mean * scale, color=color, lw=2, label=label,
+        ax.plot(grid, mean * scale, color=color, lw=2, label=label, ls=LINESTYLES.get(algo, "-"),
                 drawstyle="steps-post" if hold else "default")  # fmt: skip
         ax.fill_between(grid, (mean - std) * scale, (mean + std) * scale, color=color, alpha=0.2,
                         lw=0, step="post" if hold else None)  # fmt: skip
@@ -303,11 +311,12 @@ def plot_test_results(groups: dict[str, list[Run]], out: Path) -> Path | None:
         ax.set_ylabel(f"{name.lower()} (% of test episodes)")
         ax.set_title(f"{name} ({better})")
         ax.grid(axis="y", alpha=0.3)
-        handles = [Patch(facecolor="#999", edgecolor="black", label="ours: mean ± std over seeds")]
-        if has.any():
-            handles.append(Patch(facecolor="white", edgecolor="#555", hatch="///",
-                                 label="paper, Sec. IV-B (Isaac Sim)"))  # fmt: skip
-        ax.legend(handles=handles, loc="upper right", fontsize=9)
+    handles = [Patch(facecolor="#999", edgecolor="black", label="ours: mean, error bar ± 1 std "
+                     "over seeds")]  # fmt: skip
+    if any(a in PAPER_RESULTS for a in algos):
+        handles.append(Patch(facecolor="white", edgecolor="#555", hatch="///",
+                             label="paper, Sec. IV-B (Isaac Sim, RTX 4090)"))  # fmt: skip
+    fig.legend(handles=handles, loc="outside lower center", ncol=2, fontsize=10, frameon=False)
     episodes = next(iter(table.values())).get("episodes")
     fig.suptitle(
         "Fixed test scenario (cf. paper Fig. 4): env seed 1, full density"
