@@ -1,0 +1,74 @@
+"""CSAC/SAC hyperparameters (torch-free, so that the CLI can build its parser without torch)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from safenav.common.curriculum import ConstraintCurriculumConfig
+from safenav.nn.config import NetConfig
+
+
+@dataclass(frozen=True)
+class CSACConfig:
+    """CSAC hyperparameters (paper IV where it gives them); SAC uses the same minus the cost side."""
+
+    constrained: bool = True
+    """Cost critics and Lagrange multiplier (CSAC); False is plain SAC (``--algo sac``)."""
+    gamma: float = 0.99
+    """Discount of reward and cost (paper IV)."""
+    tau: float = 0.005
+    """Polyak coefficient of the target networks (Algorithm 1, line 15)."""
+    batch_size: int = 256
+    """Minibatch size of every gradient update."""
+    buffer_size: int = 1_000_000
+    """Replay capacity in transitions."""
+    learning_starts: int = 10_000
+    """Warm-up env steps with uniform random actions before the first update (N_warmup)."""
+    updates_per_step: float = 0.25
+    """Gradient updates per env step (transition); fractions accumulate across vector steps."""
+    actor_lr: float = 5e-5
+    """Adam learning rate of the actor (paper IV)."""
+    reward_critic_lr: float = 5e-4
+    """Adam learning rate of the reward critics and of the shared extractor (paper IV)."""
+    cost_critic_lr: float = 1e-3
+    """Adam learning rate of the cost critics (paper IV)."""
+    alpha_lr: float = 1e-5
+    """Adam learning rate of log(alpha) (paper IV)."""
+    lambda_lr: float = 1e-5
+    """Adam learning rate of lambda (paper IV)."""
+    init_alpha: float = 0.1
+    """Entropy temperature at the start."""
+    target_entropy: float | None = None
+    """H_target of Eq. 10; None = -|A| (paper)."""
+    init_lambda: float = 0.0
+    """Lagrange multiplier at the start (>= 0)."""
+    lambda_max: float | None = None
+    """Optional cap on lambda; None = unbounded (paper)."""
+    num_critics: int = 2
+    """Critics per kind (reward, cost); the paper uses 2 + 2."""
+    cost_target: Literal["mean", "min", "max"] = "mean"
+    """Reduction of the target cost critics in Eq. 6: mean (paper); min/max are ablations."""
+    cost_horizon: int = 0
+    """Horizon T mapping the episode budget d onto the Q_C scale; 0 = the env's time limit."""
+    net: NetConfig = field(default_factory=NetConfig)
+    """Network sizes and extractor sharing."""
+    curriculum: ConstraintCurriculumConfig = field(default_factory=ConstraintCurriculumConfig)
+    """Constraint curriculum on d (paper III-C); CSAC only."""
+
+    def __post_init__(self) -> None:
+        if not 0 < self.gamma <= 1 or not 0 < self.tau <= 1:
+            raise ValueError(f"gamma={self.gamma} and tau={self.tau} must lie in (0, 1]")
+        if self.batch_size < 1 or self.buffer_size < self.batch_size:
+            raise ValueError(
+                f"batch-size={self.batch_size} must be >= 1 and <= buffer-size={self.buffer_size}"
+            )
+        if self.updates_per_step <= 0 or self.learning_starts < 0 or self.num_critics < 1:
+            raise ValueError(
+                "updates-per-step > 0, learning-starts >= 0 and num-critics >= 1 are required"
+            )
+        if self.init_alpha <= 0 or self.init_lambda < 0:
+            raise ValueError("init-alpha must be > 0 and init-lambda >= 0")
+
+
+__all__ = ["CSACConfig"]

@@ -1,0 +1,135 @@
+"""Load a trained policy from a checkpoint: ``load_policy(path) -> Policy``.
+
+``Policy(obs)`` maps a batch of observations (a dict of tensors, or one tensor for ``Box``
+observations) to deterministic actions ``tanh(mean)`` in ``[-1, 1]`` as a ``(B, A)`` tensor.
+``Policy.actor`` is the underlying :class:`~safenav.nn.networks.DeterministicActor`, an
+``nn.Module`` taking the observation tensors positionally (``state, lidar, dynamic`` for SafeNav)
+- what ``safenav export`` traces to ONNX. ``Policy.meta`` says what the policy is: algorithm, env
+id, env configuration, observation shapes, network sizes, training step.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from safenav.common.checkpoint import load_checkpoint
+from safenav.errors import SafenavError
+from safenav.nn.networks import Actor, DeterministicActor, NetConfig, is_nav_layout, make_extractor
+
+POLICY_FORMAT_VERSION = 1
+
+
+class Policy:
+    """A deterministic policy; see the module docstring."""
+
+    def __init__(
+        self, actor: DeterministicActor, meta: dict[str, Any], device: str | torch.device = "cpu"
+    ) -> None:
+        self.actor = actor.eval()
+        self.meta = meta
+        self.device = torch.device(device)
+        self.obs_shapes = {k: tuple(v) for k, v in meta["obs_shapes"].items()}
+
+    def env_config(self):
+        """The :class:`~safenav.envs.config.EnvConfig` the policy was trained on (full density), or
+        None for a non-SafeNav env."""
+        from safenav.common.config import from_dict
+        from safenav.envs.config import EnvConfig
+
+        data = self.meta.get("env_config")
+        return from_dict(EnvConfig, data) if data is not None else None
+
+    def _prepare(self, obs) -> list[torch.Tensor]:
+        if not isinstance(obs, dict):
+            if set(self.obs_shapes) != {"obs"}:
+                raise SafenavError(
+                    f"this policy takes a dict observation with keys {sorted(self.obs_shapes)}"
+                )
+            obs = {"obs": obs}
+        missing = sorted(set(self.obs_shapes) - set(obs))
+        if missing:
+            raise SafenavError(
+                f"observation lacks {missing}: this policy reads {sorted(self.obs_shapes)}"
+            )
+        out, batched = [], None
+        for k, shape in self.obs_shapes.items():
+            x = obs[k]
+            x = torch.as_tensor(
+                np.asarray(x) if not isinstance(x, torch.Tensor) else x, dtype=torch.float32
+            )
+            if tuple(x.shape) == shape:
+                x, this = x.unsqueeze(0), False
+            elif tuple(x.shape[1:]) == shape:
+                this = True
+            else:
+                raise SafenavError(f"observation {k!r} has shape {tuple(x.shape)}; this policy expects "
+                                   f"(B, {', '.join(map(str, shape))})")  # fmt: skip
+            if batched is not None and this != batched:
+                raise SafenavError("observation entries disagree on the batch dimension")
+            batched = this
+            out.append(x.to(self.device))
+        self._unbatched = not batched
+        return out
+
+    @torch.no_grad()
+    def __call__(self, obs) -> torch.Tensor:
+        """Deterministic actions in ``[-1, 1]``, ``(B, A)`` (``(A,)`` for one unbatched observation)."""
+        action = self.actor(*self._prepare(obs))
+        return action[0] if self._unbatched else action
+
+
+def build_actor(meta: dict[str, Any]) -> DeterministicActor:
+    """An untrained :class:`DeterministicActor` with the architecture ``meta`` describes."""
+    from safenav.common.config import from_dict
+
+    net: NetConfig = from_dict(NetConfig, meta["net"])
+    shapes = {k: tuple(v) for k, v in meta["obs_shapes"].items()}
+    encoder = make_extractor(shapes, net) if net.shared_extractor else None
+    actor_ex = None if net.shared_extractor else make_extractor(shapes, net)
+    feat = (encoder or actor_ex).out_features
+    return DeterministicActor(
+        encoder, Actor(actor_ex, feat, int(meta["action_dim"]), net.hidden), tuple(shapes)
+    )
+
+
+def _check_layout(meta: dict[str, Any], path: Path) -> None:
+    shapes = {k: tuple(v) for k, v in meta.get("obs_shapes", {}).items()}
+    if not shapes:
+        raise SafenavError(f"{path}: the policy metadata names no observation layout")
+    env_cfg = meta.get("env_config")
+    if env_cfg is not None:
+        want = {"state": (8,), "lidar": (len(env_cfg["lidar_v_angles"]), env_cfg["lidar_h_beams"]),
+                "dynamic": (env_cfg["num_tracked"], 10)}  # fmt: skip
+        if not is_nav_layout(shapes) or shapes != want:
+            raise SafenavError(f"{path}: observation layout {shapes} does not match its SafeNav env "
+                               f"configuration {want}: the checkpoint is inconsistent")  # fmt: skip
+
+
+def load_policy(path: str | Path, device: str | torch.device = "cpu") -> Policy:
+    """The deterministic policy of a training checkpoint (a ``checkpoint.pt`` or its run dir)."""
+    path = Path(path)
+    state = load_checkpoint(path, map_location=device)
+    policy = state.get("policy")
+    if not isinstance(policy, dict) or "meta" not in policy or "state_dict" not in policy:
+        raise SafenavError(f"{path}: the checkpoint holds no policy (algorithm {state.get('algo')!r} "
+                           "does not export one)")  # fmt: skip
+    meta = dict(policy["meta"])
+    if meta.get("format_version") != POLICY_FORMAT_VERSION:
+        raise SafenavError(f"{path}: policy format version {meta.get('format_version')}; this safenav "
+                           f"reads version {POLICY_FORMAT_VERSION}")  # fmt: skip
+    _check_layout(meta, path)
+    try:
+        actor = build_actor(meta)
+        actor.load_state_dict(policy["state_dict"])
+    except (KeyError, RuntimeError, TypeError, ValueError) as err:
+        raise SafenavError(
+            f"{path}: the policy weights do not fit its described architecture ({err})"
+        ) from None
+    return Policy(actor.to(device), meta, device)
+
+
+__all__ = ["POLICY_FORMAT_VERSION", "Policy", "build_actor", "load_policy"]

@@ -1,0 +1,154 @@
+"""``safenav bench update``: gradient updates per second of CSAC and SAC, with Stable-Baselines3's
+SAC measured side by side in the same process as the reference.
+
+What one "update" is, for every learner: sample a batch of 256 from a filled replay buffer, then
+one full SAC step - target computation, critic step, actor step, temperature step (and for CSAC the
+cost critics and the Lagrange multiplier), Polyak update of the targets.
+
+- ``csac``/``sac``: the paper architecture on the SafeNav observation (range-image CNN + dynamic
+  MLP + state -> 200 features, 256x256 MLPs), four critics (2 reward + 2 cost) or two.
+- ``sb3_sac``: ``stable_baselines3.SAC("MlpPolicy")`` with ``net_arch=[256, 256]`` on a ``Box``
+  observation of the same size (8 + 4*36 + 5*10 = 202 values, flattened), timed through its own
+  ``SAC.train(gradient_steps, batch_size=256)``.
+
+All three run with the same ``torch.set_num_threads``; the trials are interleaved (a load change
+on the machine hits all alike) and the medians reported.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import statistics
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+SAFENAV_SHAPES = {"state": (8,), "lidar": (4, 36), "dynamic": (5, 10)}
+BATCH = 256
+
+
+def _our_learner(constrained: bool, shared_extractor: bool = True):
+    from safenav.algos.config import CSACConfig
+    from safenav.algos.csac import CSAC
+    from safenav.common.buffer import ReplayBuffer
+    from safenav.nn.config import NetConfig
+
+    cfg = CSACConfig(constrained=constrained, net=NetConfig(shared_extractor=shared_extractor))
+    agent = CSAC(SAFENAV_SHAPES, 3, cfg)
+    buf = ReplayBuffer(20_000, SAFENAV_SHAPES, 3)
+    gen = torch.Generator().manual_seed(0)
+    n = 20_000
+    obs = {k: torch.rand(n, *s, generator=gen) for k, s in SAFENAV_SHAPES.items()}
+    nxt = {k: torch.rand(n, *s, generator=gen) for k, s in SAFENAV_SHAPES.items()}
+    buf.add(obs, torch.rand(n, 3, generator=gen) * 2 - 1, torch.randn(n, generator=gen),
+            (torch.rand(n, generator=gen) < 0.05).float(), nxt, torch.rand(n, generator=gen) < 0.01)  # fmt: skip
+
+    def run(k: int) -> None:
+        for _ in range(k):
+            agent.update(buf.sample(BATCH), 0.1)
+
+    return run
+
+
+def _sb3_learner():
+    import gymnasium as gym
+    from stable_baselines3 import SAC
+
+    dim = sum(int(np.prod(s)) for s in SAFENAV_SHAPES.values())
+
+    class FlatEnv(gym.Env):
+        observation_space = gym.spaces.Box(-1.0, 1.0, (dim,), np.float32)
+        action_space = gym.spaces.Box(-1.0, 1.0, (3,), np.float32)
+
+        def reset(self, *, seed=None, options=None):
+            return self.observation_space.sample(), {}
+
+        def step(self, action):
+            return self.observation_space.sample(), 0.0, False, False, {}
+
+    model = SAC("MlpPolicy", FlatEnv(), batch_size=BATCH, buffer_size=20_000, learning_starts=0,
+                policy_kwargs={"net_arch": [256, 256]}, device="cpu", seed=0, verbose=0)  # fmt: skip
+    from stable_baselines3.common.logger import configure
+
+    model.set_logger(configure(None, []))
+    rng = np.random.default_rng(0)
+    for _ in range(20):  # 20 x 1000 random transitions
+        o = rng.random((1000, dim), dtype=np.float32)
+        for i in range(1000):
+            model.replay_buffer.add(o[i : i + 1], o[(i + 1) % 1000 : (i + 1) % 1000 + 1],
+                                    rng.uniform(-1, 1, (1, 3)).astype(np.float32),
+                                    np.array([rng.standard_normal()], np.float32), np.array([False]), [{}])  # fmt: skip
+
+    def run(k: int) -> None:
+        model.train(gradient_steps=k, batch_size=BATCH)
+
+    return run
+
+
+def bench_update(json_out: Path | None, repeats: int = 5, updates: int = 40,
+                 threads: int | None = None, include_sb3: bool = True) -> dict[str, Any]:  # fmt: skip
+    """Measure updates/s (medians of ``repeats`` interleaved trials of ``updates`` updates each);
+    print a table, write ``json_out`` if given, return the figures."""
+    from rich.console import Console
+    from rich.table import Table
+
+    threads = threads or os.cpu_count() or 1
+    torch.set_num_threads(threads)
+    torch.manual_seed(0)
+    learners = {"csac": _our_learner(True), "sac": _our_learner(False),
+                "csac_separate_extractors": _our_learner(True, shared_extractor=False)}  # fmt: skip
+    sb3_version = None
+    if include_sb3:
+        try:
+            import stable_baselines3
+
+            sb3_version = stable_baselines3.__version__
+            learners["sb3_sac"] = _sb3_learner()
+        except ImportError:
+            pass
+    for run in learners.values():  # warm-up (allocator, oneDNN primitives)
+        run(5)
+    rates: dict[str, list[float]] = {name: [] for name in learners}
+    for _ in range(repeats):
+        for name, run in learners.items():
+            t0 = time.perf_counter()
+            run(updates)
+            rates[name].append(updates / (time.perf_counter() - t0))
+    result: dict[str, Any] = {
+        f"{name}_updates_per_s": statistics.median(r) for name, r in rates.items()
+    }
+    result.update({
+        "batch_size": BATCH, "threads": threads, "repeats": repeats, "updates_per_trial": updates,
+        "all_trials": rates, "torch": torch.__version__, "stable_baselines3": sb3_version,
+        "cpu": platform.processor() or platform.machine(), "device": "cpu",
+        "architecture": "paper: 3-layer circular CNN on lidar (4x36) -> 128, MLP on dynamic (5x10) -> 64, "
+                        "+ state 8 = 200 features; actor and critics 256x256; shared extractor",
+        "sb3_architecture": "MlpPolicy net_arch [256, 256] on a flattened Box(202) observation",
+    })  # fmt: skip
+    if "sb3_sac_updates_per_s" in result:
+        sb3 = result["sb3_sac_updates_per_s"]
+        result["sac_vs_sb3"] = result["sac_updates_per_s"] / sb3
+        result["csac_vs_sb3"] = result["csac_updates_per_s"] / sb3
+    table = Table(
+        title=f"gradient updates/s, batch {BATCH}, {threads} torch threads (median of {repeats})"
+    )
+    table.add_column("learner")
+    table.add_column("updates/s", justify="right")
+    table.add_column("ms/update", justify="right")
+    for name in learners:
+        r = result[f"{name}_updates_per_s"]
+        table.add_row(name, f"{r:.1f}", f"{1000 / r:.2f}")
+    Console().print(table)
+    if json_out is not None:
+        json_out = Path(json_out)
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(json.dumps(result, indent=2) + "\n")
+    return result
+
+
+__all__ = ["bench_update"]

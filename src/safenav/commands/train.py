@@ -1,0 +1,89 @@
+"""``safenav train``: train CSAC or SAC on SafeNav-v0 or any Gymnasium env into a run directory."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+from typing import Annotated, Literal
+
+import tyro
+
+from safenav.algos.config import CSACConfig
+from safenav.cli import app
+from safenav.common.config import RunConfig
+
+# Options a resumed run may change; every other option comes from the run's config.json.
+RESUMABLE = ("total_steps", "device", "torch_threads", "log_every", "eval_every", "eval_episodes",
+             "checkpoint_every", "tensorboard", "save_buffer")  # fmt: skip
+
+
+@app.command(name="train")
+def train(
+    algo: Literal["csac", "sac"] = "csac",
+    run: Annotated[RunConfig, tyro.conf.arg(name="")] = RunConfig(),  # noqa: B008
+    csac: CSACConfig = CSACConfig(),  # noqa: B008
+    run_dir: Path | None = None,
+    resume: Path | None = None,
+    overwrite: bool = False,
+    progress: bool = True,
+) -> None:
+    """Train CSAC (the paper's method) or SAC into a run directory.
+
+    The run directory gets config.json, progress.csv, tb/ (TensorBoard), events.jsonl and
+    checkpoint.pt (written atomically). --csac.* options set the algorithm (SAC reads the same ones
+    minus the cost side). A directory that holds a run is refused unless --resume DIR (continue it:
+    its config.json is used; --total-steps, --device and the logging options may change) or
+    --overwrite (replace it). Default run dir: runs/<algo>-<env>-s<seed>-<time>.
+    """
+    from safenav.algos import csac as csac_module
+    from safenav.common.config import from_dict
+    from safenav.common.logger import prepare_run_dir
+    from safenav.errors import SafenavError
+
+    cfg = csac
+    if resume is not None:
+        if run_dir is not None and Path(run_dir).resolve() != Path(resume).resolve():
+            raise SafenavError(
+                f"--resume {resume} and --run-dir {run_dir} name different directories"
+            )
+        run_dir = Path(resume)
+        config_path = run_dir / "config.json"
+        if not config_path.exists():
+            raise SafenavError(f"--resume {run_dir}: no config.json there")
+        try:
+            saved = json.loads(config_path.read_text())
+            saved_run = from_dict(RunConfig, saved["run"])
+            cfg = from_dict(CSACConfig, saved["csac"])
+        except (KeyError, ValueError, TypeError) as err:
+            raise SafenavError(
+                f"--resume {run_dir}: config.json is not a csac/sac run config ({err})"
+            ) from None
+        if saved.get("algo") != algo:
+            raise SafenavError(
+                f"--resume {run_dir}: the run is --algo {saved.get('algo')}, not {algo}"
+            )
+        default = RunConfig()
+        changes = {k: getattr(run, k) for k in RESUMABLE if getattr(run, k) != getattr(default, k)}
+        run = dataclasses.replace(saved_run, **changes)
+        prepare_run_dir(run_dir, resume=True, overwrite=False)
+    else:
+        if run_dir is None:
+            env_name = run.env.split(":")[-1]
+            run_dir = (
+                Path("runs") / f"{algo}-{env_name}-s{run.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
+            )
+        prepare_run_dir(run_dir, resume=False, overwrite=overwrite)
+    if algo == "sac":
+        from safenav.algos.sac import sac_config
+
+        cfg = sac_config(cfg)
+    if resume is None:
+        csac_module.write_config(run_dir, algo, run, cfg)
+    result = csac_module.train(
+        algo, run, cfg, run_dir, resume=resume is not None, progress=progress
+    )
+    print(f"safenav train: {algo} finished at step {result['global_step']} ({result['updates']} updates); "
+          f"last 100 episodes: success {result['success_rate']:.3f}, collision {result['collision_rate']:.3f}, "
+          f"return {result['return']:.2f}; run dir {run_dir}")  # fmt: skip

@@ -1,0 +1,105 @@
+"""The run configuration shared by every trainer, and dataclass <-> JSON helpers.
+
+``config.json`` of a run directory is ``{"algo": ..., "run": RunConfig, "<algo>": AlgoConfig}``
+as plain JSON; :func:`from_dict` rebuilds the (nested, frozen) dataclasses from it on resume.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from safenav.common.curriculum import DensityCurriculumConfig
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """What to train on, for how long, where, and how to log it (shared by all algorithms)."""
+
+    env: str = "SafeNav-v0"
+    """Gymnasium env id: SafeNav-v0 or any registered id (Box actions; Box or Dict observations)."""
+    preset: str | None = None
+    """SafeNav-v0 preset (easy, medium, paper); None = paper. Only for SafeNav-v0."""
+    num_envs: int = 16
+    """Parallel envs in the training vector env."""
+    seed: int = 1
+    """Seed of networks, replay sampling, exploration and the training env's maps/episodes."""
+    total_steps: int = 1_000_000
+    """Env steps (transitions, summed over the parallel envs) to train for."""
+    device: str = "cpu"
+    """Torch device of the env, replay buffer and networks: cpu or cuda."""
+    torch_threads: int = 0
+    """torch.set_num_threads for this run; 0 = one per CPU core."""
+    log_every: int = 10_000
+    """Env steps between progress.csv rows."""
+    eval_every: int = 100_000
+    """Env steps between deterministic evaluations (eval/* columns); 0 = never."""
+    eval_episodes: int = 20
+    """Episodes per evaluation (full density, a fixed env seed unlike training and the test seed)."""
+    checkpoint_every: int = 50_000
+    """Env steps between checkpoint.pt writes (also written at the end and on Ctrl-C)."""
+    map_refresh_every: int = 200_000
+    """SafeNav-v0: env steps between redraws of the training maps (new seeds); 0 = keep them."""
+    save_buffer: bool = False
+    """Store the replay buffer in checkpoint.pt (large); without it a resume refills it first."""
+    tensorboard: bool = True
+    """Write TensorBoard events to tb/ besides progress.csv."""
+    density: DensityCurriculumConfig = field(default_factory=DensityCurriculumConfig)
+    """Obstacle-density curriculum (SafeNav-v0 only)."""
+
+    def __post_init__(self) -> None:
+        for name in ("num_envs", "total_steps", "log_every", "checkpoint_every", "eval_episodes"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name.replace('_', '-')}={getattr(self, name)} must be >= 1")
+        if self.eval_every < 0 or self.torch_threads < 0 or self.map_refresh_every < 0:
+            raise ValueError("eval-every, torch-threads and map-refresh-every must be >= 0")
+
+    def train_env_seed(self, refresh: int) -> int:
+        """Seed of the training maps after ``refresh`` redraws: >= 100000, so never the test
+        scenario's env seed 1 nor the evaluation seed 12345."""
+        return 100_000 + (self.seed * 7919 + refresh) * 1000
+
+
+def to_dict(obj: Any) -> Any:
+    """A dataclass (nested) as JSON-ready data (tuples become lists, Paths strings)."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: to_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, (list, tuple)):
+        return [to_dict(v) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def _convert(tp: Any, value: Any) -> Any:
+    if value is None:
+        return None
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        for arg in typing.get_args(tp):
+            if arg is not type(None):
+                return _convert(arg, value)
+    if dataclasses.is_dataclass(tp) and isinstance(value, dict):
+        return from_dict(tp, value)
+    if origin is tuple and isinstance(value, (list, tuple)):
+        return tuple(value)
+    if tp is Path:
+        return Path(value)
+    return value
+
+
+def from_dict(cls: type, data: dict[str, Any]) -> Any:
+    """Rebuild dataclass ``cls`` from :func:`to_dict` output; unknown keys are an error."""
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ValueError(f"{cls.__name__}: unknown field(s) {unknown}")
+    return cls(**{k: _convert(hints[k], v) for k, v in data.items()})
+
+
+__all__ = ["RunConfig", "from_dict", "to_dict"]

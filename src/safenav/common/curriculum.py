@@ -1,0 +1,241 @@
+"""Curricula: the constraint curriculum on ``d`` (paper III-C) and the obstacle-density one (Fig. 2).
+
+Constraint curriculum
+---------------------
+``d`` is an **episode-cost budget**: with SafeNav's cost (1 at a collision, and a collision ends
+the episode) the average episode cost is the collision rate, so ``d = 0.1`` reads "at most 10 % of
+episodes end in a collision". Training is cut into epochs of ``epoch_steps`` env steps; after each
+epoch (with at least ``min_episodes`` finished episodes) the average episode cost is compared with
+``d``. When it has stayed **below** ``d`` for ``patience`` consecutive epochs, ``d <- max(d_min,
+factor * d)`` and the count restarts. Stages (logged as ``constraint/stage``):
+
+- 0 *exploration*: ``d == d_init`` (a lenient budget for mistakes),
+- 1 *balanced*: ``d_min < d < d_init`` (tightening),
+- 2 *safety*: ``d == d_min`` (the strict final budget).
+
+Eq. 11 compares ``d`` with ``Q_C``, a *discounted* sum of future cost from a state. The budget is
+mapped onto that scale by :func:`episode_cost_to_q_scale` (spread over a horizon of ``T`` steps,
+the env's time limit, the budget is a cost rate ``d / T`` per step, whose discounted sum from any
+state is ``d / T * (1 - gamma^T) / (1 - gamma)``); ``constraint/d_q`` logs the result.
+
+Density curriculum
+------------------
+The fraction of active obstacles grows linearly in env steps from ``start`` to ``end`` over the
+first ``ramp_fraction`` of training (``mode="linear"``, default: the same schedule for every
+algorithm and seed, so runs stay comparable and resumable), or by ``increment`` after each epoch
+whose success rate reached ``success_threshold`` (``mode="success"``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Literal
+
+STAGES = ("exploration", "balanced", "safety")
+
+
+def episode_cost_to_q_scale(d: float, gamma: float, horizon: int) -> float:
+    """An episode-cost budget ``d`` on the scale of a discounted cost value ``Q_C``:
+    ``d / T * (1 - gamma^T) / (1 - gamma)`` (``= d`` for ``gamma = 1``)."""
+    if horizon < 1:
+        raise ValueError(f"horizon={horizon} must be >= 1")
+    if gamma >= 1.0:
+        return d
+    return d / horizon * (1.0 - gamma**horizon) / (1.0 - gamma)
+
+
+@dataclass(frozen=True)
+class ConstraintCurriculumConfig:
+    """Constraint curriculum (paper III-C): tighten ``d`` while the agent keeps within it."""
+
+    enabled: bool = True
+    """Tighten ``d`` during training; False fixes ``d = d_min`` from the start (the ablation)."""
+    d_init: float = 0.5
+    """Lenient starting budget, in expected cost per episode (collision rate)."""
+    d_min: float = 0.05
+    """Strict final budget (near zero)."""
+    factor: float = 0.7
+    """Multiplier applied to ``d`` at each tightening (0 < factor < 1)."""
+    patience: int = 3
+    """Consecutive epochs with average episode cost below ``d`` before tightening (K)."""
+    epoch_steps: int = 20_000
+    """Env steps per curriculum epoch."""
+    min_episodes: int = 10
+    """Epochs with fewer finished episodes do not count (too noisy) and reset the streak."""
+
+    def __post_init__(self) -> None:
+        if not 0 < self.d_min <= self.d_init:
+            raise ValueError(f"curriculum: need 0 < d_min ({self.d_min}) <= d_init ({self.d_init})")
+        if not 0 < self.factor < 1:
+            raise ValueError(f"curriculum: factor={self.factor} must lie in (0, 1)")
+        if self.patience < 1 or self.epoch_steps < 1 or self.min_episodes < 1:
+            raise ValueError("curriculum: patience, epoch_steps and min_episodes must be >= 1")
+
+
+class ConstraintCurriculum:
+    """The state machine of the constraint curriculum; feed it finished episodes and env steps."""
+
+    def __init__(self, cfg: ConstraintCurriculumConfig) -> None:
+        self.cfg = cfg
+        self.d = cfg.d_init if cfg.enabled else cfg.d_min
+        self.streak = 0
+        self.epoch = 0
+        self.next_epoch_step = cfg.epoch_steps
+        self._cost_sum, self._episodes = 0.0, 0
+        self.history: list[dict[str, Any]] = []
+
+    @property
+    def stage(self) -> int:
+        """0 exploration, 1 balanced, 2 safety (see module docstring)."""
+        if self.d <= self.cfg.d_min:
+            return 2
+        return 0 if self.d >= self.cfg.d_init else 1
+
+    @property
+    def stage_name(self) -> str:
+        return STAGES[self.stage]
+
+    def observe(self, episode_costs) -> None:
+        """Record the costs of episodes that just finished."""
+        for c in episode_costs:
+            self._cost_sum += float(c)
+            self._episodes += 1
+
+    def step(self, global_step: int) -> dict[str, Any] | None:
+        """Close every epoch ending at or before ``global_step``; returns a record when ``d``
+        changed (also appended to :attr:`history`), else None."""
+        change = None
+        while global_step >= self.next_epoch_step:
+            self.epoch += 1
+            self.next_epoch_step += self.cfg.epoch_steps
+            n, mean = (
+                self._episodes,
+                (self._cost_sum / self._episodes if self._episodes else math.nan),
+            )
+            self._cost_sum, self._episodes = 0.0, 0
+            if not self.cfg.enabled or self.d <= self.cfg.d_min:
+                continue
+            if n >= self.cfg.min_episodes and mean < self.d:
+                self.streak += 1
+            else:
+                self.streak = 0
+            if self.streak >= self.cfg.patience:
+                old, self.d, self.streak = self.d, max(self.cfg.d_min, self.d * self.cfg.factor), 0
+                change = {"global_step": int(global_step), "epoch": self.epoch, "d_old": old, "d": self.d,
+                          "stage": self.stage_name, "epoch_cost": mean}  # fmt: skip
+                self.history.append(change)
+        return change
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"d": self.d, "streak": self.streak, "epoch": self.epoch,
+                "next_epoch_step": self.next_epoch_step, "cost_sum": self._cost_sum,
+                "episodes": self._episodes, "history": list(self.history)}  # fmt: skip
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.d, self.streak, self.epoch = (
+            float(state["d"]),
+            int(state["streak"]),
+            int(state["epoch"]),
+        )
+        self.next_epoch_step = int(state["next_epoch_step"])
+        self._cost_sum, self._episodes = float(state["cost_sum"]), int(state["episodes"])
+        self.history = list(state["history"])
+
+
+@dataclass(frozen=True)
+class DensityCurriculumConfig:
+    """Obstacle-density curriculum (paper Fig. 2); applies to envs with ``set_density`` (SafeNav)."""
+
+    enabled: bool = True
+    """Raise the density during training; False trains at ``end`` throughout."""
+    start: float = 0.2
+    """Fraction of active obstacles at the start."""
+    end: float = 1.0
+    """Fraction of active obstacles at the end of the ramp."""
+    mode: Literal["linear", "success"] = "linear"
+    """``linear`` in env steps, or ``success``-gated (see module docstring)."""
+    ramp_fraction: float = 0.5
+    """Linear mode: fraction of ``total_steps`` over which the density reaches ``end``."""
+    success_threshold: float = 0.7
+    """Success mode: an epoch with at least this success rate raises the density."""
+    increment: float = 0.1
+    """Success mode: density added per qualifying epoch."""
+    epoch_steps: int = 20_000
+    """Success mode: env steps per epoch."""
+    quantum: float = 0.05
+    """Density changes are applied in steps of this size (each change rebuilds height maps)."""
+
+    def __post_init__(self) -> None:
+        if not (0.0 <= self.start <= 1.0 and 0.0 <= self.end <= 1.0):
+            raise ValueError(
+                f"density curriculum: start={self.start}, end={self.end} must lie in [0, 1]"
+            )
+        if (
+            self.ramp_fraction <= 0
+            or self.increment <= 0
+            or self.epoch_steps < 1
+            or self.quantum <= 0
+        ):
+            raise ValueError(
+                "density curriculum: ramp_fraction, increment, quantum > 0 and epoch_steps >= 1"
+            )
+
+
+class DensityCurriculum:
+    """Density as a function of training progress; :meth:`step` returns a new value to apply."""
+
+    def __init__(self, cfg: DensityCurriculumConfig, total_steps: int) -> None:
+        self.cfg = cfg
+        self.total_steps = total_steps
+        self.density = cfg.start if cfg.enabled else cfg.end
+        self.next_epoch_step = cfg.epoch_steps
+        self._succ, self._episodes = 0.0, 0
+
+    def observe(self, successes) -> None:
+        for s in successes:
+            if not math.isnan(float(s)):
+                self._succ += float(s)
+                self._episodes += 1
+
+    def target(self, global_step: int) -> float:
+        cfg = self.cfg
+        if not cfg.enabled:
+            return cfg.end
+        if cfg.mode == "linear":
+            frac = min(1.0, global_step / max(1.0, cfg.ramp_fraction * self.total_steps))
+            return cfg.start + frac * (cfg.end - cfg.start)
+        value = self.density
+        while global_step >= self.next_epoch_step:
+            self.next_epoch_step += cfg.epoch_steps
+            if self._episodes and self._succ / self._episodes >= cfg.success_threshold:
+                value = (
+                    min(cfg.end, value + cfg.increment)
+                    if cfg.end >= cfg.start
+                    else max(cfg.end, value - cfg.increment)
+                )
+            self._succ, self._episodes = 0.0, 0
+        return value
+
+    def step(self, global_step: int) -> float | None:
+        """The new density when it moved by at least ``quantum`` (or reached ``end``), else None."""
+        target = self.target(global_step)
+        if abs(target - self.density) >= self.cfg.quantum - 1e-9 or (
+            target == self.cfg.end != self.density
+        ):
+            self.density = target
+            return target
+        return None
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"density": self.density, "next_epoch_step": self.next_epoch_step,
+                "succ": self._succ, "episodes": self._episodes}  # fmt: skip
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.density = float(state["density"])
+        self.next_epoch_step = int(state["next_epoch_step"])
+        self._succ, self._episodes = float(state["succ"]), int(state["episodes"])
+
+
+__all__ = ["STAGES", "ConstraintCurriculum", "ConstraintCurriculumConfig", "DensityCurriculum",
+           "DensityCurriculumConfig", "episode_cost_to_q_scale"]  # fmt: skip

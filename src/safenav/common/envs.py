@@ -1,0 +1,246 @@
+"""Any Gymnasium env as a batch of torch tensors, with costs, true final observations and episodes.
+
+:func:`make_vec_env` builds a vector env for any registered id: ``SafeNav-v0`` natively batched
+(torch tensors on the training device), anything else as a ``SyncVectorEnv`` created with
+``SAME_STEP`` autoreset. :class:`TorchVecEnv` then gives every algorithm the same view of it:
+
+- observations as a dict of float32 tensors on ``device`` (a ``Box`` observation is ``{"obs": x}``),
+- actions in ``[-1, 1]^A``, mapped affinely onto the env's action box,
+- ``cost`` from ``info["cost"]`` when the env reports one (for a finished env of a ``SyncVectorEnv``
+  the step's info is ``info["final_info"]``), else 0,
+- ``real_next_obs``: the true ``s'`` of every transition (``final_obs`` for finished envs),
+- ``valid``: False for the reset steps a ``NEXT_STEP`` autoreset env interleaves (no transition),
+- ``episodes``: return, cost, length, success, collision, timeout of the episodes that ended
+  (success is NaN for envs that report none; collision is "episode cost > 0" unless reported).
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import gymnasium as gym
+import numpy as np
+import torch
+from gymnasium.vector import AutoresetMode
+
+from safenav.errors import SafenavError
+from safenav.nn.networks import obs_layout
+
+
+def is_safenav(env_id: str) -> bool:
+    return env_id.split(":")[-1].startswith("SafeNav-")
+
+
+def make_vec_env(env_id: str, num_envs: int, device: str = "cpu", preset: str | None = None,
+                 **env_kwargs: Any) -> gym.vector.VectorEnv:  # fmt: skip
+    """A vector env of ``num_envs`` copies of ``env_id`` (see module docstring)."""
+    if num_envs < 1:
+        raise SafenavError(f"--num-envs {num_envs}: need at least one env")
+    try:
+        gym.spec(env_id)
+    except gym.error.Error as err:
+        raise SafenavError(f"unknown env id {env_id!r}: {err}") from None
+    if is_safenav(env_id):
+        kwargs = dict(
+            device=device, output="torch", autoreset_mode=AutoresetMode.SAME_STEP, **env_kwargs
+        )
+        if preset is not None:
+            kwargs["preset"] = preset
+        return gym.make_vec(
+            env_id, num_envs=num_envs, vectorization_mode="vector_entry_point", **kwargs
+        )
+    if preset is not None:
+        raise SafenavError(f"--preset applies to SafeNav-v0 only, not {env_id!r}")
+    return gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="sync",
+                        vector_kwargs={"autoreset_mode": AutoresetMode.SAME_STEP}, **env_kwargs)  # fmt: skip
+
+
+class Step(NamedTuple):
+    next_obs: dict[str, torch.Tensor]
+    reward: torch.Tensor
+    cost: torch.Tensor
+    terminated: torch.Tensor
+    truncated: torch.Tensor
+    real_next_obs: dict[str, torch.Tensor]
+    valid: torch.Tensor
+    episodes: dict[str, torch.Tensor] | None
+
+
+def _pick(info: dict, key: str, i: int):
+    """``info[key][i]`` if the vector env reported it for env ``i`` (``_key`` mask), else None."""
+    if key not in info:
+        return None
+    mask = info.get("_" + key)
+    if mask is not None and not bool(np.asarray(mask)[i]):
+        return None
+    return info[key][i]
+
+
+class TorchVecEnv:
+    """The tensor view of a vector env described in the module docstring."""
+
+    def __init__(self, envs: gym.vector.VectorEnv, device: str | torch.device = "cpu") -> None:
+        self.envs, self.device, self.num_envs = envs, torch.device(device), envs.num_envs
+        space = envs.single_observation_space
+        self.obs_shapes = obs_layout(space)
+        self._box_obs = isinstance(space, gym.spaces.Box)
+        act = envs.single_action_space
+        if not isinstance(act, gym.spaces.Box) or len(act.shape) != 1:
+            raise SafenavError(
+                f"action space {act} is not supported: SAC-family algorithms need a 1-D Box"
+            )
+        if not (np.all(np.isfinite(act.low)) and np.all(np.isfinite(act.high))):
+            raise SafenavError(
+                f"action space {act} is unbounded: a squashed policy needs finite bounds"
+            )
+        self.action_dim = int(act.shape[0])
+        self._low = torch.as_tensor(act.low, dtype=torch.float32, device=self.device)
+        self._high = torch.as_tensor(act.high, dtype=torch.float32, device=self.device)
+        self._torch_actions = is_safenav_vector(envs)
+        self._unit = bool(torch.all(self._low == -1) and torch.all(self._high == 1))
+        self.autoreset_mode = AutoresetMode(
+            envs.metadata.get("autoreset_mode", AutoresetMode.NEXT_STEP)
+        )
+        if self.autoreset_mode == AutoresetMode.DISABLED:
+            raise SafenavError("the vector env has autoreset disabled: create it with SAME_STEP")
+        n = self.num_envs
+        self._ret = torch.zeros(n, device=self.device)
+        self._cost = torch.zeros(n, device=self.device)
+        self._len = torch.zeros(n, device=self.device)
+        self._prev_done = torch.zeros(n, dtype=torch.bool, device=self.device)
+
+    # -- conversions -------------------------------------------------------------------------
+    def _t(self, x, dtype=torch.float32) -> torch.Tensor:
+        return torch.as_tensor(
+            np.asarray(x) if not isinstance(x, torch.Tensor) else x, dtype=dtype
+        ).to(self.device)
+
+    def _obs(self, obs) -> dict[str, torch.Tensor]:
+        if self._box_obs:
+            return {"obs": self._t(obs)}
+        return {k: self._t(obs[k]) for k in self.obs_shapes}
+
+    def scale_action(self, action: torch.Tensor) -> torch.Tensor:
+        """``[-1, 1]^A`` -> the env's action box."""
+        if self._unit:
+            return action
+        return self._low + (action.clamp(-1, 1) + 1.0) * 0.5 * (self._high - self._low)
+
+    def _to_env(self, action: torch.Tensor):
+        a = self.scale_action(action)
+        return a if self._torch_actions else a.detach().cpu().numpy()
+
+    # -- API ---------------------------------------------------------------------------------
+    def reset(self, seed: int | None = None) -> dict[str, torch.Tensor]:
+        obs, _ = self.envs.reset(seed=seed)
+        self._ret.zero_(), self._cost.zero_(), self._len.zero_(), self._prev_done.zero_()
+        return self._obs(obs)
+
+    def set_density(self, density: float) -> bool:
+        """Forward to the env's ``set_density`` (SafeNav); False if it has none."""
+        fn = getattr(self.envs.unwrapped, "set_density", None)
+        if fn is None:
+            return False
+        fn(density)
+        return True
+
+    def step(self, action: torch.Tensor) -> Step:
+        obs, reward, terminated, truncated, info = self.envs.step(self._to_env(action))
+        n, dev = self.num_envs, self.device
+        next_obs = self._obs(obs)
+        reward, terminated, truncated = (
+            self._t(reward),
+            self._t(terminated, torch.bool),
+            self._t(truncated, torch.bool),
+        )
+        done = terminated | truncated
+        same_step = self.autoreset_mode == AutoresetMode.SAME_STEP
+        valid = torch.ones(n, dtype=torch.bool, device=dev) if same_step else ~self._prev_done
+
+        # cost: info["cost"]; a SyncVectorEnv keeps a finished env's step info in final_info
+        cost = torch.zeros(n, device=dev)
+        if isinstance(info.get("cost"), torch.Tensor):  # native torch vector env (SafeNav)
+            cost = info["cost"].to(dev, torch.float32)
+        elif "cost" in info or "final_info" in info:
+            final_info = info.get("final_info", {})
+            for i in range(n):
+                c = _pick(final_info, "cost", i) if bool(done[i]) and same_step else None
+                c = _pick(info, "cost", i) if c is None else c
+                if c is not None:
+                    cost[i] = float(c)
+
+        # the true s' of every transition
+        real_next = {k: v.clone() for k, v in next_obs.items()}
+        if same_step and bool(done.any()) and info.get("final_obs") is not None:
+            final, mask = info["final_obs"], info.get("_final_obs", done)
+            if isinstance(mask, torch.Tensor):  # native torch vector env: one masked copy per key
+                mask = mask.to(dev)
+                for k in real_next:
+                    real_next[k][mask] = final[k].to(dev, torch.float32)[mask]
+            else:  # SyncVectorEnv: per-env object arrays
+                for i in np.nonzero(np.asarray(mask))[0].tolist():
+                    for k in real_next:
+                        real_next[k][i] = self._t(
+                            final[k][i] if isinstance(final, dict) else final[i]
+                        )
+
+        # episode bookkeeping
+        v = valid.float()
+        self._ret += reward * v
+        self._cost += cost * v
+        self._len += v
+        ended = done & valid
+        episodes = None
+        if bool(ended.any()):
+            ids = ended.nonzero().squeeze(-1)
+            ep = info.get("episode") if isinstance(info.get("episode"), dict) else None
+            success = torch.full((len(ids),), float("nan"), device=dev)
+            collision = (self._cost[ids] > 0).float()
+            if ep is not None and "success" in ep:  # SafeNav reports its own episode statistics
+                success = self._t(ep["success"])[ids].float()
+                collision = self._t(ep["collision"])[ids].float()
+            else:
+                final_info = info.get("final_info", {}) if same_step else info
+                for j, i in enumerate(ids.tolist()):
+                    s = _pick(final_info, "success", i)
+                    s = _pick(final_info, "is_success", i) if s is None else s
+                    if s is not None:
+                        success[j] = float(s)
+            episodes = {"return": self._ret[ids].clone(), "cost": self._cost[ids].clone(),
+                        "length": self._len[ids].clone(), "success": success, "collision": collision,
+                        "timeout": (truncated[ids] & ~terminated[ids]).float()}  # fmt: skip
+            self._ret[ids], self._cost[ids], self._len[ids] = 0.0, 0.0, 0.0
+        self._prev_done = done.clone()
+        return Step(
+            next_obs,
+            reward * v,
+            cost * v,
+            terminated & valid,
+            truncated & valid,
+            real_next,
+            valid,
+            episodes,
+        )
+
+    def close(self) -> None:
+        self.envs.close()
+
+
+def is_safenav_vector(envs: gym.vector.VectorEnv) -> bool:
+    """True for the native SafeNav vector env (it takes torch actions on its device)."""
+    from safenav.envs.nav import SafeNavVectorEnv
+
+    return isinstance(envs.unwrapped, SafeNavVectorEnv)
+
+
+def env_horizon(envs: gym.vector.VectorEnv, default: int = 1000) -> int:
+    """The env's time limit in steps (SafeNav's config, else the spec's ``max_episode_steps``)."""
+    cfg = getattr(envs.unwrapped, "cfg", None)
+    if cfg is not None and hasattr(cfg, "max_episode_steps"):
+        return int(cfg.max_episode_steps)
+    spec = getattr(envs, "spec", None)
+    steps = getattr(spec, "max_episode_steps", None) if spec is not None else None
+    return int(steps) if steps else default
+
+
+__all__ = ["Step", "TorchVecEnv", "env_horizon", "is_safenav", "is_safenav_vector", "make_vec_env"]

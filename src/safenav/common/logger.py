@@ -1,0 +1,115 @@
+"""Run-directory logging shared by the trainers: ``progress.csv``, TensorBoard, ``events.jsonl``.
+
+- ``progress.csv``: one row per log interval, a fixed header (``global_step`` first); a metric
+  without a value in that interval is an empty cell. Flushed at every row, so plots and sweeps can
+  read a live run. On resume, rows logged after the checkpoint's step are dropped (they will be
+  logged again) and a header that gained columns is rewritten in place.
+- ``tb/``: the same scalars as TensorBoard events (``purge_step`` on resume).
+- ``events.jsonl``: discrete events (curriculum changes, evaluations, resumes), one JSON a line.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from safenav.errors import SafenavError
+
+RUN_FILES = ("config.json", "progress.csv", "checkpoint.pt", "events.jsonl")
+
+
+def prepare_run_dir(run_dir: Path, resume: bool, overwrite: bool) -> None:
+    """Create ``run_dir``; refuse one that already holds a run unless resuming or overwriting
+    (``overwrite`` deletes the previous run's files, nothing else)."""
+    run_dir = Path(run_dir)
+    held = [f for f in RUN_FILES if (run_dir / f).exists()] + (
+        ["tb/"] if (run_dir / "tb").is_dir() else []
+    )
+    if resume:
+        if not (run_dir / "checkpoint.pt").exists():
+            raise SafenavError(f"--resume {run_dir}: no checkpoint.pt there to resume from")
+        return
+    if held and not overwrite:
+        raise SafenavError(f"run directory {run_dir} already holds a run ({', '.join(held)}): "
+                           "pass --resume to continue it or --overwrite to replace it")  # fmt: skip
+    if held:
+        import shutil
+
+        for f in RUN_FILES:
+            (run_dir / f).unlink(missing_ok=True)
+        shutil.rmtree(run_dir / "tb", ignore_errors=True)
+    run_dir.mkdir(parents=True, exist_ok=True)
+
+
+def write_json_atomic(path: Path, obj: Any) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=2, default=str) + "\n")
+    os.replace(tmp, path)
+
+
+class RunLogger:
+    """Writes metrics rows to CSV and TensorBoard (see module docstring)."""
+
+    def __init__(self, run_dir: Path, columns: Sequence[str], tensorboard: bool = True,
+                 resume_step: int | None = None) -> None:  # fmt: skip
+        self.run_dir = Path(run_dir)
+        self.columns = ["global_step", *[c for c in columns if c != "global_step"]]
+        self.csv_path = self.run_dir / "progress.csv"
+        rows: list[dict[str, str]] = []
+        if resume_step is not None and self.csv_path.exists():
+            with self.csv_path.open(newline="") as f:
+                reader = csv.DictReader(f)
+                old = reader.fieldnames or []
+                rows = [
+                    r
+                    for r in reader
+                    if r.get("global_step") and float(r["global_step"]) <= resume_step
+                ]
+            self.columns += [c for c in old if c not in self.columns]
+        self._file = self.csv_path.open("w", newline="")
+        self._writer = csv.DictWriter(self._file, fieldnames=self.columns, extrasaction="ignore")
+        self._writer.writeheader()
+        for r in rows:
+            self._writer.writerow(r)
+        self._file.flush()
+        self._events = (self.run_dir / "events.jsonl").open("a")
+        self.tb = None
+        if tensorboard:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self.tb = SummaryWriter(str(self.run_dir / "tb"), purge_step=resume_step)
+
+    def log(self, step: int, metrics: dict[str, float]) -> None:
+        row = {"global_step": int(step)}
+        for k, v in metrics.items():
+            if k not in self.columns:
+                raise KeyError(f"metric {k!r} is not a declared progress.csv column")
+            if v is None or (isinstance(v, float) and math.isnan(v)):
+                continue
+            row[k] = float(v)
+            if self.tb is not None:
+                self.tb.add_scalar(k, float(v), int(step))
+        self._writer.writerow(
+            {k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()}
+        )
+        self._file.flush()
+
+    def event(self, step: int, kind: str, **data: Any) -> None:
+        rec = {"global_step": int(step), "event": kind, "time": time.time(), **data}
+        self._events.write(json.dumps(rec, default=str) + "\n")
+        self._events.flush()
+
+    def close(self) -> None:
+        self._file.close()
+        self._events.close()
+        if self.tb is not None:
+            self.tb.close()
+
+
+__all__ = ["RUN_FILES", "RunLogger", "prepare_run_dir", "write_json_atomic"]

@@ -1,0 +1,116 @@
+"""PPO's actor-critic (NavRL): the shared feature extractor, an MLP trunk, a Beta policy head and
+value heads; and its deployable deterministic actor.
+
+- ``NetConfig.shared_extractor=True`` (default, NavRL): **one** body (extractor + MLP trunk)
+  feeds the policy head and the value heads and is trained by the summed PPO loss.
+- ``False``: the actor and the critic each own a body (CleanRL's separate networks).
+
+The trunk is NavRL's ``make_mlp``: ``Linear -> LeakyReLU -> LayerNorm`` per hidden layer. The
+policy head outputs the raw Beta parameters (``alpha = 1 + softplus``, see
+:func:`safenav.algos.ppo_losses.beta_concentrations`); the value head outputs one value per
+signal (reward, and cost for PPO-Lag), on the normalised scale.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import nn
+
+from safenav.algos.ppo_losses import beta_concentrations, beta_mean_action
+from safenav.nn.config import NetConfig
+from safenav.nn.networks import make_extractor
+
+POLICY_HEAD = "beta"
+"""``meta["policy_head"]`` of PPO checkpoints: :func:`safenav.algos.policy.build_actor` dispatches
+on it to :func:`build_beta_actor`."""
+
+
+class Body(nn.Module):
+    """Observation dict -> features: :func:`~safenav.nn.networks.make_extractor` (the SafeNav CNN
+    + MLP + state, or flatten), then ``Linear -> LeakyReLU -> LayerNorm`` per hidden layer."""
+
+    def __init__(self, obs_shapes: dict[str, tuple[int, ...]], net: NetConfig) -> None:
+        super().__init__()
+        self.extractor = make_extractor(obs_shapes, net)
+        layers: list[nn.Module] = []
+        size = self.extractor.out_features
+        for h in net.hidden:
+            layers += [nn.Linear(size, h), nn.LeakyReLU(), nn.LayerNorm(h)]
+            size = h
+        self.trunk = nn.Sequential(*layers)
+        self.out_features = size
+
+    def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        x = self.extractor(obs)
+        if x.dim() == 3:  # a one-member extractor returns (1, N, F)
+            x = x[0]
+        return self.trunk(x)
+
+
+class BetaActorCritic(nn.Module):
+    """Beta policy and ``num_values`` value heads over one shared body or two separate ones."""
+
+    def __init__(self, obs_shapes: dict[str, tuple[int, ...]], action_dim: int, net: NetConfig,
+                 num_values: int = 1) -> None:  # fmt: skip
+        super().__init__()
+        self.actor_body = Body(obs_shapes, net)
+        self.critic_body = None if net.shared_extractor else Body(obs_shapes, net)
+        size = self.actor_body.out_features
+        self.policy_head = nn.Linear(size, 2 * action_dim)
+        self.value_head = nn.Linear(size, num_values)
+
+    def forward(self, obs: dict[str, torch.Tensor]):
+        """``(alpha, beta, values)``: concentrations ``(N, A)`` and normalised values ``(N, K)``."""
+        x = self.actor_body(obs)
+        alpha, beta = beta_concentrations(*self.policy_head(x).chunk(2, -1))
+        y = x if self.critic_body is None else self.critic_body(obs)
+        return alpha, beta, self.value_head(y)
+
+    def values(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Normalised values ``(N, K)`` only."""
+        body = self.critic_body if self.critic_body is not None else self.actor_body
+        return self.value_head(body(obs))
+
+    def actor_parameters(self) -> list[nn.Parameter]:
+        """Parameters the actor loss trains (with a shared body: the body too)."""
+        return [*self.actor_body.parameters(), *self.policy_head.parameters()]
+
+    def critic_parameters(self) -> list[nn.Parameter]:
+        """Parameters only the value loss trains."""
+        body = [] if self.critic_body is None else list(self.critic_body.parameters())
+        return [*body, *self.value_head.parameters()]
+
+
+class BetaDeterministicActor(nn.Module):
+    """The deployable PPO policy: observation tensors (positional, in ``input_names`` order) ->
+    the Beta mean mapped to ``[-1, 1]^A``. Shares its modules with the training model; traceable
+    (``torch.jit.trace``, ONNX export)."""
+
+    def __init__(self, body: Body, policy_head: nn.Linear, input_names: tuple[str, ...]) -> None:
+        super().__init__()
+        self.body = body
+        self.policy_head = policy_head
+        self.input_names = tuple(input_names)
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        obs = dict(zip(self.input_names, inputs, strict=True))
+        alpha, beta = beta_concentrations(*self.policy_head(self.body(obs)).chunk(2, -1))
+        return beta_mean_action(alpha, beta)
+
+
+def build_beta_actor(meta: dict[str, Any]) -> BetaDeterministicActor:
+    """An untrained :class:`BetaDeterministicActor` with the architecture ``meta`` describes
+    (the policy metadata of a PPO checkpoint)."""
+    from safenav.common.config import from_dict
+
+    net: NetConfig = from_dict(NetConfig, meta["net"])
+    shapes = {k: tuple(v) for k, v in meta["obs_shapes"].items()}
+    body = Body(shapes, net)
+    return BetaDeterministicActor(
+        body, nn.Linear(body.out_features, 2 * int(meta["action_dim"])), tuple(shapes)
+    )
+
+
+__all__ = ["POLICY_HEAD", "BetaActorCritic", "BetaDeterministicActor", "Body", "build_beta_actor"]

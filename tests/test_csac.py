@@ -1,0 +1,184 @@
+"""CSAC/SAC mechanics: env adapter (costs, final observations, autoreset modes), truncation
+bootstrap, target networks, gradient isolation of the shared extractor."""
+
+from __future__ import annotations
+
+import copy
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from gymnasium.vector import AutoresetMode, SyncVectorEnv
+
+from safenav.algos.config import CSACConfig
+from safenav.algos.csac import CSAC
+from safenav.algos.losses import reward_target
+from safenav.common.buffer import ReplayBuffer
+from safenav.common.envs import TorchVecEnv, make_vec_env
+from safenav.nn.config import NetConfig
+
+NAV = {"state": (8,), "lidar": (4, 36), "dynamic": (5, 10)}
+SMALL = NetConfig(hidden=(32, 32))
+
+
+class CounterEnv(gym.Env):
+    """obs = [t]; the episode ends at t = 3, terminated (``terminal``) or truncated; cost 1 at t = 3
+    (reported in the step's info, as Safety-Gymnasium does)."""
+
+    observation_space = gym.spaces.Box(-np.inf, np.inf, (1,), np.float32)
+    action_space = gym.spaces.Box(-2.0, 2.0, (1,), np.float32)
+
+    def __init__(self, terminal: bool) -> None:
+        self.terminal, self.t = terminal, 0
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        return np.zeros(1, np.float32), {}
+
+    def step(self, action):
+        self.t += 1
+        end = self.t >= 3
+        info = {"cost": 1.0 if end else 0.0, "success": self.terminal and end}
+        return (
+            np.full(1, self.t, np.float32),
+            1.0,
+            self.terminal and end,
+            (not self.terminal) and end,
+            info,
+        )
+
+
+def counter_envs(mode: AutoresetMode) -> TorchVecEnv:
+    return TorchVecEnv(
+        SyncVectorEnv([lambda: CounterEnv(True), lambda: CounterEnv(False)], autoreset_mode=mode)
+    )
+
+
+def test_same_step_final_obs_cost_from_final_info_and_episode_stats():
+    env = counter_envs(AutoresetMode.SAME_STEP)
+    env.reset(seed=0)
+    for _ in range(2):
+        step = env.step(torch.zeros(2, 1))
+        assert step.episodes is None and step.cost.tolist() == [0.0, 0.0]
+    step = env.step(torch.zeros(2, 1))
+    assert step.terminated.tolist() == [True, False] and step.truncated.tolist() == [False, True]
+    assert step.next_obs["obs"].flatten().tolist() == [0.0, 0.0]  # already reset
+    assert step.real_next_obs["obs"].flatten().tolist() == [3.0, 3.0]  # the true last observation
+    assert step.cost.tolist() == [1.0, 1.0]  # read from final_info
+    ep = step.episodes
+    assert ep["return"].tolist() == [3.0, 3.0] and ep["cost"].tolist() == [1.0, 1.0]
+    assert ep["length"].tolist() == [3.0, 3.0] and ep["timeout"].tolist() == [0.0, 1.0]
+    assert ep["success"].tolist() == [1.0, 0.0] and ep["collision"].tolist() == [1.0, 1.0]
+
+
+def test_next_step_autoreset_marks_the_reset_step_invalid():
+    env = counter_envs(AutoresetMode.NEXT_STEP)
+    env.reset(seed=0)
+    steps = [env.step(torch.zeros(2, 1)) for _ in range(5)]
+    assert steps[2].real_next_obs["obs"].flatten().tolist() == [3.0, 3.0]
+    assert steps[2].cost.tolist() == [1.0, 1.0] and steps[2].episodes is not None
+    assert steps[3].valid.tolist() == [False, False]  # the interleaved reset step: no transition
+    assert steps[4].valid.tolist() == [True, True]
+    assert steps[4].real_next_obs["obs"].flatten().tolist() == [1.0, 1.0]
+
+
+def test_actions_are_mapped_onto_the_env_box():
+    env = counter_envs(AutoresetMode.SAME_STEP)
+    torch.testing.assert_close(
+        env.scale_action(torch.tensor([[-1.0], [1.0]])), torch.tensor([[-2.0], [2.0]])
+    )
+
+
+def test_truncated_transition_bootstraps_terminated_does_not():
+    """Through env adapter and replay buffer into Eq. 5: the truncated env's target includes the
+    discounted value of its true final observation; the terminated env's target is its reward."""
+    env = counter_envs(AutoresetMode.SAME_STEP)
+    buf = ReplayBuffer(16, env.obs_shapes, 1)
+    obs = env.reset(seed=0)
+    for _ in range(3):
+        action = torch.zeros(2, 1)
+        step = env.step(action)
+        buf.add(
+            obs, action, step.reward, step.cost, step.real_next_obs, step.terminated, step.valid
+        )
+        obs = step.next_obs
+    last = slice(4, 6)  # the third vector step
+    assert buf.terminated[last].tolist() == [1.0, 0.0]
+    assert buf.next_obs["obs"][last].flatten().tolist() == [3.0, 3.0]
+    next_q = buf.next_obs["obs"][last].flatten().expand(2, 2) * 10.0  # any critic of s'
+    y = reward_target(buf.rewards[last], buf.terminated[last], next_q, torch.zeros(2), 0.0, 0.9)
+    assert y.tolist() == pytest.approx([1.0, 1.0 + 0.9 * 30.0])
+
+
+def test_safenav_vector_env_adapter_keeps_torch_and_reports_cost():
+    env = TorchVecEnv(make_vec_env("SafeNav-v0", 4, preset="easy"))
+    obs = env.reset(seed=3)
+    assert {k: tuple(v.shape) for k, v in obs.items()} == {
+        "state": (4, 8),
+        "lidar": (4, 4, 36),
+        "dynamic": (4, 5, 10),
+    }
+    ended = 0
+    for _ in range(200):
+        step = env.step(torch.ones(4, 3))  # full speed, straight: collisions or success soon
+        if step.episodes is not None:
+            ended += len(step.episodes["return"])
+            done = (step.terminated | step.truncated).nonzero().squeeze(-1)
+            assert not torch.equal(step.real_next_obs["state"][done], step.next_obs["state"][done])
+            assert set(step.episodes["collision"].tolist()) <= {0.0, 1.0}
+    assert ended > 0
+
+
+def random_batch(n=32, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    obs = {k: torch.rand(n, *s, generator=g) for k, s in NAV.items()}
+    nxt = {k: torch.rand(n, *s, generator=g) for k, s in NAV.items()}
+    from safenav.common.buffer import Batch
+
+    return Batch(obs, torch.rand(n, 3, generator=g) * 2 - 1, torch.randn(n, generator=g),
+                 (torch.rand(n, generator=g) < 0.3).float(), nxt, (torch.rand(n, generator=g) < 0.2).float())  # fmt: skip
+
+
+@pytest.mark.parametrize("shared", [True, False])
+def test_targets_hard_copied_then_polyak_averaged(shared):
+    torch.manual_seed(0)
+    agent = CSAC(
+        NAV, 3, CSACConfig(tau=0.1, net=NetConfig(hidden=(32, 32), shared_extractor=shared))
+    )
+    for p, q in zip(agent._online, agent._target, strict=True):
+        assert torch.equal(p, q)  # line 2: hard copy
+    before = [p.detach().clone() for p in agent._target]
+    metrics = agent.update(random_batch(), d_q=0.1)
+    assert all(torch.isfinite(v) for v in metrics.values())
+    for old, online, target in zip(before, agent._online, agent._target, strict=True):
+        torch.testing.assert_close(target, 0.9 * old + 0.1 * online.detach())  # line 15
+
+
+def test_actor_step_leaves_critics_and_shared_extractor_alone():
+    torch.manual_seed(0)
+    cfg = CSACConfig(reward_critic_lr=0.0, cost_critic_lr=0.0, actor_lr=1e-3, net=SMALL)
+    agent = CSAC(NAV, 3, cfg)
+    critics = [
+        p.detach().clone() for m in (agent.qr, agent.qc, agent.encoder) for p in m.parameters()
+    ]
+    actor = [p.detach().clone() for p in agent.actor.parameters()]
+    agent.update(random_batch(), d_q=0.1)
+    after = [p for m in (agent.qr, agent.qc, agent.encoder) for p in m.parameters()]
+    assert all(torch.equal(a, b) for a, b in zip(critics, after, strict=True))
+    assert any(not torch.equal(a, b) for a, b in zip(actor, agent.actor.parameters(), strict=True))
+
+
+def test_sac_has_no_cost_side_and_csac_lambda_moves():
+    sac = CSAC(NAV, 3, CSACConfig(constrained=False, net=SMALL))
+    assert sac.qc is None and sac.lagrange is None and sac.lam.item() == 0.0
+    assert "losses/qc" not in sac.update(random_batch(), 0.0)
+    csac = CSAC(NAV, 3, CSACConfig(lambda_lr=0.01, net=SMALL))
+    m = csac.update(random_batch(), d_q=-1.0)  # any Q_C exceeds a negative threshold
+    assert csac.lam.item() > 0.0 and "constraint/qc_pi" in m
+    state = copy.deepcopy(csac.state_dict())
+    clone = CSAC(NAV, 3, CSACConfig(lambda_lr=0.01, net=SMALL))
+    clone.load_state_dict(state)
+    clone.load_optimizer_state(csac.optimizer_state())
+    assert clone.lam.item() == csac.lam.item()
