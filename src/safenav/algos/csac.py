@@ -54,6 +54,15 @@ from safenav.common.logger import RunLogger, write_json_atomic
 from safenav.nn.networks import Actor, DeterministicActor, QEnsemble, make_extractor
 
 
+def adam(params, **kwargs) -> torch.optim.Adam:
+    """Adam with the fused kernel (one kernel per group, 2.4x faster steps on CPU than the default
+    per-parameter loop; docs/csac.md), when supported by the parameters' device."""
+    try:
+        return torch.optim.Adam(params, fused=True, **kwargs)
+    except RuntimeError:
+        return torch.optim.Adam(params, **kwargs)
+
+
 class CSAC(nn.Module):
     """Networks, optimisers and the gradient update of CSAC (SAC when ``cfg.constrained`` is False)."""
 
@@ -99,10 +108,10 @@ class CSAC(nn.Module):
             groups.append({"params": list(self.qc.parameters()), "lr": cfg.cost_critic_lr})
         if self.encoder is not None:
             groups.append({"params": list(self.encoder.parameters()), "lr": cfg.reward_critic_lr})
-        self.critic_optimizer = torch.optim.Adam(groups)
+        self.critic_optimizer = adam(groups)
         self.actor_params = list(self.actor.parameters())
-        self.actor_optimizer = torch.optim.Adam(self.actor_params, lr=cfg.actor_lr)
-        self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=cfg.alpha_lr)
+        self.actor_optimizer = adam(self.actor_params, lr=cfg.actor_lr)
+        self.alpha_optimizer = adam([self.log_alpha], lr=cfg.alpha_lr)
         online = [m for m in (self.encoder, self.qr, self.qc) if m is not None]
         target = [m for m in (self.encoder_target, self.qr_target, self.qc_target) if m is not None]
         self._online = [p for m in online for p in m.parameters()]

@@ -68,7 +68,7 @@ class NavExtractor(nn.Module):
         lidar = obs["lidar"]
         x = lidar.transpose(1, 2).reshape(lidar.shape[0], -1)  # (N, C * R): channels last
         for conv in self.convs:
-            x = torch.relu(conv(x))
+            x = torch.relu_(conv(x))
         x = self.lidar_head(x)
         y = self.dynamic_mlp(obs["dynamic"].flatten(1))
         state = obs["state"].expand(self.ensemble_size, *obs["state"].shape)

@@ -86,7 +86,7 @@ class EnsembleMLP(nn.Module):
         for i, layer in enumerate(self.layers):
             x = layer(x)
             if i < last or self.final_activation:
-                x = torch.relu(x)
+                x = torch.relu_(x)  # in place: the fresh matmul output is not needed for backward
         return x
 
 

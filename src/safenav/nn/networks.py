@@ -80,7 +80,7 @@ class Actor(nn.Module):
         self.extractor = extractor
         layers: list[nn.Module] = []
         for a, b in zip((in_features, *hidden[:-1]), hidden, strict=True):
-            layers += [nn.Linear(a, b), nn.ReLU()]
+            layers += [nn.Linear(a, b), nn.ReLU(inplace=True)]
         self.trunk = nn.Sequential(*layers)
         self.head = nn.Linear(hidden[-1] if hidden else in_features, 2 * action_dim)
 
