@@ -17,7 +17,8 @@ from safenav.envs.config import EnvConfig
 
 class GoToGoalActor(nn.Module):
     """Fly toward the goal, slowing within ``slow_radius`` m, pushed away from range-image hits
-    of the level beams and from tracked moving obstacles (an artificial potential field).
+    of the level beams and from tracked moving obstacles (an artificial potential field), and
+    sideways when an obstacle stands straight in the way (the field's classic trap).
 
     Observation scales are the env's: ``state[3] * 20`` and ``state[4] * 4`` are the horizontal and
     vertical distances to the goal; ``lidar = (4 - d) / 4``; ``dynamic[:, :, 3] = d / 4``.
@@ -48,6 +49,14 @@ class GoToGoalActor(nn.Module):
         push = -(near**3) @ self.beam_dirs  # (N, 2)
         d_near = (1.0 - dynamic[:, :, 3]).clamp(0.0, 1.0) * (dynamic[:, :, 3] > 0).to(state.dtype)
         push = push - ((d_near**2)[..., None] * dynamic[:, :, 0:2]).sum(1)
+        # Escape the potential field's trap (an obstacle straight between UAV and goal): when the
+        # push opposes the way to the goal, add a sideways push, on the goal's side (left on a tie).
+        way = attract[:, :2]
+        perp = torch.stack([-push[:, 1], push[:, 0]], -1)
+        side = torch.where((perp * way).sum(-1, keepdim=True) < 0, -1.0, 1.0)
+        norms = push.norm(dim=-1, keepdim=True) * way.norm(dim=-1, keepdim=True) + 1e-6
+        opposed = (-(push * way).sum(-1, keepdim=True) / norms).clamp(0.0, 1.0)
+        push = push + perp * side * opposed
         push3 = torch.cat([push, torch.zeros_like(push[:, :1])], -1)
         return torch.clamp(attract + self.repulsion * push3 / 3.0, -1.0, 1.0)
 
