@@ -47,6 +47,18 @@ class CSACConfig:
     """Optional cap on lambda; None = unbounded (paper)."""
     num_critics: int = 2
     """Critics per kind (reward, cost); the paper uses 2 + 2."""
+    num_cost_critics: int = 0
+    """Cost critics; 0 = ``num_critics`` (CSAC: 2). SAC-Lag (OmniSafe) uses one."""
+    lambda_from: Literal["q_cost", "episode_cost"] = "q_cost"
+    """What drives lambda: ``q_cost`` = E[Q_C] against d on the Q_C scale at every update
+    (Eq. 11, CSAC); ``episode_cost`` = the mean cost of the episodes that ended in the last
+    ``lambda_every`` env steps against the episode budget d (OmniSafe SAC-Lag)."""
+    lambda_every: int = 2000
+    """``episode_cost``: env steps between lambda updates (OmniSafe's ``update_cycle``)."""
+    episode_lambda_lr: float = 1e-3
+    """``episode_cost``: Adam learning rate of lambda, one step per update (OmniSafe SAC-Lag)."""
+    scale_actor_loss: bool = False
+    """Divide the actor loss (Eq. 9) by ``1 + lambda`` (OmniSafe SAC-Lag)."""
     cost_target: Literal["mean", "min", "max"] = "mean"
     """Reduction of the target cost critics in Eq. 6: mean (paper); min/max are ablations."""
     cost_horizon: int = 0
@@ -67,6 +79,8 @@ class CSACConfig:
             raise ValueError(
                 "updates-per-step > 0, learning-starts >= 0 and num-critics >= 1 are required"
             )
+        if self.num_cost_critics < 0 or self.lambda_every < 1 or self.episode_lambda_lr <= 0:
+            raise ValueError("num-cost-critics >= 0, lambda-every >= 1, episode-lambda-lr > 0")
         if self.init_alpha <= 0 or self.init_lambda < 0:
             raise ValueError("init-alpha must be > 0 and init-lambda >= 0")
 

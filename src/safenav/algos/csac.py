@@ -72,20 +72,23 @@ class CSAC(nn.Module):
         super().__init__()
         self.cfg, self.obs_shapes, self.action_dim = cfg, dict(obs_shapes), action_dim
         net, e = cfg.net, cfg.num_critics
+        e_cost = cfg.num_cost_critics or e
         # -- line 1: actor and critics (see safenav.nn.networks for the extractor's gradient flow)
         if net.shared_extractor:
             self.encoder = make_extractor(obs_shapes, net)
             feat = self.encoder.out_features
-            actor_ex, critic_ex = None, lambda: None  # noqa: E731
+            actor_ex, critic_ex = None, lambda k: None  # noqa: E731
         else:
             self.encoder = None
             actor_ex = make_extractor(obs_shapes, net)
             feat = actor_ex.out_features
-            critic_ex = lambda: make_extractor(obs_shapes, net, e)  # noqa: E731
+            critic_ex = lambda k: make_extractor(obs_shapes, net, k)  # noqa: E731
         self.actor = Actor(actor_ex, feat, action_dim, net.hidden)
-        self.qr = QEnsemble(critic_ex(), feat, action_dim, net.hidden, e)
+        self.qr = QEnsemble(critic_ex(e), feat, action_dim, net.hidden, e)
         self.qc = (
-            QEnsemble(critic_ex(), feat, action_dim, net.hidden, e) if cfg.constrained else None
+            QEnsemble(critic_ex(e_cost), feat, action_dim, net.hidden, e_cost)
+            if cfg.constrained
+            else None
         )
         # -- line 2: targets are hard copies
         self.encoder_target = copy.deepcopy(self.encoder)
@@ -99,8 +102,9 @@ class CSAC(nn.Module):
         self.target_entropy = (
             -float(action_dim) if cfg.target_entropy is None else cfg.target_entropy
         )
+        lambda_lr = cfg.lambda_lr if cfg.lambda_from == "q_cost" else cfg.episode_lambda_lr
         self.lagrange = (
-            Lagrange(cfg.init_lambda, cfg.lambda_lr, cfg.lambda_max) if cfg.constrained else None
+            Lagrange(cfg.init_lambda, lambda_lr, cfg.lambda_max) if cfg.constrained else None
         )
         # -- optimisers: one Adam per role, separate learning rates (paper IV)
         groups = [{"params": list(self.qr.parameters()), "lr": cfg.reward_critic_lr}]
@@ -167,6 +171,8 @@ class CSAC(nn.Module):
         q_r_pi = self.qr(x_actor, new_actions)
         q_c_pi = self.qc(x_actor, new_actions) if self.qc is not None else None
         loss_actor = actor_loss(log_prob, q_r_pi, alpha, q_c_pi, lam)
+        if cfg.scale_actor_loss:  # SAC-Lag (OmniSafe): (Eq. 9) / (1 + lambda)
+            loss_actor = loss_actor / (1.0 + lam)
         self.actor_optimizer.zero_grad(set_to_none=True)
         loss_actor.backward(inputs=self.actor_params)  # no gradient into the critics
         self.actor_optimizer.step()
@@ -179,7 +185,8 @@ class CSAC(nn.Module):
                    "values/entropy": -log_prob.detach().mean()}  # fmt: skip
         if self.lagrange is not None:
             q_c_mean = q_c_pi.detach().mean(0)
-            metrics["losses/lambda"] = self.lagrange.update(q_c_mean, d_q)
+            if cfg.lambda_from == "q_cost":  # else the loop updates it from episode costs
+                metrics["losses/lambda"] = self.lagrange.update(q_c_mean, d_q)
             metrics["losses/qc"] = loss_qc.detach()
             metrics["constraint/qc_pi"] = q_c_mean.mean()
 
@@ -213,6 +220,7 @@ COLUMNS = (
     "charts/episodic_return", "charts/episodic_cost", "charts/episodic_length", "charts/success_rate",
     "charts/collision_rate", "charts/timeout_rate", "charts/episodes", "charts/density", "charts/alpha",
     "constraint/lambda", "constraint/d", "constraint/d_q", "constraint/stage", "constraint/qc_pi",
+    "constraint/episode_cost",
     "losses/qr", "losses/qc", "losses/actor", "losses/alpha", "losses/lambda", "values/qr",
     "values/entropy", "eval/return", "eval/cost", "eval/length", "eval/success_rate",
     "eval/collision_rate", "eval/timeout_rate",
@@ -331,6 +339,9 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
         run.total_steps, global_step, enabled=progress, title=f"{algo} {run.env}"
     )
     row: dict[str, float] = {}
+    episode_lambda = cfg.constrained and cfg.lambda_from == "episode_cost"
+    lam_costs: list[float] = []  # episode costs since the last lambda update (SAC-Lag)
+    next_lambda = (global_step // cfg.lambda_every + 1) * cfg.lambda_every
     try:
         while global_step < run.total_steps:
             # lines 5-10: warm-up with uniform random actions, then a ~ pi(.|s)
@@ -358,6 +369,8 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
                 for k in recent:
                     recent[k].extend(ep[k])
                 curriculum.observe(ep["cost"])
+                if episode_lambda:
+                    lam_costs.extend(ep["cost"])
                 density.observe(ep["success"])
             change = curriculum.step(global_step)
             if change is not None:
@@ -371,6 +384,16 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
             new_density = density.step(global_step)
             if new_density is not None and env.set_density(new_density):
                 logger.event(global_step, "density", density=new_density)
+
+            # SAC-Lag (OmniSafe): lambda from the mean episode cost J_c against d, every lambda_every
+            if episode_lambda and global_step >= next_lambda:
+                while next_lambda <= global_step:
+                    next_lambda += cfg.lambda_every
+                if lam_costs and global_step >= warmup_until:  # else keep collecting
+                    j_c = sum(lam_costs) / len(lam_costs)
+                    loss = agent.lagrange.update(torch.tensor([j_c], device=device), curriculum.d)
+                    row.update({"losses/lambda": float(loss), "constraint/episode_cost": j_c})
+                    lam_costs = []
 
             # lines 11-15: gradient updates
             if global_step >= warmup_until:

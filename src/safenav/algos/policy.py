@@ -83,7 +83,12 @@ class Policy:
 
 
 def build_actor(meta: dict[str, Any]) -> DeterministicActor:
-    """An untrained :class:`DeterministicActor` with the architecture ``meta`` describes."""
+    """An untrained :class:`DeterministicActor` with the architecture ``meta`` describes (for PPO
+    checkpoints, ``policy_head: "beta"``, the Beta-mean actor of :mod:`safenav.nn.beta`)."""
+    if meta.get("policy_head") == "beta":
+        from safenav.nn.beta import build_beta_actor
+
+        return build_beta_actor(meta)
     from safenav.common.config import from_dict
 
     net: NetConfig = from_dict(NetConfig, meta["net"])

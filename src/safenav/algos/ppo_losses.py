@@ -62,7 +62,7 @@ def lagrangian_advantage(adv_reward: torch.Tensor, adv_cost: torch.Tensor,
 def normalize(x: torch.Tensor, scale: bool = True, eps: float = 1e-8) -> torch.Tensor:
     """``(x - mean) / (std + eps)`` over all entries (``scale=False``: only ``x - mean``)."""
     x = x - x.mean()
-    return x / (x.std() + eps) if scale else x
+    return x / (x.std(correction=0) + eps) if scale else x
 
 
 # ------------------------------------------------------------------------------------ losses

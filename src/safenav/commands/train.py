@@ -1,4 +1,5 @@
-"""``safenav train``: train CSAC or SAC on SafeNav-v0 or any Gymnasium env into a run directory."""
+"""``safenav train``: train CSAC, SAC, PPO, PPO-Lag or SAC-Lag on SafeNav-v0 or any Gymnasium env
+into a run directory."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from typing import Annotated, Literal
 import tyro
 
 from safenav.algos.config import CSACConfig
+from safenav.algos.ppo_config import PPOConfig
 from safenav.cli import app
 from safenav.common.config import RunConfig
 
@@ -21,19 +23,21 @@ RESUMABLE = ("total_steps", "device", "torch_threads", "log_every", "eval_every"
 
 @app.command(name="train")
 def train(
-    algo: Literal["csac", "sac"] = "csac",
+    algo: Literal["csac", "sac", "ppo", "ppo_lag", "sac_lag"] = "csac",
     run: Annotated[RunConfig, tyro.conf.arg(name="")] = RunConfig(),  # noqa: B008
     csac: CSACConfig = CSACConfig(),  # noqa: B008
+    ppo: PPOConfig = PPOConfig(),  # noqa: B008
     run_dir: Path | None = None,
     resume: Path | None = None,
     overwrite: bool = False,
     progress: bool = True,
 ) -> None:
-    """Train CSAC (the paper's method) or SAC into a run directory.
+    """Train CSAC (the paper's method), SAC, PPO, PPO-Lag or SAC-Lag into a run directory.
 
     The run directory gets config.json, progress.csv, tb/ (TensorBoard), events.jsonl and
-    checkpoint.pt (written atomically). --csac.* options set the algorithm (SAC reads the same ones
-    minus the cost side). A directory that holds a run is refused unless --resume DIR (continue it:
+    checkpoint.pt (written atomically). --csac.* options set csac, sac (the same minus the cost
+    side) and sac_lag (the same with OmniSafe's Lagrangian switches); --ppo.* set ppo and ppo_lag
+    (PPO wants many envs: e.g. --num-envs 256). A directory that holds a run is refused unless --resume DIR (continue it:
     its config.json is used; --total-steps, --device and the logging options may change) or
     --overwrite (replace it). Default run dir: runs/<algo>-<env>-s<seed>-<time>.
     """
@@ -42,7 +46,8 @@ def train(
     from safenav.common.logger import prepare_run_dir
     from safenav.errors import SafenavError
 
-    cfg = csac
+    family = "ppo" if algo in ("ppo", "ppo_lag") else "csac"
+    cfg = ppo if family == "ppo" else csac
     if resume is not None:
         if run_dir is not None and Path(run_dir).resolve() != Path(resume).resolve():
             raise SafenavError(
@@ -55,10 +60,10 @@ def train(
         try:
             saved = json.loads(config_path.read_text())
             saved_run = from_dict(RunConfig, saved["run"])
-            cfg = from_dict(CSACConfig, saved["csac"])
+            cfg = from_dict(PPOConfig if family == "ppo" else CSACConfig, saved[family])
         except (KeyError, ValueError, TypeError) as err:
             raise SafenavError(
-                f"--resume {run_dir}: config.json is not a csac/sac run config ({err})"
+                f"--resume {run_dir}: config.json is not a {algo} run config ({err})"
             ) from None
         if saved.get("algo") != algo:
             raise SafenavError(
@@ -79,11 +84,18 @@ def train(
         from safenav.algos.sac import sac_config
 
         cfg = sac_config(cfg)
+    elif algo == "sac_lag":
+        from safenav.algos.sac_lag import sac_lag_config
+
+        cfg = sac_lag_config(cfg)
+    elif family == "ppo":
+        from safenav.algos import ppo as ppo_module
+
+        cfg = dataclasses.replace(cfg, constrained=algo == "ppo_lag")
+    module = ppo_module if family == "ppo" else csac_module
     if resume is None:
-        csac_module.write_config(run_dir, algo, run, cfg)
-    result = csac_module.train(
-        algo, run, cfg, run_dir, resume=resume is not None, progress=progress
-    )
+        module.write_config(run_dir, algo, run, cfg)
+    result = module.train(algo, run, cfg, run_dir, resume=resume is not None, progress=progress)
     print(f"safenav train: {algo} finished at step {result['global_step']} ({result['updates']} updates); "
           f"last 100 episodes: success {result['success_rate']:.3f}, collision {result['collision_rate']:.3f}, "
           f"return {result['return']:.2f}; run dir {run_dir}")  # fmt: skip

@@ -1,0 +1,149 @@
+"""``safenav train --algo ppo|ppo_lag|sac_lag`` through the CLI in seconds: run directory, metrics,
+checkpoint -> ``load_policy`` / ``safenav eval``, resume; SAC-Lag's switches on the CSAC path."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import pytest
+import torch
+
+from safenav.algos.config import CSACConfig
+from safenav.algos.csac import CSAC
+from safenav.algos.policy import load_policy
+from safenav.algos.sac_lag import sac_lag_config
+from safenav.cli import main
+from safenav.common.buffer import ReplayBuffer
+from safenav.common.checkpoint import load_checkpoint
+from safenav.nn.config import NetConfig
+
+FAST = ["--no-progress", "--no-tensorboard", "--eval-every", "0", "--torch-threads", "1"]
+PPO_SMALL = ["--ppo.rollout-steps", "8", "--ppo.epochs", "2", "--ppo.num-minibatches", "2",
+             "--ppo.net.hidden", "32", "32"]  # fmt: skip
+SAC_SMALL = ["--csac.learning-starts", "1024", "--csac.batch-size", "32", "--csac.lambda-every", "128",
+             "--csac.net.hidden", "32", "32", "--csac.episode-lambda-lr", "0.1"]  # fmt: skip
+
+
+def rows(run_dir) -> list[dict[str, str]]:
+    with (run_dir / "progress.csv").open() as f:
+        return list(csv.DictReader(f))
+
+
+def train(
+    tmp_path, algo: str, *args: str, env: str = "SafeNav-v0", steps: int = 512, envs: int = 16
+):
+    run_dir = tmp_path / algo
+    preset = ["--preset", "easy"] if env == "SafeNav-v0" else []
+    main(["train", "--algo", algo, "--env", env, *preset, "--num-envs", str(envs), "--total-steps",
+          str(steps), "--log-every", "128", "--run-dir", str(run_dir), *FAST, *args])  # fmt: skip
+    return run_dir
+
+
+@pytest.mark.parametrize("algo", ["ppo", "ppo_lag"])
+def test_ppo_family_on_safenav_run_dir_policy_and_resume(tmp_path, algo):
+    run_dir = train(tmp_path, algo, *PPO_SMALL)
+    for name in ("config.json", "progress.csv", "checkpoint.pt", "events.jsonl"):
+        assert (run_dir / name).exists(), name
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["algo"] == algo and config["ppo"]["constrained"] == (algo == "ppo_lag")
+    table = rows(run_dir)
+    assert [int(r["global_step"]) for r in table] == [128, 256, 384, 512]
+    for col in (
+        "charts/episodic_return",
+        "charts/episodic_cost",
+        "charts/success_rate",
+        "charts/collision_rate",
+    ):  # fmt: skip  (filled once episodes end)
+        assert col in table[0], col
+    for col in ("perf/sps", "losses/actor", "losses/value", "losses/entropy", "losses/approx_kl"):
+        assert table[-1][col] != "", col
+    if algo == "ppo_lag":
+        assert table[-1]["constraint/lambda"] != "" and table[-1]["constraint/d"] == "0.5"
+        assert table[-1]["losses/value_cost"] != ""
+
+    policy = load_policy(run_dir)
+    assert policy.meta["algo"] == algo and policy.meta["policy_head"] == "beta"
+    obs = {
+        "state": torch.randn(4, 8),
+        "lidar": torch.rand(4, 4, 36),
+        "dynamic": torch.zeros(4, 5, 10),
+    }
+    action = policy(obs)
+    assert action.shape == (4, 3) and bool((action.abs() <= 1).all())
+    # the checkpoint's deterministic actor is the agent's Beta mean
+    from safenav.algos.ppo import PPO
+    from safenav.algos.ppo_config import PPOConfig
+    from safenav.common.config import from_dict
+
+    ckpt = load_checkpoint(run_dir)
+    agent = PPO(policy.obs_shapes, 3, from_dict(PPOConfig, ckpt["config"]["ppo"]))
+    agent.load_state_dict(ckpt["agent"])
+    torch.testing.assert_close(policy(obs), agent.act(obs, deterministic=True)[0])
+
+    main(["train", "--algo", algo, "--resume", str(run_dir), "--total-steps", "768", *FAST])
+    table = rows(run_dir)
+    assert int(table[-1]["global_step"]) == 768 and int(table[3]["global_step"]) == 512
+    assert load_checkpoint(run_dir)["global_step"] == 768
+
+
+def test_ppo_on_a_gymnasium_env(tmp_path):
+    run_dir = train(tmp_path, "ppo", *PPO_SMALL, env="Pendulum-v1", steps=1024, envs=4)
+    assert load_policy(run_dir)({"obs": torch.zeros(3)}).shape == (1,)
+    ended = [r for r in rows(run_dir) if r["charts/episodic_return"]]
+    assert ended  # the 200-step episodes ended (truncated) at step 800
+    assert (
+        float(ended[0]["charts/episodic_cost"]) == 0.0
+        and float(ended[0]["charts/timeout_rate"]) == 1.0
+    )
+
+
+def test_sac_lag_on_safenav(tmp_path):
+    run_dir = train(tmp_path, "sac_lag", *SAC_SMALL, steps=2048, envs=64)
+    config = json.loads((run_dir / "config.json").read_text())["csac"]
+    assert config["num_cost_critics"] == 1 and config["lambda_from"] == "episode_cost"
+    assert config["scale_actor_loss"] is True
+    ckpt = load_checkpoint(run_dir)
+    assert ckpt["agent"]["qc.mlp.layers.0.weight"].shape[0] == 1  # one cost critic
+    table = rows(run_dir)
+    lam = [float(r["constraint/lambda"]) for r in table if r["constraint/lambda"]]
+    assert lam and lam[-1] > 0  # random warm-up flights collide: J_c > d raises lambda
+    assert any(r["constraint/episode_cost"] for r in table)
+    assert load_policy(run_dir).meta["algo"] == "sac_lag"
+
+
+def test_eval_reads_a_ppo_checkpoint(tmp_path):
+    run_dir = train(tmp_path, "ppo", *PPO_SMALL, steps=256)
+    out = tmp_path / "eval.json"
+    main(["eval", str(run_dir / "checkpoint.pt"), "--episodes", "4", "--json", str(out)])
+    result = json.loads(out.read_text())
+    assert result["success_rate"] + result["collision_rate"] + result[
+        "timeout_rate"
+    ] == pytest.approx(1.0)
+
+
+def test_sac_lag_update_leaves_lambda_to_the_episode_cost_and_scales_the_actor_loss():
+    shapes = {"obs": (3,)}
+    cfg = sac_lag_config(CSACConfig(net=NetConfig(hidden=(16, 16)), batch_size=8, init_lambda=1.0))
+    buf = ReplayBuffer(64, shapes, 1)
+    g = torch.Generator().manual_seed(0)
+    obs, nxt = {"obs": torch.randn(64, 3, generator=g)}, {"obs": torch.randn(64, 3, generator=g)}
+    buf.add(obs, torch.rand(64, 1, generator=g), torch.randn(64, generator=g), torch.ones(64), nxt,
+            torch.zeros(64, dtype=torch.bool))  # fmt: skip
+    torch.manual_seed(0)
+    agent = CSAC(shapes, 1, cfg)
+    torch.manual_seed(1)
+    batch = buf.sample(8)
+    metrics = agent.update(batch, d_q=0.0)  # cost 1 everywhere: Eq. 11 would raise lambda
+    assert float(agent.lam) == 1.0 and "losses/lambda" not in metrics
+    assert agent.qc.ensemble_size == 1
+    # the same agent unscaled: actor loss (1 + lambda) = 2 times larger
+    torch.manual_seed(0)
+    plain = CSAC(shapes, 1, CSACConfig(**{**cfg.__dict__, "scale_actor_loss": False}))
+    torch.manual_seed(1)
+    unscaled = plain.update(buf.sample(8), d_q=0.0)
+    assert unscaled["losses/actor"].item() == pytest.approx(
+        2 * metrics["losses/actor"].item(), rel=1e-5
+    )
+    agent.lagrange.update(torch.tensor([0.9]), 0.1)  # J_c > d: lambda rises
+    assert float(agent.lam) > 1.0
