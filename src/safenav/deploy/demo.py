@@ -141,6 +141,8 @@ def run_demo(
     summary = {
         "reached_goal": flight.reached_goal,
         "collisions": int(truth.get("collisions", -1)),
+        "collisions_static": int(truth.get("collisions_static", -1)),
+        "collisions_dynamic": int(truth.get("collisions_dynamic", -1)),
         "flight_time_s": round(flight.flight_time_s, 2),
         "min_clearance_m": round(float(truth.get("min_clearance", math.nan)), 3),
         "scenario": {"preset": preset, "world_seed": world_seed, "episode": episode,

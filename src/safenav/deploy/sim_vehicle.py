@@ -155,6 +155,8 @@ class SimVehicleConfig:
 @dataclass
 class SimStats:
     collisions: int = 0
+    collisions_static: int = 0
+    collisions_dynamic: int = 0
     min_clearance: float = math.inf
     flight_time: float = 0.0
     path: list = field(default_factory=list)
@@ -713,6 +715,10 @@ class SimVehicle:
         contact = clear <= 0.0
         if contact and not self._in_contact:
             self.stats.collisions += 1
+            if static <= dyn:
+                self.stats.collisions_static += 1
+            else:
+                self.stats.collisions_dynamic += 1
             self._event(f"COLLISION with a {'pillar' if static <= dyn else 'moving obstacle'}")
         self._in_contact = contact
 
@@ -756,7 +762,9 @@ class SimVehicle:
                             float(width[i]), float(height[i]), bool(cuboid[i]))
             for i in torch.nonzero(horiz < self.config.tracker_range).squeeze(1).tolist()
         ]  # fmt: skip
-        truth = {"pos": pos.tolist(), "collisions": stats.collisions, "min_clearance": stats.min_clearance,
+        truth = {"pos": pos.tolist(), "collisions": stats.collisions,
+                 "collisions_static": stats.collisions_static, "collisions_dynamic": stats.collisions_dynamic,
+                 "min_clearance": stats.min_clearance,
                  "flight_time": stats.flight_time, "in_contact": in_contact, "mode": mode, "armed": armed,
                  "dyn_pos": opos[:, :2].numpy().round(3).tolist(), "world_seed": self.config.world_seed,
                  "preset": self.config.preset}  # fmt: skip
