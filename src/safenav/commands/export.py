@@ -24,6 +24,13 @@ def export(
 
     ``--scripted`` exports the scripted go-to-goal actor instead (no checkpoint; env ``--preset``):
     the deployment chain without a trained policy.
+
+    Args:
+        checkpoint: Training checkpoint (read with ``safenav.algos.policy.load_policy``).
+        onnx: Output ONNX file; the sidecar is written next to it as ``<onnx>.json``.
+        opset: ONNX opset of the export.
+        scripted: Export the scripted go-to-goal actor instead of a checkpoint.
+        preset: With ``--scripted``: the env preset the sidecar describes.
     """
     from safenav.deploy.export import export_onnx, load_actor
     from safenav.deploy.scripted import GoToGoalActor

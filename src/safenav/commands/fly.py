@@ -27,7 +27,7 @@ def fly(
     origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
     link_timeout: float = 1.0,
     max_flight_time: float = 120.0,
-    no_land: bool = False,
+    land: bool = True,
     json_out: Annotated[Path | None, tyro.conf.arg(name="json")] = None,
     demo: bool = False,
     checkpoint: Path = Path("checkpoints/csac-paper.pt"),
@@ -50,6 +50,28 @@ def fly(
     ``--preset`` scenario with ``--checkpoint`` (exported on the fly; ``--scripted`` flies the
     scripted go-to-goal actor instead), printing a summary, writing ``--json`` and a GIF
     (``--gif``, default flight.gif).
+
+    Args:
+        policy: Exported ONNX policy (its ``.json`` sidecar next to it).
+        connect: MAVSDK connection URL of the vehicle (SITL: ``udpin://0.0.0.0:14540``; serial:
+            ``serial:///dev/ttyTHS1:921600``).
+        goal: Goal X Y Z in the world frame (ENU, metres).
+        perception: HOST:PORT of the perception stream (depth images and tracked obstacles).
+        rate: Setpoint rate in Hz (>= 10; NavRL flies at 20).
+        shield: Correct the policy's velocity with the velocity-obstacle safety shield.
+        takeoff_altitude: Takeoff altitude above home, metres.
+        origin: World ENU position of PX4's local NED origin.
+        link_timeout: Seconds without telemetry that count as link loss (exit status 3).
+        max_flight_time: Abort (hold and land) if the goal is not reached within this many seconds.
+        land: Land at the goal (else hold there).
+        json_out: Write the flight summary (JSON) here.
+        demo: Start the simulated vehicle and fly a test episode (see above).
+        checkpoint: Checkpoint flown by ``--demo`` (exported to ONNX on the fly).
+        scripted: With ``--demo``: fly the scripted go-to-goal actor instead of a checkpoint.
+        preset: With ``--demo``: SafeNav-v0 preset of the scenario.
+        episode: With ``--demo``: test episode (start and goal) of the fixed scenario.
+        gif: With ``--demo``: where to write the flight's GIF (default flight.gif).
+        verbose: Log MAVSDK's own messages and debug output.
     """
     from safenav.deploy.fly import FlightAborted
     from safenav.errors import SafenavError
@@ -73,7 +95,7 @@ def fly(
             if policy is None or goal is None:
                 raise SafenavError("pass --policy policy.onnx and --goal X Y Z (or --demo)")
             summary = fly_policy(policy, connect, goal, perception, rate, shield, takeoff_altitude, origin,
-                                 link_timeout, max_flight_time, not no_land)  # fmt: skip
+                                 link_timeout, max_flight_time, land)  # fmt: skip
     except FlightAborted as err:
         summary = getattr(err, "summary", None)
         if json_out is not None and summary is not None:

@@ -31,9 +31,23 @@ def sim_vehicle(
     ``--preset`` map of ``--world-seed``; the vehicle stands on the ground at ``--start X Y`` or at
     the start of test episode ``--episode``. ``--param NAME=VALUE`` sets PX4 parameters, e.g.
     ``COM_OF_LOSS_T=1.0`` or ``COM_OBL_RC_ACT=4`` (land on offboard loss; 5 = hold).
+
+    Args:
+        preset: SafeNav-v0 preset of the world (easy, medium, paper).
+        world_seed: World seed (1 = the fixed test environment).
+        density: Fraction of the obstacles that are active.
+        episode: Test episode whose start is the takeoff point (when ``--start`` is not given).
+        start: Takeoff point X Y in the world (ENU, metres).
+        connect: HOST:PORT the vehicle sends MAVLink to (where the GCS / companion listens).
+        bind: Local UDP HOST:PORT of the vehicle (port 0: any free port).
+        perception_port: TCP port on 127.0.0.1 for perception frames (0: any free port; -1: off).
+        duration: Stop after this many seconds (default: run until interrupted / SIGTERM).
+        param: PX4 parameters NAME=VALUE (e.g. COM_OF_LOSS_T=0.5 COM_OBL_RC_ACT=4).
+        quiet: Do not log the vehicle's events (arming, modes, collisions) to stderr.
     """
-    from safenav.deploy.sim_vehicle import SimVehicle, SimVehicleConfig
     import torch
+
+    from safenav.deploy.sim_vehicle import SimVehicle, SimVehicleConfig
 
     torch.set_num_threads(1)  # one core for the autopilot loop, the rest for the others
     from safenav.errors import SafenavError
