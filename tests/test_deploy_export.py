@@ -122,3 +122,26 @@ def test_load_actor_reads_the_trainers_policy(tmp_path: Path, monkeypatch) -> No
         monkeypatch.setitem(sys.modules, "safenav.algos.policy", module)
         got_actor, got_cfg = load_actor(ckpt)
         assert got_actor is policy.actor and got_cfg == cfg
+
+
+def test_the_trainers_actor_exports_with_its_own_input_order(tmp_path: Path) -> None:
+    """The trainer's DeterministicActor takes its inputs in ``input_names`` order (alphabetical:
+    dynamic, lidar, state); the export and the runtime feed it by name."""
+    from safenav.algos.policy import build_actor
+    from safenav.nn.networks import NetConfig
+
+    cfg = make_config("easy")
+    torch.manual_seed(0)
+    meta = {"net": dataclasses.asdict(NetConfig()), "action_dim": 3,
+            "obs_shapes": {"dynamic": [5, 10], "lidar": [4, 36], "state": [8]}}  # fmt: skip
+    actor = build_actor(meta).eval()
+    assert tuple(actor.input_names) == ("dynamic", "lidar", "state")
+    real = real_observations(cfg, steps=5)
+    export_onnx(actor, cfg, tmp_path / "csac.onnx", check_observations=real)
+    got = OnnxPolicy(tmp_path / "csac.onnx")(real["state"], real["lidar"], real["dynamic"])
+    with torch.no_grad():
+        ref = actor(*(torch.as_tensor(real[k]) for k in actor.input_names)).numpy()
+    np.testing.assert_allclose(got, ref, atol=1e-5, rtol=0)
+    np.testing.assert_allclose(
+        TorchPolicy(actor)(real["state"], real["lidar"], real["dynamic"]), ref, atol=1e-6
+    )

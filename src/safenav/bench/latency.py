@@ -126,7 +126,7 @@ def bench_latency(
     quiet: bool = False,
 ) -> dict[str, Any]:
     """Measure and return (and write to ``json_out``) p50/p99 latencies in milliseconds."""
-    from safenav.deploy.export import OnnxPolicy, export_onnx
+    from safenav.deploy.export import NamedInputActor, OnnxPolicy, export_onnx
     from safenav.deploy.runtime import OnboardRuntime, RuntimeConfig
     from safenav.deploy.shield import ShieldConfig
 
@@ -134,6 +134,9 @@ def bench_latency(
     torch.set_num_threads(1)
     try:
         actor, cfg, source = _actor(checkpoint)
+        actor = NamedInputActor(
+            actor
+        ).eval()  # (state, lidar, dynamic) whatever the actor's own input order
         obs = {k: torch.as_tensor(v) for k, v in {
             "state": np.zeros((1, 8), np.float32), "lidar": np.zeros((1, len(cfg.lidar_v_angles), cfg.lidar_h_beams), np.float32),
             "dynamic": np.zeros((1, cfg.num_tracked, 10), np.float32)}.items()}  # fmt: skip

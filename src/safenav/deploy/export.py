@@ -86,7 +86,24 @@ def policy_conventions(cfg: EnvConfig) -> dict[str, Any]:
     }  # fmt: skip
 
 
-class _Actor(nn.Module):
+def call_actor(
+    actor: nn.Module, state: torch.Tensor, lidar: torch.Tensor, dynamic: torch.Tensor
+) -> torch.Tensor:
+    """Call an actor with the observation tensors in its own positional order: the trainer's
+    ``DeterministicActor`` names it in ``input_names``; otherwise ``(state, lidar, dynamic)``."""
+    names = getattr(actor, "input_names", None)
+    if names is None:
+        return actor(state, lidar, dynamic)
+    named = {"state": state, "lidar": lidar, "dynamic": dynamic}
+    unknown = sorted(set(names) - set(named))
+    if unknown:
+        raise SafenavError(
+            f"the actor reads observation entries {unknown}: not a SafeNav-v0 policy"
+        )
+    return actor(*(named[k] for k in names))
+
+
+class NamedInputActor(nn.Module):
     """Named-input wrapper: ``forward(state, lidar, dynamic) -> action`` clamped to [-1, 1]."""
 
     def __init__(self, actor: nn.Module) -> None:
@@ -96,7 +113,7 @@ class _Actor(nn.Module):
     def forward(
         self, state: torch.Tensor, lidar: torch.Tensor, dynamic: torch.Tensor
     ) -> torch.Tensor:
-        return torch.clamp(self.actor(state, lidar, dynamic), -1.0, 1.0)
+        return torch.clamp(call_actor(self.actor, state, lidar, dynamic), -1.0, 1.0)
 
 
 def random_observations(cfg: EnvConfig, n: int, seed: int = 0) -> dict[str, torch.Tensor]:
@@ -126,7 +143,7 @@ def export_onnx(
     """
     onnx_path = Path(onnx_path)
     onnx_path.parent.mkdir(parents=True, exist_ok=True)
-    model = _Actor(actor).eval().to("cpu")
+    model = NamedInputActor(actor).eval().to("cpu")
     example = random_observations(cfg, 2)
     args = tuple(example[k] for k in INPUT_NAMES)
     axes = {k: {0: "batch"} for k in (*INPUT_NAMES, OUTPUT_NAME)}
@@ -229,7 +246,7 @@ class TorchPolicy:
 
     def __call__(self, state: np.ndarray, lidar: np.ndarray, dynamic: np.ndarray) -> np.ndarray:
         with torch.inference_mode():
-            out = self.actor(torch.from_numpy(np.asarray(state, dtype=np.float32)),
+            out = call_actor(self.actor, torch.from_numpy(np.asarray(state, dtype=np.float32)),
                              torch.from_numpy(np.asarray(lidar, dtype=np.float32)),
                              torch.from_numpy(np.asarray(dynamic, dtype=np.float32)))  # fmt: skip
         return torch.clamp(out, -1.0, 1.0).numpy()
@@ -279,6 +296,8 @@ def load_actor(checkpoint: str | Path, device: str = "cpu") -> tuple[nn.Module, 
 
 __all__ = [
     "INPUT_NAMES",
+    "NamedInputActor",
+    "call_actor",
     "OUTPUT_NAME",
     "SIDECAR_FORMAT",
     "OnnxPolicy",
