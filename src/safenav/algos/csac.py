@@ -113,9 +113,11 @@ class CSAC(nn.Module):
         if self.encoder is not None:
             groups.append({"params": list(self.encoder.parameters()), "lr": cfg.reward_critic_lr})
         self.critic_optimizer = adam(groups)
+        # actor (Eq. 9) and temperature (Eq. 10) step together: one backward, one Adam, two groups
         self.actor_params = list(self.actor.parameters())
-        self.actor_optimizer = adam(self.actor_params, lr=cfg.actor_lr)
-        self.alpha_optimizer = adam([self.log_alpha], lr=cfg.alpha_lr)
+        self.actor_optimizer = adam([{"params": self.actor_params, "lr": cfg.actor_lr},
+                                     {"params": [self.log_alpha], "lr": cfg.alpha_lr}])  # fmt: skip
+        self._policy_params = [*self.actor_params, self.log_alpha]
         online = [m for m in (self.encoder, self.qr, self.qc) if m is not None]
         target = [m for m in (self.encoder_target, self.qr_target, self.qc_target) if m is not None]
         self._online = [p for m in online for p in m.parameters()]
@@ -173,13 +175,12 @@ class CSAC(nn.Module):
         loss_actor = actor_loss(log_prob, q_r_pi, alpha, q_c_pi, lam)
         if cfg.scale_actor_loss:  # SAC-Lag (OmniSafe): (Eq. 9) / (1 + lambda)
             loss_actor = loss_actor / (1.0 + lam)
-        self.actor_optimizer.zero_grad(set_to_none=True)
-        loss_actor.backward(inputs=self.actor_params)  # no gradient into the critics
-        self.actor_optimizer.step()
         loss_alpha = alpha_loss(self.log_alpha, log_prob, self.target_entropy)
-        self.alpha_optimizer.zero_grad(set_to_none=True)
-        loss_alpha.backward()
-        self.alpha_optimizer.step()
+        # disjoint parameters, independent losses: the sum's gradient is each loss's own; no
+        # gradient into the critics (``inputs``), none from Eq. 10 into the actor (detached log pi)
+        self.actor_optimizer.zero_grad(set_to_none=True)
+        (loss_actor + loss_alpha).backward(inputs=self._policy_params)
+        self.actor_optimizer.step()
         metrics = {"losses/qr": loss_qr.detach(), "losses/actor": loss_actor.detach(),
                    "losses/alpha": loss_alpha.detach(), "values/qr": q_r.detach().mean(),
                    "values/entropy": -log_prob.detach().mean()}  # fmt: skip
@@ -200,16 +201,23 @@ class CSAC(nn.Module):
         return DeterministicActor(self.encoder, self.actor, tuple(self.obs_shapes))
 
     def optimizer_state(self) -> dict[str, Any]:
-        state = {"critic": self.critic_optimizer.state_dict(), "actor": self.actor_optimizer.state_dict(),
-                 "alpha": self.alpha_optimizer.state_dict()}  # fmt: skip
+        state = {
+            "critic": self.critic_optimizer.state_dict(),
+            "actor": self.actor_optimizer.state_dict(),
+        }
         if self.lagrange is not None:
             state["lambda"] = self.lagrange.optimizer.state_dict()
         return state
 
     def load_optimizer_state(self, state: dict[str, Any]) -> None:
         self.critic_optimizer.load_state_dict(state["critic"])
-        self.actor_optimizer.load_state_dict(state["actor"])
-        self.alpha_optimizer.load_state_dict(state["alpha"])
+        actor = state["actor"]
+        if "alpha" in state:  # checkpoints before the actor and alpha optimisers were merged
+            n = len(actor["param_groups"][0]["params"])
+            alpha = state["alpha"]
+            actor = {"state": {**actor["state"], **{n + int(k): v for k, v in alpha["state"].items()}},
+                     "param_groups": [actor["param_groups"][0], {**alpha["param_groups"][0], "params": [n]}]}  # fmt: skip
+        self.actor_optimizer.load_state_dict(actor)
         if self.lagrange is not None:
             self.lagrange.optimizer.load_state_dict(state["lambda"])
 

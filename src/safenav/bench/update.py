@@ -32,15 +32,15 @@ SAFENAV_SHAPES = {"state": (8,), "lidar": (4, 36), "dynamic": (5, 10)}
 BATCH = 256
 
 
-def _our_learner(constrained: bool, shared_extractor: bool = True):
+def _our_learner(constrained: bool, shared_extractor: bool = True, device: str = "cpu"):
     from safenav.algos.config import CSACConfig
     from safenav.algos.csac import CSAC
     from safenav.common.buffer import ReplayBuffer
     from safenav.nn.config import NetConfig
 
     cfg = CSACConfig(constrained=constrained, net=NetConfig(shared_extractor=shared_extractor))
-    agent = CSAC(SAFENAV_SHAPES, 3, cfg)
-    buf = ReplayBuffer(20_000, SAFENAV_SHAPES, 3)
+    agent = CSAC(SAFENAV_SHAPES, 3, cfg).to(device)
+    buf = ReplayBuffer(20_000, SAFENAV_SHAPES, 3, device)
     gen = torch.Generator().manual_seed(0)
     n = 20_000
     obs = {k: torch.rand(n, *s, generator=gen) for k, s in SAFENAV_SHAPES.items()}
@@ -51,11 +51,13 @@ def _our_learner(constrained: bool, shared_extractor: bool = True):
     def run(k: int) -> None:
         for _ in range(k):
             agent.update(buf.sample(BATCH), 0.1)
+        if device == "cuda":
+            torch.cuda.synchronize()
 
     return run
 
 
-def _sb3_learner():
+def _sb3_learner(device: str = "cpu"):
     import gymnasium as gym
     from stable_baselines3 import SAC
 
@@ -72,7 +74,7 @@ def _sb3_learner():
             return self.observation_space.sample(), 0.0, False, False, {}
 
     model = SAC("MlpPolicy", FlatEnv(), batch_size=BATCH, buffer_size=20_000, learning_starts=0,
-                policy_kwargs={"net_arch": [256, 256]}, device="cpu", seed=0, verbose=0)  # fmt: skip
+                policy_kwargs={"net_arch": [256, 256]}, device=device, seed=0, verbose=0)  # fmt: skip
     from stable_baselines3.common.logger import configure
 
     model.set_logger(configure(None, []))
@@ -86,12 +88,14 @@ def _sb3_learner():
 
     def run(k: int) -> None:
         model.train(gradient_steps=k, batch_size=BATCH)
+        if device == "cuda":
+            torch.cuda.synchronize()
 
     return run
 
 
 def bench_update(json_out: Path | None, repeats: int = 5, updates: int = 40,
-                 threads: int | None = None, include_sb3: bool = True) -> dict[str, Any]:  # fmt: skip
+                 threads: int | None = None, include_sb3: bool = True, device: str = "cpu") -> dict[str, Any]:  # fmt: skip
     """Measure updates/s (medians of ``repeats`` interleaved trials of ``updates`` updates each);
     print a table, write ``json_out`` if given, return the figures."""
     from rich.console import Console
@@ -100,15 +104,15 @@ def bench_update(json_out: Path | None, repeats: int = 5, updates: int = 40,
     threads = threads or os.cpu_count() or 1
     torch.set_num_threads(threads)
     torch.manual_seed(0)
-    learners = {"csac": _our_learner(True), "sac": _our_learner(False),
-                "csac_separate_extractors": _our_learner(True, shared_extractor=False)}  # fmt: skip
+    learners = {"csac": _our_learner(True, device=device), "sac": _our_learner(False, device=device),
+                "csac_separate_extractors": _our_learner(True, False, device)}  # fmt: skip
     sb3_version = None
     if include_sb3:
         try:
             import stable_baselines3
 
             sb3_version = stable_baselines3.__version__
-            learners["sb3_sac"] = _sb3_learner()
+            learners["sb3_sac"] = _sb3_learner(device)
         except ImportError:
             pass
     for run in learners.values():  # warm-up (allocator, oneDNN primitives)
@@ -125,7 +129,7 @@ def bench_update(json_out: Path | None, repeats: int = 5, updates: int = 40,
     result.update({
         "batch_size": BATCH, "threads": threads, "repeats": repeats, "updates_per_trial": updates,
         "all_trials": rates, "torch": torch.__version__, "stable_baselines3": sb3_version,
-        "cpu": platform.processor() or platform.machine(), "device": "cpu",
+        "cpu": platform.processor() or platform.machine(), "device": device,
         "architecture": "paper: 3-layer circular CNN on lidar (4x36) -> 128, MLP on dynamic (5x10) -> 64, "
                         "+ state 8 = 200 features; actor and critics 256x256; shared extractor",
         "sb3_architecture": "MlpPolicy net_arch [256, 256] on a flattened Box(202) observation",

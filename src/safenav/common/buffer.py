@@ -8,6 +8,7 @@ stored as not terminated, so its target bootstraps from ``s'`` (tests/test_csac.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -30,15 +31,46 @@ class ReplayBuffer:
         if capacity < 1:
             raise ValueError(f"capacity={capacity} must be >= 1")
         self.capacity, self.device = int(capacity), torch.device(device)
-
-        def z(*shape: int) -> torch.Tensor:
-            return torch.zeros((self.capacity, *shape), dtype=torch.float32, device=self.device)
-
-        self.obs = {k: z(*s) for k, s in obs_shapes.items()}
-        self.next_obs = {k: z(*s) for k, s in obs_shapes.items()}
-        self.actions = z(action_dim)
-        self.rewards, self.costs, self.terminated = z(), z(), z()
+        # One (capacity, D) storage; every field is a view of some of its columns, so that a
+        # minibatch is one gather (``storage[idx]``) instead of one per field.
+        fields = [(("obs", k), s) for k, s in obs_shapes.items()]
+        fields += [(("next_obs", k), s) for k, s in obs_shapes.items()]
+        fields += [
+            (("actions",), (action_dim,)),
+            (("rewards",), ()),
+            (("costs",), ()),
+            (("terminated",), ()),
+        ]
+        self._layout: list[tuple[tuple[str, ...], int, int, tuple[int, ...]]] = []
+        width = 0
+        for name, shape in fields:
+            n = math.prod(shape)
+            self._layout.append((name, width, n, tuple(shape)))
+            width += n
+        self.storage = torch.zeros((self.capacity, width), dtype=torch.float32, device=self.device)
+        views = self._views(self.storage)
+        self.obs, self.next_obs = views.obs, views.next_obs
+        self.actions, self.rewards, self.costs, self.terminated = (
+            views.actions, views.rewards, views.costs, views.terminated)  # fmt: skip
         self.pos, self.size = 0, 0
+
+    def _views(self, rows: torch.Tensor) -> Batch:
+        """The fields of ``rows`` (``(M, D)``, storage layout) as views."""
+        out: dict[str, dict[str, torch.Tensor] | torch.Tensor] = {"obs": {}, "next_obs": {}}
+        for name, start, n, shape in self._layout:
+            v = rows[:, start : start + n].view(rows.shape[0], *shape) if shape else rows[:, start]
+            if len(name) == 2:
+                out[name[0]][name[1]] = v  # type: ignore[index]
+            else:
+                out[name[0]] = v
+        return Batch(
+            out["obs"],
+            out["actions"],
+            out["rewards"],
+            out["costs"],
+            out["next_obs"],
+            out["terminated"],
+        )  # type: ignore[arg-type]
 
     def __len__(self) -> int:
         return self.size
@@ -76,8 +108,7 @@ class ReplayBuffer:
         if self.size == 0:
             raise RuntimeError("cannot sample from an empty replay buffer")
         idx = torch.randint(0, self.size, (batch_size,), device=self.device)
-        return Batch({k: v[idx] for k, v in self.obs.items()}, self.actions[idx], self.rewards[idx],
-                     self.costs[idx], {k: v[idx] for k, v in self.next_obs.items()}, self.terminated[idx])  # fmt: skip
+        return self._views(self.storage[idx])
 
     def state_dict(self) -> dict:
         n = self.size
