@@ -51,7 +51,7 @@ from safenav.common.envs import TorchVecEnv, env_horizon, is_safenav, make_vec_e
 from safenav.common.evaluation import EVAL_SEED, evaluate_episodes
 from safenav.common.lagrange import Lagrange
 from safenav.common.logger import RunLogger, write_json_atomic
-from safenav.nn.networks import Actor, DeterministicActor, QEnsemble, make_extractor
+from safenav.nn.networks import Actor, DeterministicActor, QEnsemble, input_order, make_extractor
 
 
 def adam(params, **kwargs) -> torch.optim.Adam:
@@ -198,7 +198,7 @@ class CSAC(nn.Module):
 
     def policy_module(self) -> DeterministicActor:
         """The deterministic actor (shares parameters with this agent)."""
-        return DeterministicActor(self.encoder, self.actor, tuple(self.obs_shapes))
+        return DeterministicActor(self.encoder, self.actor, input_order(self.obs_shapes))
 
     def optimizer_state(self) -> dict[str, Any]:
         state = {
@@ -260,6 +260,7 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
 
     run_dir = Path(run_dir)
     torch.set_num_threads(run.torch_threads or max(1, torch.get_num_threads()))
+    torch.set_float32_matmul_precision(run.matmul_precision)
     device = torch.device(run.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         from safenav.errors import SafenavError

@@ -18,7 +18,14 @@ import torch
 
 from safenav.common.checkpoint import load_checkpoint
 from safenav.errors import SafenavError
-from safenav.nn.networks import Actor, DeterministicActor, NetConfig, is_nav_layout, make_extractor
+from safenav.nn.config import NetConfig
+from safenav.nn.networks import (
+    Actor,
+    DeterministicActor,
+    input_order,
+    is_nav_layout,
+    make_extractor,
+)
 
 POLICY_FORMAT_VERSION = 1
 
@@ -56,7 +63,8 @@ class Policy:
                 f"observation lacks {missing}: this policy reads {sorted(self.obs_shapes)}"
             )
         out, batched = [], None
-        for k, shape in self.obs_shapes.items():
+        for k in self.actor.input_names:  # the actor's positional order
+            shape = self.obs_shapes[k]
             x = obs[k]
             x = torch.as_tensor(
                 np.asarray(x) if not isinstance(x, torch.Tensor) else x, dtype=torch.float32
@@ -97,7 +105,7 @@ def build_actor(meta: dict[str, Any]) -> DeterministicActor:
     actor_ex = None if net.shared_extractor else make_extractor(shapes, net)
     feat = (encoder or actor_ex).out_features
     return DeterministicActor(
-        encoder, Actor(actor_ex, feat, int(meta["action_dim"]), net.hidden), tuple(shapes)
+        encoder, Actor(actor_ex, feat, int(meta["action_dim"]), net.hidden), input_order(shapes)
     )
 
 

@@ -11,7 +11,7 @@ import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from safenav.common.curriculum import DensityCurriculumConfig
 
@@ -46,6 +46,9 @@ class RunConfig:
     """SafeNav-v0: env steps between redraws of the training maps (new seeds); 0 = keep them."""
     save_buffer: bool = False
     """Store the replay buffer in checkpoint.pt (large); without it a resume refills it first."""
+    matmul_precision: Literal["highest", "high", "medium"] = "highest"
+    """torch.set_float32_matmul_precision: highest = exact float32 matmuls (default); medium lets
+    CPUs with AMX (and GPUs) multiply in bfloat16 with float32 accumulation (docs/csac.md)."""
     tensorboard: bool = True
     """Write TensorBoard events to tb/ besides progress.csv."""
     density: DensityCurriculumConfig = field(default_factory=DensityCurriculumConfig)

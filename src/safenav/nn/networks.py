@@ -48,6 +48,12 @@ def is_nav_layout(shapes: dict[str, tuple[int, ...]]) -> bool:
             and len(shapes["dynamic"]) == 2)  # fmt: skip
 
 
+def input_order(shapes: dict[str, tuple[int, ...]]) -> tuple[str, ...]:
+    """Positional input order of :class:`DeterministicActor`: ``(state, lidar, dynamic)`` for the
+    SafeNav layout, else the sorted keys (``("obs",)`` for a Box)."""
+    return NAV_KEYS if is_nav_layout(shapes) else tuple(sorted(shapes))
+
+
 def make_extractor(
     shapes: dict[str, tuple[int, ...]], net: NetConfig, ensemble_size: int = 1
 ) -> nn.Module:

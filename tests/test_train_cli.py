@@ -1,0 +1,210 @@
+"""``safenav train`` end to end in seconds: run directory, resume, refusal, any Gymnasium env;
+``load_policy`` and its errors."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from safenav.algos.policy import load_policy
+from safenav.cli import main
+from safenav.common.checkpoint import load_checkpoint, save_checkpoint
+from safenav.envs.config import EnvConfig
+from safenav.errors import SafenavError
+
+FAST = ["--num-envs", "4", "--log-every", "100", "--eval-every", "200", "--eval-episodes", "2",
+        "--checkpoint-every", "200", "--no-progress", "--no-tensorboard", "--torch-threads", "1",
+        "--csac.learning-starts", "100", "--csac.batch-size", "32", "--csac.buffer-size", "2000",
+        "--csac.updates-per-step", "0.25", "--csac.net.hidden", "32", "32"]  # fmt: skip
+REQUIRED = ["global_step", "charts/episodic_return", "charts/episodic_cost", "charts/success_rate",
+            "charts/collision_rate", "constraint/lambda", "constraint/d", "perf/sps", "losses/qr",
+            "losses/qc", "losses/actor", "eval/success_rate"]  # fmt: skip
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    with path.open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.fixture(scope="module")
+def csac_run(tmp_path_factory) -> Path:
+    run_dir = tmp_path_factory.mktemp("runs") / "csac"
+    main(["train", "--algo", "csac", "--env", "SafeNav-v0", "--preset", "easy", "--seed", "3",
+          "--total-steps", "300", "--run-dir", str(run_dir), *FAST])  # fmt: skip
+    return run_dir
+
+
+def test_cli_smoke_run_directory(csac_run):
+    assert {"config.json", "progress.csv", "checkpoint.pt", "events.jsonl"} <= {
+        p.name for p in csac_run.iterdir()
+    }
+    rows = read_csv(csac_run / "progress.csv")
+    assert set(REQUIRED) <= set(rows[0]) and len(rows) >= 3
+    assert [int(r["global_step"]) for r in rows] == sorted(int(r["global_step"]) for r in rows)
+    last = rows[-1]
+    assert float(last["constraint/lambda"]) >= 0 and float(last["constraint/d"]) == pytest.approx(
+        0.5
+    )
+    assert math.isfinite(float(last["losses/qc"]))
+    config = json.loads((csac_run / "config.json").read_text())
+    assert config["algo"] == "csac" and config["run"]["preset"] == "easy"
+    assert (
+        config["csac"]["actor_lr"] == pytest.approx(5e-5)
+        and config["env_config"]["map_size"] == 20.0
+    )
+    state = load_checkpoint(csac_run / "checkpoint.pt")
+    assert state["global_step"] == 300 and state["updates"] > 0
+    for key in ("agent", "optimizers", "curriculum", "density", "rng", "policy"):
+        assert key in state
+    events = [
+        json.loads(line)["event"] for line in (csac_run / "events.jsonl").read_text().splitlines()
+    ]
+    assert events[0] == "start" and "eval" in events and events[-1] == "end"
+
+
+def test_existing_run_dir_is_refused_then_overwritten(csac_run, tmp_path, capsys):
+    run_dir = tmp_path / "again"
+    args = [
+        "train",
+        "--algo",
+        "sac",
+        "--preset",
+        "easy",
+        "--total-steps",
+        "120",
+        "--run-dir",
+        str(run_dir),
+        *FAST,
+    ]
+    main(args)
+    with pytest.raises(SystemExit) as err:
+        main(args)
+    assert err.value.code == 2 and "already holds a run" in capsys.readouterr().err
+    main([*args, "--overwrite"])
+    assert json.loads((run_dir / "config.json").read_text())["algo"] == "sac"
+
+
+def test_resume_continues_the_run(tmp_path):
+    run_dir = tmp_path / "resume"
+    base = ["train", "--algo", "csac", "--preset", "easy", "--run-dir", str(run_dir), *FAST]
+    main([*base, "--total-steps", "200"])
+    before = load_checkpoint(run_dir / "checkpoint.pt")
+    main(
+        [
+            "train",
+            "--algo",
+            "csac",
+            "--resume",
+            str(run_dir),
+            "--total-steps",
+            "400",
+            "--no-progress",
+        ]
+    )
+    after = load_checkpoint(run_dir / "checkpoint.pt")
+    assert before["global_step"] == 200 and after["global_step"] == 400
+    assert after["updates"] > before["updates"]
+    assert (
+        json.loads((run_dir / "config.json").read_text())["run"]["total_steps"] == 200
+    )  # as started
+    steps = [int(r["global_step"]) for r in read_csv(run_dir / "progress.csv")]
+    assert steps == sorted(set(steps)) and steps[-1] == 400
+    events = [
+        json.loads(line)["event"] for line in (run_dir / "events.jsonl").read_text().splitlines()
+    ]
+    assert "resume" in events
+    with pytest.raises(SystemExit):  # resuming as another algorithm
+        main(["train", "--algo", "sac", "--resume", str(run_dir), "--no-progress"])
+
+
+def test_any_gymnasium_box_env_trains(tmp_path):
+    run_dir = tmp_path / "pendulum"
+    main(
+        [
+            "train",
+            "--algo",
+            "sac",
+            "--env",
+            "Pendulum-v1",
+            "--total-steps",
+            "300",
+            "--run-dir",
+            str(run_dir),
+            *FAST,
+        ]
+    )
+    rows = read_csv(run_dir / "progress.csv")
+    assert (
+        float(rows[-1]["perf/updates"]) > 0 and rows[-1]["charts/success_rate"] == ""
+    )  # Pendulum has none
+    policy = load_policy(run_dir)
+    action = policy(torch.zeros(5, 3))
+    assert (
+        action.shape == (5, 1) and policy.meta["env_config"] is None and policy.env_config() is None
+    )
+    with pytest.raises(SystemExit):  # --preset is SafeNav's
+        main(["train", "--algo", "sac", "--env", "Pendulum-v1", "--preset", "easy", "--total-steps", "100",
+              "--run-dir", str(tmp_path / "bad"), *FAST])  # fmt: skip
+
+
+def test_load_policy(csac_run):
+    policy = load_policy(csac_run / "checkpoint.pt")
+    assert policy.meta["algo"] == "csac" and policy.meta["env_id"] == "SafeNav-v0"
+    cfg = policy.env_config()
+    assert isinstance(cfg, EnvConfig) and cfg.map_size == 20.0 and cfg.density == 1.0
+    g = torch.Generator().manual_seed(0)
+    obs = {"state": torch.rand(7, 8, generator=g), "lidar": torch.rand(7, 4, 36, generator=g),
+           "dynamic": torch.rand(7, 5, 10, generator=g)}  # fmt: skip
+    a = policy(obs)
+    assert (
+        a.shape == (7, 3) and a.abs().max() <= 1.0 and torch.equal(a, policy(obs))
+    )  # deterministic
+    one = policy({k: v[0].numpy() for k, v in obs.items()})  # unbatched NumPy
+    torch.testing.assert_close(one, a[0])
+    # Policy.actor: positional state, lidar, dynamic; traceable
+    torch.testing.assert_close(policy.actor(obs["state"], obs["lidar"], obs["dynamic"]), a)
+    traced = torch.jit.trace(policy.actor, (obs["state"], obs["lidar"], obs["dynamic"]))
+    torch.testing.assert_close(traced(obs["state"], obs["lidar"], obs["dynamic"]), a)
+    with pytest.raises(SafenavError, match="lidar"):
+        policy({**obs, "lidar": torch.rand(7, 4, 30)})
+    with pytest.raises(SafenavError, match="lacks"):
+        policy({"state": obs["state"]})
+
+
+def test_load_policy_errors(csac_run, tmp_path):
+    with pytest.raises(SafenavError, match="not found"):
+        load_policy(tmp_path / "missing.pt")
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(b"not a checkpoint at all")
+    with pytest.raises(SafenavError, match="corrupt"):
+        load_policy(garbage)
+    state = load_checkpoint(csac_run / "checkpoint.pt")
+    other = tmp_path / "other.pt"
+    torch.save({"weights": 1}, other)
+    with pytest.raises(SafenavError, match="not a safenav"):
+        load_policy(other)
+    old = tmp_path / "old.pt"
+    torch.save({**state, "format_version": 0}, old)
+    with pytest.raises(SafenavError, match="format version"):
+        load_policy(old)
+    bad_meta = dict(
+        state["policy"]["meta"], obs_shapes={"state": [8], "lidar": [4, 30], "dynamic": [5, 10]}
+    )
+    inconsistent = tmp_path / "inconsistent.pt"
+    save_checkpoint(inconsistent, {**state, "policy": {**state["policy"], "meta": bad_meta}})
+    with pytest.raises(SafenavError, match="does not match"):
+        load_policy(inconsistent)
+    wrong_net = dict(
+        state["policy"]["meta"], net={**state["policy"]["meta"]["net"], "hidden": [64, 64]}
+    )
+    mismatch = tmp_path / "mismatch.pt"
+    save_checkpoint(mismatch, {**state, "policy": {**state["policy"], "meta": wrong_net}})
+    with pytest.raises(SafenavError, match="do not fit"):
+        load_policy(mismatch)
+    assert np.isfinite(load_policy(csac_run).actor.actor.head.weight.detach().numpy()).all()
