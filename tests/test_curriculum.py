@@ -104,13 +104,14 @@ def test_config_validation():
 
 
 def test_episode_budget_to_q_scale():
-    # d / T * (1 - gamma^T) / (1 - gamma)
-    assert episode_cost_to_q_scale(0.3, 0.99, 300) == pytest.approx(
-        0.3 / 300 * (1 - 0.99**300) / 0.01
-    )
-    assert episode_cost_to_q_scale(0.3, 1.0, 300) == pytest.approx(0.3)
-    # a long horizon: the budget as a per-step rate, summed with discount: rate / (1 - gamma)
-    assert episode_cost_to_q_scale(1.0, 0.99, 10_000) == pytest.approx(1 / 10_000 / 0.01, rel=1e-6)
+    # brute force: cost d/T at every step of a T-step episode, discounted value averaged over states
+    for d, gamma, horizon in ((0.3, 0.99, 300), (4.0, 0.99, 20), (1.0, 0.9, 7)):
+        rate = d / horizon
+        values = [sum(rate * gamma**k for k in range(r)) for r in range(1, horizon + 1)]
+        assert episode_cost_to_q_scale(d, gamma, horizon) == pytest.approx(sum(values) / horizon)
+    assert episode_cost_to_q_scale(0.3, 1.0, 300) == pytest.approx(0.3 * 301 / 600)
+    # a long horizon: the stationary rate / (1 - gamma)
+    assert episode_cost_to_q_scale(1.0, 0.99, 100_000) == pytest.approx(1e-5 / 0.01, rel=1e-3)
 
 
 def test_density_linear_ramp():

@@ -95,9 +95,13 @@ def _sb3_learner(device: str = "cpu"):
 
 
 def bench_update(json_out: Path | None, repeats: int = 5, updates: int = 40,
-                 threads: int | None = None, include_sb3: bool = True, device: str = "cpu") -> dict[str, Any]:  # fmt: skip
-    """Measure updates/s (medians of ``repeats`` interleaved trials of ``updates`` updates each);
-    print a table, write ``json_out`` if given, return the figures."""
+                 threads: int | None = None, include_sb3: bool = True, device: str = "cpu",
+                 bf16: bool = True) -> dict[str, Any]:  # fmt: skip
+    """Measure updates/s (medians of ``repeats`` interleaved trials of ``updates`` updates each)
+    and process CPU ms per update (robust to other load on the machine with one thread); with
+    ``bf16`` also under ``torch.set_float32_matmul_precision("medium")`` (``*_bf16_*`` keys: bfloat16
+    matmuls with float32 accumulation, AMX on recent Intel CPUs). Print a table, write
+    ``json_out`` if given, return the figures."""
     from rich.console import Console
     from rich.table import Table
 
@@ -115,17 +119,26 @@ def bench_update(json_out: Path | None, repeats: int = 5, updates: int = 40,
             learners["sb3_sac"] = _sb3_learner(device)
         except ImportError:
             pass
-    for run in learners.values():  # warm-up (allocator, oneDNN primitives)
-        run(5)
-    rates: dict[str, list[float]] = {name: [] for name in learners}
-    for _ in range(repeats):
-        for name, run in learners.items():
-            t0 = time.perf_counter()
-            run(updates)
-            rates[name].append(updates / (time.perf_counter() - t0))
-    result: dict[str, Any] = {
-        f"{name}_updates_per_s": statistics.median(r) for name, r in rates.items()
-    }
+    precisions = ("highest", "medium") if bf16 else ("highest",)
+    suffix = {"highest": "", "medium": "_bf16"}
+    for precision in precisions:  # warm-up (allocator, oneDNN primitives)
+        torch.set_float32_matmul_precision(precision)
+        for run in learners.values():
+            run(5)
+    rates: dict[str, list[float]] = {}
+    cpu_ms: dict[str, list[float]] = {}
+    for _ in range(repeats):  # interleaved: a change of load on the machine hits every learner
+        for precision in precisions:
+            torch.set_float32_matmul_precision(precision)
+            for name, run in learners.items():
+                key = name + suffix[precision]
+                t0, c0 = time.perf_counter(), time.process_time()
+                run(updates)
+                rates.setdefault(key, []).append(updates / (time.perf_counter() - t0))
+                cpu_ms.setdefault(key, []).append((time.process_time() - c0) / updates * 1e3)
+    torch.set_float32_matmul_precision("highest")
+    result: dict[str, Any] = {f"{k}_updates_per_s": statistics.median(r) for k, r in rates.items()}
+    result.update({f"{k}_cpu_ms_per_update": statistics.median(r) for k, r in cpu_ms.items()})
     result.update({
         "batch_size": BATCH, "threads": threads, "repeats": repeats, "updates_per_trial": updates,
         "all_trials": rates, "torch": torch.__version__, "stable_baselines3": sb3_version,
@@ -134,19 +147,24 @@ def bench_update(json_out: Path | None, repeats: int = 5, updates: int = 40,
                         "+ state 8 = 200 features; actor and critics 256x256; shared extractor",
         "sb3_architecture": "MlpPolicy net_arch [256, 256] on a flattened Box(202) observation",
     })  # fmt: skip
-    if "sb3_sac_updates_per_s" in result:
-        sb3 = result["sb3_sac_updates_per_s"]
-        result["sac_vs_sb3"] = result["sac_updates_per_s"] / sb3
-        result["csac_vs_sb3"] = result["csac_updates_per_s"] / sb3
-    table = Table(
-        title=f"gradient updates/s, batch {BATCH}, {threads} torch threads (median of {repeats})"
-    )
+    for sfx in [suffix[p] for p in precisions]:
+        sb3 = result.get(f"sb3_sac{sfx}_updates_per_s")
+        if sb3:
+            result[f"sac{sfx}_vs_sb3{sfx}"] = result[f"sac{sfx}_updates_per_s"] / sb3
+            result[f"csac{sfx}_vs_sb3{sfx}"] = result[f"csac{sfx}_updates_per_s"] / sb3
+    title = f"gradient updates/s, batch {BATCH}, {threads} torch threads, {device} (median of {repeats})"
+    table = Table(title=title)
     table.add_column("learner")
+    table.add_column("matmuls")
     table.add_column("updates/s", justify="right")
     table.add_column("ms/update", justify="right")
-    for name in learners:
-        r = result[f"{name}_updates_per_s"]
-        table.add_row(name, f"{r:.1f}", f"{1000 / r:.2f}")
+    table.add_column("CPU ms/update", justify="right")
+    for precision in precisions:
+        for name in learners:
+            key = name + suffix[precision]
+            r = result[f"{key}_updates_per_s"]
+            table.add_row(name, "float32" if precision == "highest" else "bf16", f"{r:.1f}",
+                          f"{1000 / r:.2f}", f"{result[f'{key}_cpu_ms_per_update']:.2f}")  # fmt: skip
     Console().print(table)
     if json_out is not None:
         json_out = Path(json_out)

@@ -13,10 +13,12 @@ factor * d)`` and the count restarts. Stages (logged as ``constraint/stage``):
 - 1 *balanced*: ``d_min < d < d_init`` (tightening),
 - 2 *safety*: ``d == d_min`` (the strict final budget).
 
-Eq. 11 compares ``d`` with ``Q_C``, a *discounted* sum of future cost from a state. The budget is
-mapped onto that scale by :func:`episode_cost_to_q_scale` (spread over a horizon of ``T`` steps,
-the env's time limit, the budget is a cost rate ``d / T`` per step, whose discounted sum from any
-state is ``d / T * (1 - gamma^T) / (1 - gamma)``); ``constraint/d_q`` logs the result.
+Eq. 11 compares ``d`` with ``E[Q_C]``, a replay-averaged *discounted* sum of future cost. The
+budget is mapped onto that scale by :func:`episode_cost_to_q_scale`: spread over a horizon of ``T``
+steps (``CSACConfig.cost_horizon``, by default the env's time limit) the budget is a cost rate
+``d / T`` per step; its discounted value from a state, averaged over the states of an episode, is
+``d_Q``; ``constraint/d_q`` logs it. The mapping is exact for cost spread evenly over episodes of
+length ``T``; for SafeNav, whose episodes end earlier (success, collision), it is an approximation.
 
 Density curriculum
 ------------------
@@ -36,13 +38,24 @@ STAGES = ("exploration", "balanced", "safety")
 
 
 def episode_cost_to_q_scale(d: float, gamma: float, horizon: int) -> float:
-    """An episode-cost budget ``d`` on the scale of a discounted cost value ``Q_C``:
-    ``d / T * (1 - gamma^T) / (1 - gamma)`` (``= d`` for ``gamma = 1``)."""
+    """An episode-cost budget ``d`` on the scale of ``E_{s~D}[Q_C(s, a)]``, the replay-averaged
+    discounted cost value Eq. 11 compares with the threshold.
+
+    Spread over an episode of ``T`` steps the budget is a cost rate ``c = d / T``; from a state
+    ``r`` steps before the end its discounted value is ``c (1 - gamma^r) / (1 - gamma)``; averaged
+    over the ``T`` states of the episode (what the replay buffer holds):
+
+        d_Q = d / T * (T - gamma (1 - gamma^T) / (1 - gamma)) / (T (1 - gamma))
+
+    which tends to ``d (T + 1) / (2 T)`` (the mean remaining cost) as ``gamma -> 1`` and to the
+    stationary ``c / (1 - gamma)`` for ``T >> 1 / (1 - gamma)``.
+    """
     if horizon < 1:
         raise ValueError(f"horizon={horizon} must be >= 1")
+    t = float(horizon)
     if gamma >= 1.0:
-        return d
-    return d / horizon * (1.0 - gamma**horizon) / (1.0 - gamma)
+        return d * (t + 1.0) / (2.0 * t)
+    return d / t * (t - gamma * (1.0 - gamma**t) / (1.0 - gamma)) / (t * (1.0 - gamma))
 
 
 @dataclass(frozen=True)
