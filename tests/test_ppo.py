@@ -297,3 +297,9 @@ def test_ppo_learns_pendulum(tmp_path):
             if r["charts/episodic_return"]
         ]
     assert max(rows[-5:]) > -400, rows
+
+
+def test_bench_ppo_reports_env_steps_per_second():
+    from safenav.bench.ppo import bench_ppo
+
+    assert bench_ppo(num_envs=8, rollouts=1, preset="easy") > 0

@@ -147,3 +147,23 @@ def test_sac_lag_update_leaves_lambda_to_the_episode_cost_and_scales_the_actor_l
     )
     agent.lagrange.update(torch.tensor([0.9]), 0.1)  # J_c > d: lambda rises
     assert float(agent.lam) > 1.0
+
+
+def test_export_writes_an_onnx_ppo_policy_equal_to_torch(tmp_path):
+    pytest.importorskip("onnxruntime")
+    run_dir = train(tmp_path, "ppo", *PPO_SMALL, steps=128)
+    out = tmp_path / "policy.onnx"
+    main(["export", str(run_dir), "--onnx", str(out)])
+    import numpy as np
+    import onnxruntime as ort
+
+    policy = load_policy(run_dir)
+    obs = {
+        "state": torch.randn(2, 8),
+        "lidar": torch.rand(2, 4, 36),
+        "dynamic": torch.zeros(2, 5, 10),
+    }
+    sess = ort.InferenceSession(str(out))
+    feeds = {i.name: obs[i.name].numpy() for i in sess.get_inputs()}
+    onnx_action = sess.run(None, feeds)[0]
+    np.testing.assert_allclose(onnx_action, policy(obs).numpy(), atol=1e-5)

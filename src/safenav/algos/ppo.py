@@ -31,6 +31,8 @@ from typing import Any
 import torch
 from torch import nn
 
+from safenav.algos.csac import adam
+from safenav.algos.csac import policy_meta as csac_policy_meta
 from safenav.algos.ppo_config import PPOConfig
 from safenav.algos.ppo_losses import (
     beta_entropy,
@@ -59,6 +61,7 @@ from safenav.common.logger import RunLogger, write_json_atomic
 from safenav.common.rollout import Rollout, ValueNorm
 from safenav.errors import SafenavError
 from safenav.nn.beta import POLICY_HEAD, BetaActorCritic, BetaDeterministicActor
+from safenav.nn.networks import input_order
 
 
 class PPO(nn.Module):
@@ -74,8 +77,8 @@ class PPO(nn.Module):
         self.model = BetaActorCritic(obs_shapes, action_dim, cfg.net, self.num_values)
         self.value_norm = ValueNorm(self.num_values, cfg.value_norm_beta, cfg.value_norm)
         # One Adam over actor, critic and extractor: NavRL's three Adams share lr 5e-4, and
-        # Adam's per-parameter statistics make that the same update.
-        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.lr)
+        # Adam's per-parameter statistics make that the same update (fused kernel: csac.adam).
+        self.optimizer = adam(self.model.parameters(), lr=cfg.lr)
         self.lagrange = (
             Lagrange(cfg.init_lambda, cfg.lambda_lr, cfg.lambda_max) if cfg.constrained else None
         )
@@ -176,7 +179,7 @@ class PPO(nn.Module):
     def policy_module(self) -> BetaDeterministicActor:
         """The deterministic actor (the Beta mean), sharing parameters with this agent."""
         return BetaDeterministicActor(
-            self.model.actor_body, self.model.policy_head, tuple(self.obs_shapes)
+            self.model.actor_body, self.model.policy_head, input_order(self.obs_shapes)
         )
 
     def optimizer_state(self) -> dict[str, Any]:
@@ -245,8 +248,6 @@ def _nanmean(values: list[float]) -> float:
 def policy_meta(algo: str, run: RunConfig, cfg: PPOConfig, env: TorchVecEnv,
                 global_step: int) -> dict[str, Any]:  # fmt: skip
     """CSAC's policy metadata plus ``policy_head: "beta"`` (what ``load_policy`` dispatches on)."""
-    from safenav.algos.csac import policy_meta as csac_policy_meta
-
     return {**csac_policy_meta(algo, run, cfg, env, global_step), "policy_head": POLICY_HEAD}
 
 
@@ -258,6 +259,7 @@ def train(algo: str, run: RunConfig, cfg: PPOConfig, run_dir: Path, resume: bool
 
     run_dir = Path(run_dir)
     torch.set_num_threads(run.torch_threads or max(1, torch.get_num_threads()))
+    torch.set_float32_matmul_precision(run.matmul_precision)
     device = torch.device(run.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise SafenavError(

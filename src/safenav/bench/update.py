@@ -138,6 +138,9 @@ def bench_update(json_out: Path | None, repeats: int = 5, updates: int = 40,
                 cpu_ms.setdefault(key, []).append((time.process_time() - c0) / updates * 1e3)
     torch.set_float32_matmul_precision("highest")
     result: dict[str, Any] = {f"{k}_updates_per_s": statistics.median(r) for k, r in rates.items()}
+    from safenav.bench.ppo import bench_ppo  # PPO: env steps/s, collection + update (paper preset)
+
+    result["ppo_steps_per_s"] = bench_ppo(rollouts=repeats, device=device)
     result.update({f"{k}_cpu_ms_per_update": statistics.median(r) for k, r in cpu_ms.items()})
     result.update({
         "batch_size": BATCH, "threads": threads, "repeats": repeats, "updates_per_trial": updates,
@@ -166,6 +169,7 @@ def bench_update(json_out: Path | None, repeats: int = 5, updates: int = 40,
             table.add_row(name, "float32" if precision == "highest" else "bf16", f"{r:.1f}",
                           f"{1000 / r:.2f}", f"{result[f'{key}_cpu_ms_per_update']:.2f}")  # fmt: skip
     Console().print(table)
+    Console().print(f"PPO training (bench/ppo.py): {result['ppo_steps_per_s']:.0f} env steps/s")
     if json_out is not None:
         json_out = Path(json_out)
         json_out.parent.mkdir(parents=True, exist_ok=True)

@@ -20,7 +20,7 @@ from torch import nn
 
 from safenav.algos.ppo_losses import beta_concentrations, beta_mean_action
 from safenav.nn.config import NetConfig
-from safenav.nn.networks import make_extractor
+from safenav.nn.networks import input_order, make_extractor
 
 POLICY_HEAD = "beta"
 """``meta["policy_head"]`` of PPO checkpoints: :func:`safenav.algos.policy.build_actor` dispatches
@@ -109,7 +109,7 @@ def build_beta_actor(meta: dict[str, Any]) -> BetaDeterministicActor:
     shapes = {k: tuple(v) for k, v in meta["obs_shapes"].items()}
     body = Body(shapes, net)
     return BetaDeterministicActor(
-        body, nn.Linear(body.out_features, 2 * int(meta["action_dim"])), tuple(shapes)
+        body, nn.Linear(body.out_features, 2 * int(meta["action_dim"])), input_order(shapes)
     )
 
 
