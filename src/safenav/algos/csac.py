@@ -259,6 +259,7 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
     from safenav.common.progress import ProgressDisplay
 
     run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(run.torch_threads or max(1, torch.get_num_threads()))
     torch.set_float32_matmul_precision(run.matmul_precision)
     device = torch.device(run.device)
