@@ -167,3 +167,17 @@ def test_export_writes_an_onnx_ppo_policy_equal_to_torch(tmp_path):
     feeds = {i.name: obs[i.name].numpy() for i in sess.get_inputs()}
     onnx_action = sess.run(None, feeds)[0]
     np.testing.assert_allclose(onnx_action, policy(obs).numpy(), atol=1e-5)
+
+
+def test_csac_ablation_switches_reach_the_run(tmp_path):
+    """min cost target, no curriculum (fixed d = d_min), separate extractors: one run."""
+    run_dir = train(tmp_path, "csac", "--csac.cost-target", "min", "--csac.curriculum.no-enabled",
+                    "--csac.net.no-shared-extractor", "--csac.learning-starts",
+                    "128", "--csac.batch-size", "32", "--csac.net.hidden", "32", "32", steps=384)  # fmt: skip
+    cfg = json.loads((run_dir / "config.json").read_text())["csac"]
+    assert cfg["cost_target"] == "min" and cfg["curriculum"]["enabled"] is False
+    assert cfg["net"]["shared_extractor"] is False
+    assert {r["constraint/d"] for r in rows(run_dir)} == {"0.05"}  # d_min throughout
+    state = load_checkpoint(run_dir)["agent"]
+    assert not any(k.startswith("encoder.") for k in state)  # no shared extractor
+    assert any(k.startswith("qc.extractor.") for k in state)  # the cost critics own one

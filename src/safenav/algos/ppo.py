@@ -166,11 +166,9 @@ class PPO(nn.Module):
             if cfg.target_kl is not None and float(kl_sum / kl_n) > cfg.target_kl:
                 break
         out = {k: v / steps for k, v in sums.items()}
-        flat_ret, flat_val = returns[..., 0].flatten(), rollout.values[..., 0].flatten()
-        out["values/value"] = flat_val.mean()
-        out["values/explained_variance"] = 1.0 - (flat_ret - flat_val).var() / flat_ret.var().clamp(
-            min=1e-8
-        )
+        ret, val = returns[..., 0].flatten(), rollout.values[..., 0].flatten()
+        out["values/value"] = val.mean()
+        out["values/explained_variance"] = 1.0 - (ret - val).var() / ret.var().clamp(min=1e-8)
         if self.lagrange is not None:
             out["values/value_cost"] = rollout.values[..., 1].mean()
         out["perf/gradient_steps"] = torch.tensor(float(steps))

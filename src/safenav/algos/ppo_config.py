@@ -62,7 +62,7 @@ class PPOConfig:
     and the critic each their own."""
     curriculum: ConstraintCurriculumConfig = field(default_factory=ConstraintCurriculumConfig)
     """Schedule of the episode-cost limit ``d`` (PPO-Lag): the same constraint curriculum as
-    CSAC by default; ``--ppo.curriculum.enabled False`` fixes ``d = d_min`` (OmniSafe)."""
+    CSAC by default; ``--ppo.curriculum.no-enabled`` fixes ``d = d_min`` (OmniSafe)."""
 
     def __post_init__(self) -> None:
         if not 0 < self.gamma <= 1 or not 0 <= self.gae_lambda <= 1:
