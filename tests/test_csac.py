@@ -182,3 +182,38 @@ def test_sac_has_no_cost_side_and_csac_lambda_moves():
     clone.load_state_dict(state)
     clone.load_optimizer_state(csac.optimizer_state())
     assert clone.lam.item() == csac.lam.item()
+
+
+class DictCounterEnv(CounterEnv):
+    """CounterEnv with a Dict observation (``t`` and a constant vector)."""
+
+    observation_space = gym.spaces.Dict(
+        {
+            "t": gym.spaces.Box(-np.inf, np.inf, (1,), np.float32),
+            "v": gym.spaces.Box(0, 1, (2, 2), np.float32),
+        }
+    )
+
+    def reset(self, *, seed=None, options=None):
+        obs, info = super().reset(seed=seed)
+        return {"t": obs, "v": np.ones((2, 2), np.float32)}, info
+
+    def step(self, action):
+        obs, r, term, trunc, info = super().step(action)
+        return {"t": obs, "v": np.ones((2, 2), np.float32)}, r, term, trunc, info
+
+
+def test_dict_observation_env_final_obs_and_agent():
+    env = TorchVecEnv(SyncVectorEnv([lambda: DictCounterEnv(True), lambda: DictCounterEnv(False)],
+                                    autoreset_mode=AutoresetMode.SAME_STEP))  # fmt: skip
+    assert env.obs_shapes == {"t": (1,), "v": (2, 2)}
+    obs = env.reset(seed=0)
+    for _ in range(3):
+        step = env.step(torch.zeros(2, 1))
+    assert step.real_next_obs["t"].flatten().tolist() == [3.0, 3.0]
+    assert step.next_obs["t"].flatten().tolist() == [0.0, 0.0]
+    agent = CSAC(env.obs_shapes, 1, CSACConfig(net=SMALL))
+    assert agent.act(obs).shape == (2, 1)
+    buf = ReplayBuffer(8, env.obs_shapes, 1)
+    buf.add(obs, torch.zeros(2, 1), step.reward, step.cost, step.real_next_obs, step.terminated)
+    assert all(torch.isfinite(v) for v in agent.update(buf.sample(4), 0.1).values())

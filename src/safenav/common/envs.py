@@ -177,12 +177,11 @@ class TorchVecEnv:
                 mask = mask.to(dev)
                 for k in real_next:
                     real_next[k][mask] = final[k].to(dev, torch.float32)[mask]
-            else:  # SyncVectorEnv: per-env object arrays
+            else:  # SyncVectorEnv: an object array of per-env observations (or a dict of them)
                 for i in np.nonzero(np.asarray(mask))[0].tolist():
+                    one = {k: final[k][i] for k in final} if isinstance(final, dict) else final[i]
                     for k in real_next:
-                        real_next[k][i] = self._t(
-                            final[k][i] if isinstance(final, dict) else final[i]
-                        )
+                        real_next[k][i] = self._t(one[k] if isinstance(one, dict) else one)
 
         # episode bookkeeping
         v = valid.float()
