@@ -16,6 +16,7 @@ def export(
     opset: int = 17,
     scripted: bool = False,
     preset: str = "easy",
+    policy_only: Path | None = None,
 ) -> None:
     """Export a checkpoint's deterministic actor to ONNX (``--onnx policy.onnx``) and write the
     sidecar ``policy.onnx.json`` (observation layout and scaling, action scaling, v_max, control
@@ -31,7 +32,18 @@ def export(
         opset: ONNX opset of the export.
         scripted: Export the scripted go-to-goal actor instead of a checkpoint.
         preset: With ``--scripted``: the env preset the sidecar describes.
+        policy_only: Instead of ONNX, write a small checkpoint holding the policy alone (what
+            ``checkpoints/*.pt`` are): ``safenav eval`` reads it, ``--resume`` cannot.
     """
+    if policy_only is not None:
+        from safenav.algos.policy import save_policy_only
+        from safenav.errors import SafenavError
+
+        if checkpoint is None:
+            raise SafenavError("--policy-only needs a CHECKPOINT")
+        out = save_policy_only(checkpoint, policy_only)
+        print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB)")
+        return
     from safenav.deploy.export import export_onnx, load_actor
     from safenav.deploy.scripted import GoToGoalActor
     from safenav.envs.config import make_config
