@@ -125,8 +125,8 @@ def test_load_actor_reads_the_trainers_policy(tmp_path: Path, monkeypatch) -> No
 
 
 def test_the_trainers_actor_exports_with_its_own_input_order(tmp_path: Path) -> None:
-    """The trainer's DeterministicActor takes its inputs in ``input_names`` order (alphabetical:
-    dynamic, lidar, state); the export and the runtime feed it by name."""
+    """The trainer's DeterministicActor takes its inputs in ``input_names`` order (for SafeNav:
+    state, lidar, dynamic); the export and the runtime feed it by name, whatever the order."""
     from safenav.algos.policy import build_actor
     from safenav.nn.networks import NetConfig
 
@@ -135,7 +135,7 @@ def test_the_trainers_actor_exports_with_its_own_input_order(tmp_path: Path) -> 
     meta = {"net": dataclasses.asdict(NetConfig()), "action_dim": 3,
             "obs_shapes": {"dynamic": [5, 10], "lidar": [4, 36], "state": [8]}}  # fmt: skip
     actor = build_actor(meta).eval()
-    assert tuple(actor.input_names) == ("dynamic", "lidar", "state")
+    assert tuple(actor.input_names) == ("state", "lidar", "dynamic")
     real = real_observations(cfg, steps=5)
     export_onnx(actor, cfg, tmp_path / "csac.onnx", check_observations=real)
     got = OnnxPolicy(tmp_path / "csac.onnx")(real["state"], real["lidar"], real["dynamic"])
