@@ -50,7 +50,8 @@ from safenav.common.curriculum import (
 from safenav.common.envs import TorchVecEnv, env_horizon, is_safenav, make_vec_env
 from safenav.common.evaluation import EVAL_SEED, evaluate_episodes
 from safenav.common.lagrange import Lagrange
-from safenav.common.logger import RunLogger, write_json_atomic
+from safenav.common.logger import RunLogger
+from safenav.common.runs import episode_charts, run_summary, write_run_config
 from safenav.nn.networks import Actor, DeterministicActor, QEnsemble, input_order, make_extractor
 
 
@@ -233,11 +234,6 @@ COLUMNS = (
     "values/entropy", "eval/return", "eval/cost", "eval/length", "eval/success_rate",
     "eval/collision_rate", "eval/timeout_rate",
 )  # fmt: skip
-
-
-def _nanmean(values: list[float]) -> float:
-    vals = [v for v in values if not math.isnan(v)]
-    return sum(vals) / len(vals) if vals else math.nan
 
 
 def policy_meta(
@@ -445,13 +441,7 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
                     "perf/sps": (global_step - step_log) / max(now - t_log, 1e-9),
                     "perf/updates": updates,
                     "perf/updates_per_s": (updates - upd_log) / max(now - t_log, 1e-9),
-                    "charts/episodic_return": _nanmean(window.get("return", [])),
-                    "charts/episodic_cost": _nanmean(window.get("cost", [])),
-                    "charts/episodic_length": _nanmean(window.get("length", [])),
-                    "charts/success_rate": _nanmean(window.get("success", [])),
-                    "charts/collision_rate": _nanmean(window.get("collision", [])),
-                    "charts/timeout_rate": _nanmean(window.get("timeout", [])),
-                    "charts/episodes": len(window.get("return", [])),
+                    **episode_charts(window),
                     "charts/density": density.density if nav else math.nan,
                     "charts/alpha": float(agent.log_alpha.detach().exp()),
                 })  # fmt: skip
@@ -481,18 +471,12 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
     env.close()
     if eval_env is not None:
         eval_env.close()
-    return {"global_step": global_step, "updates": updates, "success_rate": _nanmean(list(recent["success"])),
-            "collision_rate": _nanmean(list(recent["collision"])), "return": _nanmean(list(recent["return"]))}  # fmt: skip
+    return run_summary(global_step, updates, recent)
 
 
 def write_config(run_dir: Path, algo: str, run: RunConfig, cfg: CSACConfig) -> None:
-    """``config.json``: the resolved configuration (and the SafeNav env config, for reference)."""
-    data: dict[str, Any] = {"algo": algo, "run": to_dict(run), "csac": to_dict(cfg)}
-    if is_safenav(run.env):
-        from safenav.envs.config import make_config
-
-        data["env_config"] = to_dict(make_config(run.preset or "paper"))
-    write_json_atomic(Path(run_dir) / "config.json", data)
+    """``config.json`` of a csac run (see :func:`safenav.common.runs.write_run_config`)."""
+    write_run_config(run_dir, algo, run, "csac", cfg)
 
 
 __all__ = ["CSAC", "COLUMNS", "CSACConfig", "train", "write_config"]

@@ -57,8 +57,9 @@ from safenav.common.curriculum import ConstraintCurriculum, DensityCurriculum
 from safenav.common.envs import TorchVecEnv, is_safenav, make_vec_env
 from safenav.common.evaluation import EVAL_SEED, evaluate_episodes
 from safenav.common.lagrange import Lagrange
-from safenav.common.logger import RunLogger, write_json_atomic
+from safenav.common.logger import RunLogger
 from safenav.common.rollout import Rollout, ValueNorm
+from safenav.common.runs import episode_charts, run_summary, write_run_config
 from safenav.errors import SafenavError
 from safenav.nn.beta import POLICY_HEAD, BetaActorCritic, BetaDeterministicActor
 from safenav.nn.networks import input_order
@@ -238,11 +239,6 @@ COLUMNS = (
 )  # fmt: skip
 
 
-def _nanmean(values: list[float]) -> float:
-    vals = [v for v in values if not math.isnan(v)]
-    return sum(vals) / len(vals) if vals else math.nan
-
-
 def policy_meta(algo: str, run: RunConfig, cfg: PPOConfig, env: TorchVecEnv,
                 global_step: int) -> dict[str, Any]:  # fmt: skip
     """CSAC's policy metadata plus ``policy_head: "beta"`` (what ``load_policy`` dispatches on)."""
@@ -388,13 +384,7 @@ def train(algo: str, run: RunConfig, cfg: PPOConfig, run_dir: Path, resume: bool
                     "perf/updates": updates,
                     "perf/updates_per_s": (updates - upd_log) / max(now - t_log, 1e-9),
                     "perf/rollouts": rollouts,
-                    "charts/episodic_return": _nanmean(window.get("return", [])),
-                    "charts/episodic_cost": _nanmean(window.get("cost", [])),
-                    "charts/episodic_length": _nanmean(window.get("length", [])),
-                    "charts/success_rate": _nanmean(window.get("success", [])),
-                    "charts/collision_rate": _nanmean(window.get("collision", [])),
-                    "charts/timeout_rate": _nanmean(window.get("timeout", [])),
-                    "charts/episodes": len(window.get("return", [])),
+                    **episode_charts(window),
                     "charts/density": density.density if nav else math.nan,
                 })  # fmt: skip
                 if cfg.constrained:
@@ -425,18 +415,12 @@ def train(algo: str, run: RunConfig, cfg: PPOConfig, run_dir: Path, resume: bool
     env.close()
     if eval_env is not None:
         eval_env.close()
-    return {"global_step": global_step, "updates": updates, "success_rate": _nanmean(list(recent["success"])),
-            "collision_rate": _nanmean(list(recent["collision"])), "return": _nanmean(list(recent["return"]))}  # fmt: skip
+    return run_summary(global_step, updates, recent)
 
 
 def write_config(run_dir: Path, algo: str, run: RunConfig, cfg: PPOConfig) -> None:
-    """``config.json``: the resolved configuration (and the SafeNav env config, for reference)."""
-    data: dict[str, Any] = {"algo": algo, "run": to_dict(run), "ppo": to_dict(cfg)}
-    if is_safenav(run.env):
-        from safenav.envs.config import make_config
-
-        data["env_config"] = to_dict(make_config(run.preset or "paper"))
-    write_json_atomic(Path(run_dir) / "config.json", data)
+    """``config.json`` of a ppo run (see :func:`safenav.common.runs.write_run_config`)."""
+    write_run_config(run_dir, algo, run, "ppo", cfg)
 
 
 __all__ = ["COLUMNS", "PPO", "PPOConfig", "collect_rollout", "train", "write_config"]
