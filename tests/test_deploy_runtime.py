@@ -34,14 +34,7 @@ from safenav.envs.sensors import (
 )
 from safenav.envs.world import height_map
 
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """One torch thread: on a loaded 2-core machine OpenMP oversubscription costs 50x."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def const_policy(value=(0.5, 0.0, 0.0)):

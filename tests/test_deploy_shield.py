@@ -16,13 +16,7 @@ from safenav.deploy.shield import (
 from safenav.envs import SafeNavVectorEnv, make_config
 from safenav.envs.scripted import go_to_goal
 
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def scene(points, vels=None, radius=0.4, planar=False):
