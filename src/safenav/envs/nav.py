@@ -27,6 +27,7 @@ from safenav.envs.dynamics import (
 )
 from safenav.envs.sensors import (
     RangeImageSpec,
+    dynamic_obstacle_features,
     moving_obstacle_clearance,
     pillar_clearance,
     quantize_heights,
@@ -37,7 +38,6 @@ from safenav.envs.world import (
     CUBOID_HEIGHT,
     CUBOID_Z_RANGE,
     CYLINDER_HEIGHT,
-    DYN_WIDTHS,
     GridSpec,
     World,
     generate_world,
@@ -437,32 +437,11 @@ class SafeNavVectorEnv(VectorEnv):
                 rel, width, cuboid, pos[..., 2], CUBOID_HEIGHT, CYLINDER_HEIGHT
             )
             dyn_clear = flat(clear_all.amin(-1))
-            # Standing cylinders span all altitudes: their relative z is zero (NavRL).
-            rel = torch.cat([rel[..., :2], torch.where(cuboid, rel[..., 2], 0.0)[..., None]], -1)
-            kk = min(k, nd)
-            d2_sel, idx = torch.topk(rel[..., :2].norm(dim=-1), kk, dim=-1, largest=False)
-            lead = rel.shape[:-1]  # (..., D)
-
-            def g(t: torch.Tensor) -> torch.Tensor:  # the tracked obstacles' rows of ``t``
-                if t.dim() == len(lead):
-                    return torch.gather(t.expand(lead), -1, idx)
-                return torch.gather(
-                    t.expand(*lead, t.shape[-1]), -2, idx[..., None].expand(*idx.shape, t.shape[-1])
-                )
-
-            in_range = (d2_sel <= rng_)[..., None]
-            rel_gf = world_to_goal_frame(g(rel), cos_y[..., None], sin_y[..., None])
-            vel_gf = world_to_goal_frame(
-                g(per_map(self.dyn_vel, nd)), cos_y[..., None], sin_y[..., None]
-            )
-            unit = rel_gf / rel_gf.norm(dim=-1, keepdim=True).clamp(min=1e-6)
-            width_class = (g(width) / DYN_WIDTHS[0] - 1.0) / (len(DYN_WIDTHS) - 1)
-            feats = torch.cat([
-                unit, d2_sel[..., None] / rng_, rel_gf[..., 2:3] / rng_, vel_gf / cfg.v_max,
-                width_class[..., None], g(cuboid).float()[..., None],
-            ], -1)  # fmt: skip
-            dynamic[:, :kk] = flat(torch.where(in_range, feats, 0.0))
-            tracked_clear[:, :kk] = flat(torch.where(in_range[..., 0], g(clear_all), rng_))
+            feats, idx, in_range = dynamic_obstacle_features(
+                rel, per_map(self.dyn_vel, nd), width, cuboid, cos_y, sin_y, k, rng_, cfg.v_max)  # fmt: skip
+            dynamic = flat(feats)
+            kk = idx.shape[-1]
+            tracked_clear[:, :kk] = flat(torch.where(in_range, torch.gather(clear_all, -1, idx), rng_))
 
         to_goal = flat(goal - pos)
         vel, cos_y, sin_y = flat(vel), flat(cos_y), flat(sin_y)

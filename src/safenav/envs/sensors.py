@@ -208,6 +208,7 @@ def moving_obstacle_clearance(
 __all__ = [
     "HEIGHT_QUANTUM",
     "RangeImageSpec",
+    "dynamic_obstacle_features",
     "quantize_heights",
     "box_surface_distance",
     "moving_obstacle_clearance",
@@ -217,8 +218,6 @@ __all__ = [
 ]
 
 
-# -- Added for the onboard runtime (safenav.deploy), additive: the env's moving-obstacle features
-# -- as one function, so that deployment computes exactly what SafeNavVectorEnv._sense computes.
 def dynamic_obstacle_features(
     rel: torch.Tensor,
     vel: torch.Tensor,
@@ -230,51 +229,52 @@ def dynamic_obstacle_features(
     max_range: float,
     v_max: float,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The ``dynamic`` observation ``(N, num_tracked, 10)`` of the env, from obstacle geometry.
+    """The ``dynamic`` observation ``(..., num_tracked, 10)``, from obstacle geometry.
+
+    The env (:class:`~safenav.envs.nav.SafeNavVectorEnv`) and the onboard runtime
+    (:mod:`safenav.deploy.runtime`) both call it, so deployment computes exactly what training saw.
 
     Args:
-        rel: ``(N, D, 3)`` obstacle centre - UAV (world); vel: ``(N, D, 3)`` obstacle velocities.
-        width: ``(N, D)`` widths (m); is_cuboid: ``(N, D)`` floating 1 m cuboid (else a standing
-            cylinder, whose relative z is taken as zero).
-        cos_yaw, sin_yaw: ``(N,)`` goal-frame yaw.
+        rel: ``(..., D, 3)`` obstacle centre - UAV (world); vel: ``(..., D, 3)`` obstacle
+            velocities; width: ``(..., D)`` widths (m); is_cuboid: ``(..., D)`` floating 1 m cuboid
+            (else a standing cylinder, whose relative z is taken as zero). ``vel``, ``width`` and
+            ``is_cuboid`` may broadcast against ``rel`` (e.g. one map's obstacles for many UAVs).
+        cos_yaw, sin_yaw: ``(...)`` goal-frame yaw.
 
     Returns ``(features, idx, in_range)``: the features of the ``num_tracked`` horizontally nearest
-    obstacles within ``max_range`` (zero rows beyond), their indices ``(N, kk)`` into ``D`` and the
-    in-range mask ``(N, kk)``, ``kk = min(num_tracked, D)``. Feature layout: unit relative position
-    in the goal frame (3), horizontal distance / range (1), z distance / range (1), velocity in the
-    goal frame / v_max (3), width class in [0, 1] (1), 1 for cuboids (1).
+    obstacles within ``max_range`` (zero rows beyond), their indices ``(..., kk)`` into ``D`` and
+    the in-range mask ``(..., kk)``, ``kk = min(num_tracked, D)``. Feature layout: unit relative
+    position in the goal frame (3), horizontal distance / range (1), z distance / range (1),
+    velocity in the goal frame / v_max (3), width class in [0, 1] (1), 1 for cuboids (1).
     """
     from safenav.envs.dynamics import world_to_goal_frame
     from safenav.envs.world import DYN_WIDTHS
 
-    n, nd = rel.shape[0], rel.shape[1]
+    lead, nd = rel.shape[:-2], rel.shape[-2]
     k = num_tracked
-    dynamic = torch.zeros(n, k, 10, device=rel.device, dtype=rel.dtype)
+    dynamic = torch.zeros(*lead, k, 10, device=rel.device, dtype=rel.dtype)
     kk = min(k, nd)
     if nd == 0:
-        empty = torch.zeros(n, 0, dtype=torch.int64, device=rel.device)
+        empty = torch.zeros(*lead, 0, dtype=torch.int64, device=rel.device)
         return dynamic, empty, empty.bool()
     # Standing cylinders span all altitudes: their relative z is zero (NavRL).
     rel = torch.cat([rel[..., :2], torch.where(is_cuboid, rel[..., 2], 0.0)[..., None]], -1)
-    d2 = rel[..., :2].norm(dim=-1)
-    d2_sel, idx = torch.topk(d2, kk, dim=-1, largest=False)
+    d2_sel, idx = torch.topk(rel[..., :2].norm(dim=-1), kk, dim=-1, largest=False)
     in_range = (d2_sel <= max_range)[..., None]
 
-    def g(t: torch.Tensor) -> torch.Tensor:
-        return torch.gather(
-            t, 1, idx if t.dim() == 2 else idx[..., None].expand(-1, -1, t.shape[-1])
-        )
+    def g(t: torch.Tensor) -> torch.Tensor:  # the tracked obstacles' rows of ``t``
+        if t.dim() == rel.dim() - 1:
+            return torch.gather(t.expand(*lead, nd), -1, idx)
+        return torch.gather(t.expand(*lead, nd, t.shape[-1]), -2,
+                            idx[..., None].expand(*idx.shape, t.shape[-1]))  # fmt: skip
 
-    rel_gf = world_to_goal_frame(g(rel), cos_yaw[:, None], sin_yaw[:, None])
+    rel_gf = world_to_goal_frame(g(rel), cos_yaw[..., None], sin_yaw[..., None])
     unit = rel_gf / rel_gf.norm(dim=-1, keepdim=True).clamp(min=1e-6)
     width_class = (g(width) / DYN_WIDTHS[0] - 1.0) / (len(DYN_WIDTHS) - 1)
     feats = torch.cat([
         unit, d2_sel[..., None] / max_range, rel_gf[..., 2:3] / max_range,
-        world_to_goal_frame(g(vel), cos_yaw[:, None], sin_yaw[:, None]) / v_max,
+        world_to_goal_frame(g(vel), cos_yaw[..., None], sin_yaw[..., None]) / v_max,
         width_class[..., None], g(is_cuboid).to(rel.dtype)[..., None],
     ], -1)  # fmt: skip
-    dynamic[:, :kk] = torch.where(in_range, feats, 0.0)
+    dynamic[..., :kk, :] = torch.where(in_range, feats, 0.0)
     return dynamic, idx, in_range[..., 0]
-
-
-__all__ += ["dynamic_obstacle_features"]
