@@ -18,6 +18,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from safenav.deploy import kernels
 from safenav.deploy.camera import backproject
 from safenav.deploy.perception_link import DepthImage
 from safenav.envs import sensors as _sensors
@@ -42,6 +43,7 @@ class HeightMap:
         ground_band: float = 0.05,
         exclusion_margin: float = 0.25,
         surface_offset: float | None = None,
+        compiled: bool | None = None,
     ) -> None:
         self.grid = grid
         # Returns lie on surfaces. Moving them half a cell into the obstacle (against the surface
@@ -58,6 +60,10 @@ class HeightMap:
         self.cast_map = _QUANTIZE(self.heights) if _QUANTIZE is not None else self.heights
         self.points_inserted = 0
         self._mask: np.ndarray | None = None  # scratch grid for the obstacle exclusion
+        # Depth insertion through the compiled kernel (kernels) when Numba is installed.
+        self.compiled = kernels.AVAILABLE if compiled is None else bool(compiled)
+        if self.compiled and not kernels.AVAILABLE:
+            raise ValueError("compiled=True needs Numba (pip install 'safenav[deploy]')")
 
     def clear(self) -> None:
         self.heights.zero_()
@@ -142,6 +148,9 @@ class HeightMap:
         for img in images:
             groups.setdefault(tuple(np.shape(img.depth)), []).append(img)
         for imgs in groups.values():
+            if self.compiled and np.ndim(imgs[0].depth) == 2:
+                n += self._insert_depth_compiled(imgs, stride, max_range, exclude_boxes)
+                continue
             pts, normals = backproject(
                 np.stack([np.asarray(im.depth, dtype=np.float32) for im in imgs]),
                 [im.fx for im in imgs], [im.fy for im in imgs], [im.cx for im in imgs], [im.cy for im in imgs],
@@ -151,6 +160,37 @@ class HeightMap:
             )  # fmt: skip
             n += self.insert_points(pts, exclude_boxes, normals)
         return n
+
+    def _insert_depth_compiled(self, imgs, stride, max_range, exclude_boxes) -> int:
+        """``insert_depth`` for images of one shape, in one pass of the Numba kernel."""
+        f32 = np.float32
+        depth = np.ascontiguousarray(np.stack([np.asarray(im.depth, dtype=f32) for im in imgs]))
+        intr = [
+            np.array([getattr(im, k) for im in imgs], dtype=f32) for k in ("fx", "fy", "cx", "cy")
+        ]
+        R = np.ascontiguousarray(
+            np.stack([np.asarray(im.R, dtype=f32).reshape(3, 3) for im in imgs])
+        )
+        t = np.ascontiguousarray(np.stack([np.asarray(im.t, dtype=f32).reshape(3) for im in imgs]))
+        boxes = (
+            np.zeros((0, 2, 3), f32) if exclude_boxes is None else np.asarray(exclude_boxes, f32)
+        )
+        lo = np.ascontiguousarray(boxes[:, 0] - f32(self.exclusion_margin))
+        hi = np.ascontiguousarray(boxes[:, 1] + f32(self.exclusion_margin))
+        g = self.grid.size
+        if self._mask is None:
+            self._mask = np.zeros((g, g), dtype=bool)
+        touched = np.empty(depth[:, ::stride, ::stride].size, dtype=np.int64)
+        n = kernels.insert_depth_kernel(
+            depth, *intr, R, t, int(stride), f32(max_range) if math.isfinite(max_range) else f32(np.inf),
+            f32(self.ground_band), f32(self.surface_offset), f32(self.grid.origin), f32(self.grid.resolution),
+            lo, hi, self._mask, self.heights.numpy(), touched,
+        )  # fmt: skip
+        if n and _QUANTIZE is not None:
+            cells = torch.from_numpy(touched[:n])  # repeats write the same value
+            self.cast_map[cells] = _QUANTIZE(self.heights[cells])
+        self.points_inserted += int(n)
+        return int(n)
 
 
 __all__ = ["HeightMap"]

@@ -40,6 +40,7 @@ from dataclasses import dataclass
 
 import torch
 
+from safenav.deploy import kernels
 from safenav.envs.config import EnvConfig
 from safenav.envs.sensors import RangeImageSpec
 from safenav.envs.world import CUBOID_HEIGHT, DYN_WIDTHS
@@ -86,11 +87,13 @@ def _vo_test(v: torch.Tensor, rel: torch.Tensor, ovel: torch.Tensor, radius: tor
     """For candidates ``v`` ``(N, C, 3)``: inside-any-VO ``(N, C)`` and min time to collision."""
     vr = v[:, :, None, :] - ovel[:, None, :, :]  # (N, C, M, 3)
     p = rel[:, None, :, :]
-    # Planar obstacles (columns) are tested in the horizontal plane: drop z from p and vr.
-    keep_z = (~planar).to(v.dtype)[:, None, :]  # (N, 1, M)
-    pv = (p[..., 0] * vr[..., 0] + p[..., 1] * vr[..., 1]) + keep_z * (p[..., 2] * vr[..., 2])
-    vv = (vr[..., 0] ** 2 + vr[..., 1] ** 2 + keep_z * vr[..., 2] ** 2).clamp(min=1e-12)
-    pp = p[..., 0] ** 2 + p[..., 1] ** 2 + keep_z * p[..., 2] ** 2
+    # Planar obstacles (columns) are tested in the horizontal plane: z weighs 0 in the products.
+    wz = torch.ones_like(rel)
+    wz[..., 2] = (~planar).to(v.dtype)
+    pw = p * wz[:, None]  # p with z dropped where planar
+    pv = (pw * vr).sum(-1)
+    vv = (vr * vr * wz[:, None]).sum(-1).clamp(min=1e-12)
+    pp = (pw * p).sum(-1)
     r2 = (radius * radius)[:, None, :]
     t = (pv / vv).clamp(0.0, tau)
     d2 = pp - 2 * t * pv + t * t * vv  # |p - vr t|^2
@@ -121,7 +124,9 @@ def _boundary_candidates(v_des, rel, ovel, radius, valid, planar, tau, k):
     vr = torch.where(flat, vr * mask, vr)
     dist = p.norm(dim=-1, keepdim=True).clamp(min=1e-6)
     ph = p / dist
-    # Cone side: rotate vr's direction just outside the cone of half-angle alpha about ph.
+    # Cone side: rotate vr's direction just outside the cone of half-angle alpha about ph. Inside
+    # the obstacle (r >= dist) alpha is pi/2 + 0.03: slightly receding, not tangential, so that
+    # the candidate is admissible beyond rounding.
     alpha = torch.asin((r[..., None] / dist).clamp(max=1.0)) + 0.03
     a = (vr * ph).sum(-1, keepdim=True)
     radial = vr - a * ph
@@ -133,7 +138,6 @@ def _boundary_candidates(v_des, rel, ovel, radius, valid, planar, tau, k):
     rh = torch.where(
         rho > 1e-6, radial / rho.clamp(min=1e-9), side / side.norm(dim=-1, keepdim=True)
     )
-    alpha = alpha.clamp(max=math.pi / 2)
     s = (a * torch.cos(alpha) + rho * torch.sin(alpha)).clamp(min=0.0)
     leg = s * (torch.cos(alpha) * ph + torch.sin(alpha) * rh)
     # Cut-off cap: push radially out of the sphere of radius R / tau around p / tau.
@@ -165,6 +169,7 @@ def velocity_obstacle_shield(
     valid: torch.Tensor,
     planar: torch.Tensor | None = None,
     cfg: ShieldConfig = ShieldConfig(),
+    compiled: bool | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Shield desired velocities ``v_des`` ``(N, 3)`` against ``M`` obstacles per env.
 
@@ -175,6 +180,9 @@ def velocity_obstacle_shield(
 
     Returns ``(v, corrected)``: the shielded velocities ``(N, 3)`` (``v_des`` itself, bit for bit,
     where it was admissible) and which envs were corrected ``(N,)``.
+
+    One vehicle on the CPU (the onboard runtime) goes through the compiled kernel
+    (:mod:`safenav.deploy.kernels`, same rules, ~10x faster) unless ``compiled=False``.
     """
     n, dev, dt = v_des.shape[0], v_des.device, v_des.dtype
     if planar is None:
@@ -182,6 +190,8 @@ def velocity_obstacle_shield(
     if rel.shape[1] == 0:
         return v_des.clone(), torch.zeros(n, dtype=torch.bool, device=dev)
     tau, vm = cfg.time_horizon, cfg.v_max
+    if n == 1 and dev.type == "cpu" and kernels.AVAILABLE and compiled is not False:
+        return _shield_one_compiled(v_des, rel, obs_vel, radius, valid, planar, cfg)
     inside_des, _ = _vo_test(v_des[:, None, :], rel, obs_vel, radius, valid, planar, tau)
     corrected = inside_des[:, 0]
     out = v_des.clone()
@@ -205,6 +215,23 @@ def velocity_obstacle_shield(
     choice = torch.where(inside.all(-1), fallback, best)
     out[rows] = torch.gather(cands, 1, choice[:, None, None].expand(-1, 1, 3))[:, 0]
     return out, corrected
+
+
+def _shield_one_compiled(v_des, rel, obs_vel, radius, valid, planar, cfg):
+    """velocity_obstacle_shield for ``N = 1`` through :func:`safenav.deploy.kernels.shield_kernel`."""
+    f64 = lambda t: t[0].detach().double().contiguous().numpy()  # noqa: E731
+    k = min(cfg.projected, rel.shape[1])
+    # The nearest obstacles are picked by torch.topk, exactly as _boundary_candidates picks them.
+    dist = torch.where(valid, rel.norm(dim=-1), math.inf)
+    idx = torch.topk(dist, k, dim=-1, largest=False).indices[0].numpy()
+    fan = _fan(cfg, torch.device("cpu"), torch.float64).numpy()
+    v, corrected = kernels.shield_kernel(
+        f64(v_des), f64(rel), f64(obs_vel), f64(radius), valid[0].numpy(), planar[0].numpy(),
+        idx, fan, float(cfg.time_horizon), float(cfg.v_max),
+    )  # fmt: skip
+    if not corrected:
+        return v_des.clone(), torch.zeros(1, dtype=torch.bool)
+    return torch.from_numpy(v).to(v_des.dtype)[None], torch.ones(1, dtype=torch.bool)
 
 
 @functools.lru_cache(maxsize=16)
