@@ -1,4 +1,4 @@
-"""``safenav bench {env,update,latency}``: the benchmarks whose figures the README quotes."""
+"""``safenav bench {env,update,latency,soak}``: the benchmarks whose figures the README quotes."""
 
 from __future__ import annotations
 
@@ -12,18 +12,22 @@ from safenav.cli import app
 
 @app.command(name="bench")
 def bench(
-    which: tyro.conf.Positional[Literal["env", "update", "latency"]],
+    which: tyro.conf.Positional[Literal["env", "update", "latency", "soak"]],
     json_out: Annotated[Path | None, tyro.conf.arg(name="json")] = None,
     repeats: int = 5,
     preset: str = "paper",
     num_envs: tuple[int, ...] = (1, 64, 256, 1024),
+    env_steps: int = 10_000_000,
+    updates: int = 100_000,
 ) -> None:
     """Measure throughput or latency and print a table; ``--json OUT`` writes the figures.
 
     env: env-steps/s at 1, 64, 256, 1024 envs (cpu, and cuda when present) and the grid ray
     caster's speed-up over a brute-force reference. update: gradient updates/s of CSAC and SAC
     beside Stable-Baselines3's SAC, and PPO's training throughput. latency: batch-1 policy and
-    sensor-to-setpoint latency on one CPU thread.
+    sensor-to-setpoint latency on one CPU thread. soak: ``--env-steps`` env steps and
+    ``--updates`` CSAC updates, resident memory at the start and the end (no growth beyond the
+    replay buffer).
     """
     if which == "env":
         from safenav.bench.env import bench_env
@@ -33,6 +37,10 @@ def bench(
         from safenav.bench.update import bench_update
 
         bench_update(json_out, repeats=repeats)
+    elif which == "soak":
+        from safenav.bench.soak import bench_soak
+
+        bench_soak(json_out, env_steps=env_steps, updates=updates, preset=preset)
     else:
         from safenav.bench.latency import bench_latency
 

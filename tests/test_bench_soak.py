@@ -1,0 +1,34 @@
+"""``safenav bench soak`` runs end to end at a tiny size and reports its memory figures."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+
+import pytest
+
+from safenav.bench.soak import RssSampler, bench_soak, rss_mb
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def test_rss_sampler_sees_an_allocation() -> None:
+    with RssSampler(period=0.01) as rss:
+        block = b"x" * (64 * 2**20)  # 64 MiB, written (so resident)
+        time.sleep(0.05)
+    assert max(r for _, r in rss.samples) - rss.samples[0][1] > 32
+    assert rss_mb() > 0
+    del block
+
+
+def test_tiny_soak_writes_its_figures(tmp_path) -> None:
+    out = bench_soak(tmp_path / "soak.json", env_steps=4096, updates=200, num_envs=64,
+                     preset="easy", buffer_size=600)  # fmt: skip
+    saved = json.loads((tmp_path / "soak.json").read_text())
+    assert saved["env_steps"] == 4096 and saved["updates"] == 200
+    for key in ("env_rss_start_mb", "env_rss_end_mb", "env_growth_after_warmup_mb",
+                "train_rss_start_mb", "train_rss_buffer_full_mb", "train_rss_end_mb",
+                "train_growth_after_buffer_full_mb", "buffer_mb"):  # fmt: skip
+        assert math.isfinite(saved[key]), key
+    assert out == saved | {"machine": out["machine"]}
