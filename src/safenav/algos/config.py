@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -83,6 +84,11 @@ class CSACConfig:
             raise ValueError("num-cost-critics >= 0, lambda-every >= 1, episode-lambda-lr > 0")
         if self.init_alpha <= 0 or self.init_lambda < 0:
             raise ValueError("init-alpha must be > 0 and init-lambda >= 0")
+        # 0 is allowed: it freezes that part (tests freeze the critics that way)
+        for name in ("actor_lr", "reward_critic_lr", "cost_critic_lr", "alpha_lr", "lambda_lr"):
+            lr = getattr(self, name)
+            if not (math.isfinite(lr) and lr >= 0):
+                raise ValueError(f"{name.replace('_', '-')}={lr} must be a finite number >= 0")
 
 
 __all__ = ["CSACConfig"]

@@ -35,9 +35,9 @@ from safenav.algos.losses import actor_loss, alpha_loss, cost_target, critic_los
 from safenav.algos.policy import POLICY_FORMAT_VERSION
 from safenav.common.buffer import Batch, ReplayBuffer
 from safenav.common.checkpoint import (
-    load_checkpoint,
+    load_training_checkpoint,
+    restore_agent,
     rng_state,
-    save_checkpoint,
     seed_everything,
     set_rng_state,
 )
@@ -52,6 +52,7 @@ from safenav.common.evaluation import EVAL_SEED, evaluate_episodes
 from safenav.common.lagrange import Lagrange
 from safenav.common.logger import RunLogger
 from safenav.common.runs import episode_charts, run_summary, write_run_config
+from safenav.common.stopping import RunGuard, enable_sigint
 from safenav.nn.networks import Actor, DeterministicActor, QEnsemble, input_order, make_extractor
 
 
@@ -256,6 +257,7 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
 
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
+    enable_sigint()
     torch.set_num_threads(run.torch_threads or max(1, torch.get_num_threads()))
     torch.set_float32_matmul_precision(run.matmul_precision)
     device = torch.device(run.device)
@@ -265,7 +267,8 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
         raise SafenavError(
             "--device cuda: CUDA is not available on this machine (use --device cpu)"
         )
-    ckpt = load_checkpoint(run_dir / "checkpoint.pt", map_location=device) if resume else None
+    ckpt_path = run_dir / "checkpoint.pt"
+    ckpt = load_training_checkpoint(ckpt_path, algo, map_location=device) if resume else None
     seed_everything(run.seed)
 
     # -- env, curricula, agent, buffer
@@ -289,8 +292,7 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
     global_step, updates, elapsed0, update_debt = 0, 0, 0.0, 0.0
     warmup_until = cfg.learning_starts
     if ckpt is not None:
-        agent.load_state_dict(ckpt["agent"])
-        agent.load_optimizer_state(ckpt["optimizers"])
+        restore_agent(agent, ckpt, ckpt_path)
         curriculum.load_state_dict(ckpt["curriculum"])
         density.load_state_dict(ckpt["density"])
         global_step, updates, elapsed0 = ckpt["global_step"], ckpt["updates"], ckpt["elapsed_s"]
@@ -315,6 +317,7 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
         density=density.density,
         d=curriculum.d,
     )
+    guard = RunGuard(run_dir, logger, agent, last_saved=global_step if ckpt is not None else None)
 
     def checkpoint() -> None:
         state = {"algo": algo, "global_step": global_step, "updates": updates,
@@ -326,7 +329,7 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
                             "state_dict": agent.policy_module().state_dict()}}  # fmt: skip
         if run.save_buffer:
             state["buffer"] = buffer.state_dict()
-        save_checkpoint(run_dir / "checkpoint.pt", state)
+        guard.save(global_step, state)  # refuses non-finite weights: keeps the last good file
 
     # -- the loop (Algorithm 1): one vector step = num_envs transitions
     window: dict[str, list[float]] = {}
@@ -449,8 +452,10 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
                     row.update({"constraint/lambda": float(agent.lam), "constraint/d": curriculum.d,
                                 "constraint/d_q": episode_cost_to_q_scale(curriculum.d, cfg.gamma, horizon),
                                 "constraint/stage": curriculum.stage})  # fmt: skip
-                row.update({k: float(v) / n_sums for k, v in sums.items()} if n_sums else {})
+                update_metrics = {k: float(v) / n_sums for k, v in sums.items()} if n_sums else {}
+                row.update(update_metrics)
                 logger.log(global_step, row)
+                guard.check(global_step, update_metrics)  # NaN/Inf: stop, keep checkpoint.pt
                 display.metrics(global_step, row, recent, curriculum.d if cfg.constrained else None)
                 window, sums, n_sums, row = {}, {}, 0, {}
                 t_log, step_log, upd_log = now, global_step, updates
@@ -459,9 +464,8 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
             if global_step >= next_ckpt:
                 next_ckpt += run.checkpoint_every
                 checkpoint()
-    except KeyboardInterrupt:
-        checkpoint()
-        logger.event(global_step, "interrupted")
+    except BaseException as err:  # Ctrl-C: checkpoint; divergence, errors: an event (stopping.py)
+        guard.stopped(err, global_step, checkpoint)
         raise
     finally:
         display.close()

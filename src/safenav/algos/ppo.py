@@ -46,9 +46,9 @@ from safenav.algos.ppo_losses import (
     sample_beta_action,
 )
 from safenav.common.checkpoint import (
-    load_checkpoint,
+    load_training_checkpoint,
+    restore_agent,
     rng_state,
-    save_checkpoint,
     seed_everything,
     set_rng_state,
 )
@@ -60,6 +60,7 @@ from safenav.common.lagrange import Lagrange
 from safenav.common.logger import RunLogger
 from safenav.common.rollout import Rollout, ValueNorm
 from safenav.common.runs import episode_charts, run_summary, write_run_config
+from safenav.common.stopping import RunGuard, enable_sigint
 from safenav.errors import SafenavError
 from safenav.nn.beta import POLICY_HEAD, BetaActorCritic, BetaDeterministicActor
 from safenav.nn.networks import input_order
@@ -252,6 +253,7 @@ def train(algo: str, run: RunConfig, cfg: PPOConfig, run_dir: Path, resume: bool
     from safenav.common.progress import ProgressDisplay
 
     run_dir = Path(run_dir)
+    enable_sigint()
     torch.set_num_threads(run.torch_threads or max(1, torch.get_num_threads()))
     torch.set_float32_matmul_precision(run.matmul_precision)
     device = torch.device(run.device)
@@ -259,7 +261,8 @@ def train(algo: str, run: RunConfig, cfg: PPOConfig, run_dir: Path, resume: bool
         raise SafenavError(
             "--device cuda: CUDA is not available on this machine (use --device cpu)"
         )
-    ckpt = load_checkpoint(run_dir / "checkpoint.pt", map_location=device) if resume else None
+    ckpt_path = run_dir / "checkpoint.pt"
+    ckpt = load_training_checkpoint(ckpt_path, algo, map_location=device) if resume else None
     seed_everything(run.seed)
 
     # -- env, curricula, agent, rollout storage
@@ -281,8 +284,7 @@ def train(algo: str, run: RunConfig, cfg: PPOConfig, run_dir: Path, resume: bool
 
     global_step, updates, rollouts, elapsed0 = 0, 0, 0, 0.0
     if ckpt is not None:
-        agent.load_state_dict(ckpt["agent"])
-        agent.load_optimizer_state(ckpt["optimizers"])
+        restore_agent(agent, ckpt, ckpt_path)
         curriculum.load_state_dict(ckpt["curriculum"])
         density.load_state_dict(ckpt["density"])
         global_step, updates, elapsed0 = ckpt["global_step"], ckpt["updates"], ckpt["elapsed_s"]
@@ -294,6 +296,7 @@ def train(algo: str, run: RunConfig, cfg: PPOConfig, run_dir: Path, resume: bool
     )
     logger.event(global_step, "resume" if resume else "start", algo=algo, density=density.density,
                  d=curriculum.d)  # fmt: skip
+    guard = RunGuard(run_dir, logger, agent, last_saved=global_step if ckpt is not None else None)
 
     def checkpoint() -> None:
         state = {"algo": algo, "global_step": global_step, "updates": updates, "rollouts": rollouts,
@@ -303,7 +306,7 @@ def train(algo: str, run: RunConfig, cfg: PPOConfig, run_dir: Path, resume: bool
                  "config": {"algo": algo, "run": to_dict(run), "ppo": to_dict(cfg)},
                  "policy": {"meta": policy_meta(algo, run, cfg, env, global_step),
                             "state_dict": agent.policy_module().state_dict()}}  # fmt: skip
-        save_checkpoint(run_dir / "checkpoint.pt", state)
+        guard.save(global_step, state)  # refuses non-finite weights: keeps the last good file
 
     # -- the loop: rollout, lambda, update; curricula, map refreshes and density at rollout edges
     window: dict[str, list[float]] = {}
@@ -390,9 +393,11 @@ def train(algo: str, run: RunConfig, cfg: PPOConfig, run_dir: Path, resume: bool
                 if cfg.constrained:
                     row.update({"constraint/lambda": float(agent.lam), "constraint/d": curriculum.d,
                                 "constraint/stage": curriculum.stage})  # fmt: skip
-                row.update({k: float(v) / n_sums for k, v in sums.items()} if n_sums else {})
+                update_metrics = {k: float(v) / n_sums for k, v in sums.items()} if n_sums else {}
+                row.update(update_metrics)
                 row.update({k: v / lam_n for k, v in lam_sums.items()} if lam_n else {})
                 logger.log(global_step, row)
+                guard.check(global_step, update_metrics)  # NaN/Inf: stop, keep checkpoint.pt
                 display.metrics(global_step, row, recent, curriculum.d if cfg.constrained else None)
                 window, sums, n_sums, row = {}, {}, 0, {}
                 lam_sums, lam_n = dict.fromkeys(lam_sums, 0.0), 0
@@ -403,9 +408,8 @@ def train(algo: str, run: RunConfig, cfg: PPOConfig, run_dir: Path, resume: bool
                 while next_ckpt <= global_step:
                     next_ckpt += run.checkpoint_every
                 checkpoint()
-    except KeyboardInterrupt:
-        checkpoint()
-        logger.event(global_step, "interrupted")
+    except BaseException as err:  # Ctrl-C: checkpoint; divergence, errors: an event (stopping.py)
+        guard.stopped(err, global_step, checkpoint)
         raise
     finally:
         display.close()

@@ -6,6 +6,7 @@ OmniSafe's PPO-Lag; docs/algorithms.md gives the source of every value and what 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from safenav.common.curriculum import ConstraintCurriculumConfig
@@ -71,6 +72,8 @@ class PPOConfig:
             raise ValueError("rollout-steps, epochs and num-minibatches must be >= 1")
         if self.clip <= 0 or self.value_clip < 0 or self.lr <= 0 or self.max_grad_norm <= 0:
             raise ValueError("clip, lr and max-grad-norm must be > 0 and value-clip >= 0")
+        if not (math.isfinite(self.lr) and math.isfinite(self.lambda_lr)):
+            raise ValueError(f"lr={self.lr} and lambda-lr={self.lambda_lr} must be finite")
         if not 0 < self.value_norm_beta < 1:
             raise ValueError(f"value-norm-beta={self.value_norm_beta} must lie in (0, 1)")
         if self.init_lambda < 0 or self.lambda_lr <= 0:

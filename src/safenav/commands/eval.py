@@ -38,6 +38,10 @@ def eval_(
     fn, cfg = resolve_policy(checkpoint, policy, device)
     if preset is not None or cfg is None:
         cfg = make_config(preset or "paper")
+    if policy == "checkpoint":
+        from safenav.algos.policy import check_fits_safenav
+
+        check_fits_safenav(fn, cfg, checkpoint)
     shield_fn = None
     if shield:
         from safenav.deploy.shield import env_shield

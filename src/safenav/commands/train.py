@@ -7,7 +7,7 @@ import dataclasses
 import json
 import time
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated
 
 import tyro
 
@@ -16,6 +16,7 @@ from safenav.algos.ppo_config import PPOConfig
 from safenav.cli import app
 from safenav.common.config import RunConfig
 
+ALGOS = ("csac", "sac", "ppo", "ppo_lag", "sac_lag")
 # Options a resumed run may change; every other option comes from the run's config.json.
 RESUMABLE = ("total_steps", "device", "torch_threads", "log_every", "eval_every", "eval_episodes",
              "checkpoint_every", "tensorboard", "save_buffer")  # fmt: skip
@@ -23,7 +24,9 @@ RESUMABLE = ("total_steps", "device", "torch_threads", "log_every", "eval_every"
 
 @app.command(name="train")
 def train(
-    algo: Literal["csac", "sac", "ppo", "ppo_lag", "sac_lag"] = "csac",
+    # A plain str checked below, not a Literal: tyro would answer a typo with a boxed usage error
+    # instead of the CLI's one-line ``safenav: error: ...``.
+    algo: Annotated[str, tyro.conf.arg(metavar="{" + ",".join(ALGOS) + "}")] = "csac",
     run: Annotated[RunConfig, tyro.conf.arg(name="")] = RunConfig(),  # noqa: B008
     csac: CSACConfig = CSACConfig(),  # noqa: B008
     ppo: PPOConfig = PPOConfig(),  # noqa: B008
@@ -43,9 +46,12 @@ def train(
     """
     from safenav.algos import csac as csac_module
     from safenav.common.config import from_dict
+    from safenav.common.envs import check_env
     from safenav.common.logger import prepare_run_dir
     from safenav.errors import SafenavError
 
+    if algo not in ALGOS:
+        raise SafenavError(f"unknown algorithm {algo!r} (--algo): choose one of {', '.join(ALGOS)}")
     family = "ppo" if algo in ("ppo", "ppo_lag") else "csac"
     cfg = ppo if family == "ppo" else csac
     if resume is not None:
@@ -59,21 +65,23 @@ def train(
             raise SafenavError(f"--resume {run_dir}: no config.json there")
         try:
             saved = json.loads(config_path.read_text())
+            # the algorithm first: another family's config.json lacks this family's section
+            if isinstance(saved, dict) and saved.get("algo") != algo:
+                raise SafenavError(
+                    f"--resume {run_dir}: the run is --algo {saved.get('algo')}, not {algo}"
+                )
             saved_run = from_dict(RunConfig, saved["run"])
             cfg = from_dict(PPOConfig if family == "ppo" else CSACConfig, saved[family])
         except (KeyError, ValueError, TypeError) as err:
             raise SafenavError(
                 f"--resume {run_dir}: config.json is not a {algo} run config ({err})"
             ) from None
-        if saved.get("algo") != algo:
-            raise SafenavError(
-                f"--resume {run_dir}: the run is --algo {saved.get('algo')}, not {algo}"
-            )
         default = RunConfig()
         changes = {k: getattr(run, k) for k in RESUMABLE if getattr(run, k) != getattr(default, k)}
         run = dataclasses.replace(saved_run, **changes)
         prepare_run_dir(run_dir, resume=True, overwrite=False)
     else:
+        check_env(run.env, run.preset)  # before a run directory exists, so a retry is not refused
         if run_dir is None:
             env_name = run.env.split(":")[-1]
             run_dir = (

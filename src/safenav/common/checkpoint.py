@@ -3,7 +3,7 @@
 A checkpoint is one ``torch.save`` dict with ``format`` and ``format_version`` keys. It is written
 to a temporary file in the same directory, flushed to disk, then moved over the old one with
 ``os.replace`` (atomic on POSIX): a crash leaves either the old or the new checkpoint, never half
-of one.
+of one. The temporary file of a writer that was killed mid-write is removed by the next write.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from safenav.errors import SafenavError
+from safenav.errors import SafenavError, one_line
 
 FORMAT = "safenav-checkpoint"
 FORMAT_VERSION = 1
@@ -36,6 +36,21 @@ def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+    _remove_stale_temps(path)
+
+
+def _remove_stale_temps(path: Path) -> None:
+    """Delete ``.NAME.PID.tmp`` files of writers that no longer run (SIGKILLed mid-write: with
+    ``--save-buffer`` each is as large as the replay buffer)."""
+    for tmp in path.parent.glob(f".{path.name}.*.tmp"):
+        try:
+            os.kill(int(tmp.name.split(".")[-2]), 0)  # signal 0: does the process exist?
+        except ValueError:
+            continue  # not one of ours
+        except ProcessLookupError:
+            tmp.unlink(missing_ok=True)
+        except PermissionError:
+            pass  # another user's live process
 
 
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
@@ -56,16 +71,55 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         ValueError,
         OSError,
     ) as err:
-        raise SafenavError(
-            f"checkpoint {path} is corrupt or not a torch file ({type(err).__name__}: {err})"
-        ) from None
+        # torch's own text goes on for lines ("This is an internal miniz error..."): keep its start
+        reason = one_line(str(err).split(". ")[0], 160)
+        raise SafenavError(f"checkpoint {path} is corrupt or truncated, or not a torch file "
+                           f"({type(err).__name__}: {reason})") from None  # fmt: skip
     if not isinstance(state, dict) or state.get("format") != FORMAT:
         raise SafenavError(f"{path} is not a safenav training checkpoint (no '{FORMAT}' tag)")
     version = state.get("format_version")
     if version != FORMAT_VERSION:
+        newer = isinstance(version, int) and version > FORMAT_VERSION
+        fix = ("it was written by a newer safenav: upgrade safenav to read it" if newer
+               else "retrain, or use the safenav that wrote it")  # fmt: skip
         raise SafenavError(f"{path} has checkpoint format version {version}; this safenav reads "
-                           f"version {FORMAT_VERSION}: retrain, or use the safenav that wrote it")  # fmt: skip
+                           f"version {FORMAT_VERSION}: {fix}")  # fmt: skip
     return state
+
+
+# What ``--resume`` needs besides the agent's weights; a policy-only file has none of it.
+TRAINING_KEYS = ("agent", "optimizers", "curriculum", "density", "rng", "global_step", "updates",
+                 "elapsed_s")  # fmt: skip
+
+
+def load_training_checkpoint(path: str | Path, algo: str,
+                             map_location: str | torch.device = "cpu") -> dict[str, Any]:  # fmt: skip
+    """:func:`load_checkpoint` for ``--resume``: also ``SafenavError`` for a policy-only file, a
+    checkpoint of another algorithm, or one that lacks training state."""
+    state = load_checkpoint(path, map_location)
+    if state.get("policy_only"):
+        raise SafenavError(f"{path} is a policy-only checkpoint: it can be evaluated and exported "
+                           "but not resumed (it holds no optimiser or replay state)")  # fmt: skip
+    if state.get("algo") != algo:
+        raise SafenavError(f"{path} holds a {state.get('algo')!r} run, not {algo!r}: this checkpoint "
+                           "was not written by this run directory's run")  # fmt: skip
+    missing = [k for k in TRAINING_KEYS if k not in state]
+    if missing:
+        raise SafenavError(f"{path} lacks {missing}: it is not a resumable training checkpoint")
+    return state
+
+
+def restore_agent(agent: torch.nn.Module, state: dict[str, Any], path: str | Path) -> None:
+    """Load the agent's weights and optimiser state from ``state``; ``SafenavError`` (one line) if
+    they do not fit the agent built from the run's config (another observation layout, network
+    size or algorithm variant)."""
+    try:
+        agent.load_state_dict(state["agent"])
+        agent.load_optimizer_state(state["optimizers"])
+    except (KeyError, RuntimeError, TypeError, ValueError) as err:
+        raise SafenavError(f"{path} does not fit the networks of this run's config.json (another "
+                           f"observation layout, network size or algorithm?): "
+                           f"{one_line(err, 300)}") from None  # fmt: skip
 
 
 def rng_state() -> dict[str, Any]:
@@ -96,5 +150,5 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "load_checkpoint", "rng_state", "save_checkpoint",
-           "seed_everything", "set_rng_state"]  # fmt: skip
+__all__ = ["FORMAT", "FORMAT_VERSION", "TRAINING_KEYS", "load_checkpoint", "load_training_checkpoint",
+           "restore_agent", "rng_state", "save_checkpoint", "seed_everything", "set_rng_state"]  # fmt: skip

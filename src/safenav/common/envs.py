@@ -31,15 +31,29 @@ def is_safenav(env_id: str) -> bool:
     return env_id.split(":")[-1].startswith("SafeNav-")
 
 
+def check_env(env_id: str, preset: str | None = None) -> None:
+    """``SafenavError`` unless ``env_id`` is a registered Gymnasium id and ``preset`` a SafeNav
+    preset given for SafeNav (what ``safenav train`` checks before creating its run directory)."""
+    try:
+        gym.spec(env_id)
+    except gym.error.Error as err:
+        raise SafenavError(f"unknown env id {env_id!r}: {err}") from None
+    if preset is None:
+        return
+    if not is_safenav(env_id):
+        raise SafenavError(f"--preset applies to SafeNav-v0 only, not {env_id!r}")
+    from safenav.envs.config import PRESETS
+
+    if preset not in PRESETS:
+        raise SafenavError(f"unknown preset {preset!r}: choose one of {sorted(PRESETS)}")
+
+
 def make_vec_env(env_id: str, num_envs: int, device: str = "cpu", preset: str | None = None,
                  **env_kwargs: Any) -> gym.vector.VectorEnv:  # fmt: skip
     """A vector env of ``num_envs`` copies of ``env_id`` (see module docstring)."""
     if num_envs < 1:
         raise SafenavError(f"--num-envs {num_envs}: need at least one env")
-    try:
-        gym.spec(env_id)
-    except gym.error.Error as err:
-        raise SafenavError(f"unknown env id {env_id!r}: {err}") from None
+    check_env(env_id, preset)
     if is_safenav(env_id):
         kwargs = dict(
             device=device, output="torch", autoreset_mode=AutoresetMode.SAME_STEP, **env_kwargs
@@ -49,8 +63,6 @@ def make_vec_env(env_id: str, num_envs: int, device: str = "cpu", preset: str | 
         return gym.make_vec(
             env_id, num_envs=num_envs, vectorization_mode="vector_entry_point", **kwargs
         )
-    if preset is not None:
-        raise SafenavError(f"--preset applies to SafeNav-v0 only, not {env_id!r}")
     return gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="sync",
                         vector_kwargs={"autoreset_mode": AutoresetMode.SAME_STEP}, **env_kwargs)  # fmt: skip
 
@@ -242,4 +254,5 @@ def env_horizon(envs: gym.vector.VectorEnv, default: int = 1000) -> int:
     return int(steps) if steps else default
 
 
-__all__ = ["Step", "TorchVecEnv", "env_horizon", "is_safenav", "is_safenav_vector", "make_vec_env"]
+__all__ = ["Step", "TorchVecEnv", "check_env", "env_horizon", "is_safenav", "is_safenav_vector",
+           "make_vec_env"]  # fmt: skip

@@ -26,14 +26,18 @@ RUN_FILES = ("config.json", "progress.csv", "checkpoint.pt", "events.jsonl")
 
 def prepare_run_dir(run_dir: Path, resume: bool, overwrite: bool) -> None:
     """Create ``run_dir``; refuse one that already holds a run unless resuming or overwriting
-    (``overwrite`` deletes the previous run's files, nothing else)."""
+    (``overwrite`` deletes the previous run's files, nothing else), and one that cannot be
+    written (``SafenavError`` before any training, not an ``OSError`` at the first log row)."""
     run_dir = Path(run_dir)
     held = [f for f in RUN_FILES if (run_dir / f).exists()] + (
         ["tb/"] if (run_dir / "tb").is_dir() else []
     )
     if resume:
         if not (run_dir / "checkpoint.pt").exists():
-            raise SafenavError(f"--resume {run_dir}: no checkpoint.pt there to resume from")
+            raise SafenavError(f"--resume {run_dir}: no checkpoint.pt there to resume from (the run "
+                               "stopped before its first checkpoint): start it again with "
+                               "--overwrite")  # fmt: skip
+        _check_writable(run_dir)
         return
     if held and not overwrite:
         raise SafenavError(f"run directory {run_dir} already holds a run ({', '.join(held)}): "
@@ -44,7 +48,26 @@ def prepare_run_dir(run_dir: Path, resume: bool, overwrite: bool) -> None:
         for f in RUN_FILES:
             (run_dir / f).unlink(missing_ok=True)
         shutil.rmtree(run_dir / "tb", ignore_errors=True)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:  # a file in the way, a read-only file system, no permission
+        raise SafenavError(
+            f"cannot create run directory {run_dir}: {err.strerror or err}"
+        ) from None
+    _check_writable(run_dir)
+
+
+def _check_writable(run_dir: Path) -> None:
+    """Create and delete a file in ``run_dir`` (``os.access`` says yes to root on read-only
+    mounts and no to some ACL'd directories that do accept writes)."""
+    probe = run_dir / f".write-test.{os.getpid()}"
+    try:
+        probe.touch()
+        probe.unlink()
+    except OSError as err:
+        raise SafenavError(
+            f"run directory {run_dir} is not writable: {err.strerror or err}"
+        ) from None
 
 
 def write_json_atomic(path: Path, obj: Any) -> None:

@@ -29,5 +29,14 @@ class NetConfig:
     flatten_hidden: tuple[int, ...] = ()
     """MLP of the extractor for non-SafeNav observations (Box): () = flatten only."""
 
+    def __post_init__(self) -> None:
+        sizes = (*self.hidden, *self.lidar_channels, *self.lidar_strides, *self.flatten_hidden,
+                 self.lidar_kernel, self.lidar_embed, self.dynamic_hidden, self.dynamic_embed)  # fmt: skip
+        if any(n < 1 for n in sizes):
+            raise ValueError(f"network sizes, strides and kernel must be >= 1 (got {self})")
+        if len(self.lidar_channels) != len(self.lidar_strides):
+            raise ValueError(f"lidar-channels {self.lidar_channels} and lidar-strides "
+                             f"{self.lidar_strides} need one entry per convolution each")  # fmt: skip
+
 
 __all__ = ["NetConfig"]
