@@ -26,9 +26,11 @@ from pathlib import Path
 import pytest
 import torch
 
+from safenav.algos import ppo
 from safenav.algos.policy import check_fits_safenav, load_policy, save_policy_only
 from safenav.cli import main
 from safenav.common.checkpoint import load_checkpoint, save_checkpoint
+from safenav.common.logger import RunLogger
 from safenav.common.stopping import RunGuard
 from safenav.envs.config import make_config
 from safenav.errors import SafenavError
@@ -122,8 +124,6 @@ def test_resumed_run_equals_uninterrupted_run_only_up_to_its_checkpoint(
     up to the checkpoint are the uninterrupted run's; after it the run goes on differently, with
     or without --save-buffer, because the env's state (episodes under way) is not checkpointed
     (docs/reliability.md). Steps, row count and config stay the same."""
-    from safenav.common.logger import RunLogger
-
     stop_at, log = 320, RunLogger.log
 
     def log_then_interrupt(self, step, metrics):
@@ -265,7 +265,7 @@ def test_checkpoint_file_survives_sigkill_during_writes(tmp_path):
     the file always loads, and the next write removes the dead writer's temp file."""
     path = tmp_path / "checkpoint.pt"
     rng = random.Random(0)
-    for i in range(8):
+    for _ in range(8):
         pid = os.fork()
         if pid == 0:  # the child: write until killed
             try:
@@ -276,11 +276,10 @@ def test_checkpoint_file_survives_sigkill_during_writes(tmp_path):
         time.sleep(rng.uniform(0.01, 0.3))
         os.kill(pid, signal.SIGKILL)
         os.waitpid(pid, 0)
-        if path.exists():
+        if path.exists():  # (absent only until some child finished a write)
             state = load_checkpoint(path)
             assert bool((state["w"] == state["k"]).all())
-        elif i:  # only the first child can be killed before its first write completed
-            raise AssertionError("checkpoint.pt vanished")
+    assert path.exists()
     save_checkpoint(path, {"k": -1})
     assert not list(tmp_path.glob(".checkpoint.pt.*.tmp")) and load_checkpoint(path)["k"] == -1
 
@@ -463,8 +462,6 @@ def test_absurd_learning_rate_stops_csac_and_keeps_the_last_good_checkpoint(tmp_
 
 def test_nan_loss_stops_ppo_and_keeps_the_last_good_checkpoint(tmp_path, capsys, monkeypatch):
     """A policy loss that turns NaN from the third rollout's update (4 minibatch steps each)."""
-    from safenav.algos import ppo
-
     calls, loss = [0], ppo.clipped_policy_loss
 
     def poisoned(*args, **kwargs):
