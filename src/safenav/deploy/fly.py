@@ -250,6 +250,10 @@ class FlightController:
             raise SafenavError(
                 f"--rate {config.rate_hz} Hz is too low: PX4 offboard needs a steady stream, use >= 10 Hz"
             )
+        for name in ("goal", "origin"):
+            value = np.asarray(getattr(config, name), dtype=float)
+            if value.shape != (3,) or not np.isfinite(value).all():
+                raise SafenavError(f"--{name} {value.tolist()} is not three finite numbers")
         self.runtime, self.link, self.config = runtime, link, config
         self.perception_addr = perception
         self.log = FlightLog()
@@ -257,6 +261,7 @@ class FlightController:
         self._stop = threading.Event()
         self.snapshots: list[dict[str, Any]] = []  # simulator truth at <= 5 Hz (for rendering)
         self._last_snapshot = -math.inf
+        self._last_heard = -math.inf  # stamp of the latest telemetry with a finite stamp
 
     # ------------------------------------------------------------------ helpers
     def _on_frame(self, frame: PerceptionFrame) -> None:
@@ -270,8 +275,10 @@ class FlightController:
     def _on_telemetry(self) -> Telemetry:
         tel = self.link.latest()
         now = time.monotonic()
-        if tel is None or now - tel.stamp > self.config.link_timeout_s:
-            age = "never" if tel is None else f"{now - tel.stamp:.2f} s ago"
+        if tel is not None and math.isfinite(tel.stamp):  # a NaN / Inf stamp dates nothing
+            self._last_heard = tel.stamp
+        if tel is None or not now - self._last_heard <= self.config.link_timeout_s:
+            age = "never" if tel is None else f"{now - self._last_heard:.2f} s ago"
             raise FlightAborted(f"link lost: last telemetry from the vehicle {age} "
                                 f"(> {self.config.link_timeout_s:.1f} s); stopped. PX4 falls back to "
                                 "Hold/Land after COM_OF_LOSS_T without setpoints")  # fmt: skip
@@ -281,6 +288,18 @@ class FlightController:
         pos = local_ned_to_world(tel.position_ned, self.config.origin)
         vel = local_ned_to_world(tel.velocity_ned, (0.0, 0.0, 0.0))
         self.runtime.update_state(pos, vel, tel.stamp)
+
+    def _finite_telemetry(self, timeout_s: float) -> Telemetry:
+        """The latest telemetry once its position and velocity are finite: a NaN or Inf sample is
+        no home or start position (the link check runs meanwhile)."""
+        end = time.monotonic() + timeout_s
+        while True:
+            tel = self._on_telemetry()
+            if np.isfinite(tel.position_ned).all() and np.isfinite(tel.velocity_ned).all():
+                return tel
+            if time.monotonic() > end:
+                raise FlightAborted(f"no finite vehicle position within {timeout_s:.0f} s")
+            time.sleep(0.05)
 
     def _wait(self, what: str, cond, timeout_s: float) -> None:
         end = time.monotonic() + timeout_s
@@ -304,7 +323,7 @@ class FlightController:
             log.info("connecting to %s", getattr(self.link, "url", "the vehicle"))
             self.link.connect(c.connect_timeout_s)
             self.link.wait_ready(c.ready_timeout_s)
-            tel = self._on_telemetry()
+            tel = self._finite_telemetry(c.ready_timeout_s)
             log.info("vehicle ready; arming and taking off to %.1f m", c.takeoff_altitude)
             self.link.arm()
             self.link.takeoff(c.takeoff_altitude)
@@ -312,7 +331,7 @@ class FlightController:
             self._wait("the takeoff altitude",
                        lambda: -(self._on_telemetry().position_ned[2] - home_down) >= c.takeoff_altitude - 0.15,
                        c.takeoff_timeout_s)  # fmt: skip
-            tel = self._on_telemetry()
+            tel = self._finite_telemetry(c.takeoff_timeout_s)
             self._feed_state(tel)
             self.runtime.set_goal(c.goal, start=local_ned_to_world(tel.position_ned, c.origin))
             yaw = self.runtime.step().yaw_ned_deg
@@ -329,6 +348,10 @@ class FlightController:
         except KeyboardInterrupt:
             self.log.aborted = "interrupted"
             self._emergency_stop("interrupted by the user")
+            raise
+        except Exception as err:  # a bug: still stop the vehicle before it propagates
+            self.log.aborted = f"internal error: {err!r}"
+            self._emergency_stop(self.log.aborted)
             raise
         finally:
             if self._perception is not None:

@@ -109,10 +109,11 @@ def encode_frame(frame: PerceptionFrame, depth_as_uint16: bool = True) -> bytes:
 
 def decode_frame(body: bytes) -> PerceptionFrame:
     """Inverse of :func:`encode_frame` (``body`` without the leading total length); any malformed
-    frame raises ``ValueError``."""
+    frame raises ``ValueError`` (``tests/test_deploy_fuzz.py`` feeds it random bytes)."""
     try:
         return _decode(body)
-    except (KeyError, TypeError, IndexError, AttributeError) as err:
+    except (KeyError, TypeError, IndexError, AttributeError, OverflowError, RecursionError) as err:
+        # OverflowError: int() of an infinite JSON number; RecursionError: absurdly nested JSON.
         raise ValueError(f"malformed perception frame: {err!r}") from None
 
 
@@ -131,7 +132,10 @@ def _decode(body: bytes) -> PerceptionFrame:
             raise ValueError("perception frame array lies outside the payload")
         return np.frombuffer(payload[off : off + nb], dtype=dtype)
 
-    frame = PerceptionFrame(stamp=float(header["stamp"]), truth=header.get("truth") or {})
+    truth = header.get("truth") or {}
+    if not isinstance(truth, dict):
+        raise ValueError(f"perception frame truth is a {type(truth).__name__}, not an object")
+    frame = PerceptionFrame(stamp=float(header["stamp"]), truth=truth)
     for d in header.get("depth", []):
         h, w = (int(x) for x in d["shape"])
         if d["dtype"] == "uint16":
@@ -148,9 +152,10 @@ def _decode(body: bytes) -> PerceptionFrame:
     if "points" in header:
         frame.points = chunk(header["points"], ">f4").astype(np.float32).reshape(-1, 3)
     if "obstacles" in header:
+        vec3 = lambda x: np.asarray(x, dtype=np.float64).reshape(3)  # noqa: E731
         frame.obstacles = [
-            TrackedObstacle(p=np.asarray(o["p"], dtype=np.float64), v=np.asarray(o["v"], dtype=np.float64),
-                            width=float(o["width"]), height=float(o["height"]), cuboid=o.get("cuboid"))
+            TrackedObstacle(p=vec3(o["p"]), v=vec3(o["v"]), width=float(o["width"]),
+                            height=float(o["height"]), cuboid=o.get("cuboid"))
             for o in header["obstacles"]
         ]  # fmt: skip
     return frame
@@ -159,7 +164,8 @@ def _decode(body: bytes) -> PerceptionFrame:
 class PerceptionClient:
     """Connects to a perception server and calls ``on_frame`` for every frame, in its own thread.
 
-    Reconnects while :meth:`close` has not been called; bad frames are dropped (``on_error``).
+    Reconnects while :meth:`close` has not been called; bad frames are dropped (``on_error``),
+    and so are frames whose ``on_frame`` raises (reported to ``on_error``; the link goes on).
     """
 
     def __init__(
@@ -225,7 +231,10 @@ class PerceptionClient:
                         self.on_error(f"bad perception frame dropped: {err}")
                         continue
                     self.frames += 1
-                    self.on_frame(frame)
+                    try:
+                        self.on_frame(frame)
+                    except Exception as err:  # noqa: BLE001 -- one frame must not end the link
+                        self.on_error(f"perception frame handler failed: {err!r}")
             except (OSError, ConnectionError) as err:
                 if not self._stop.is_set():
                     self.on_error(f"perception link: {err}")

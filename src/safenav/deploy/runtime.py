@@ -15,9 +15,12 @@ has instead of the simulator's ground truth:
 :mod:`safenav.deploy.frames`). Guards, each giving a hover setpoint (zero velocity) and a reason,
 logged when it changes: no goal; missing, stale (older than ``max_*_age_s``), future-stamped or
 non-finite vehicle state; missing or stale map / tracker input; a perception input that was
-rejected (non-finite camera pose, non-finite tracked obstacle) until the next good one; a
-non-finite observation or policy output. Depth pixels that are NaN, 0 or beyond range are "no
-return" (the camera convention) and are skipped, not an error.
+rejected (non-finite camera pose, non-finite tracked obstacle, or data that cannot be read as
+the documented arrays: wrong shape, not numeric) until the next good one; a non-finite
+observation, policy output or shielded action. Depth pixels that are NaN, 0 or beyond range are
+"no return" (the camera convention) and are skipped, not an error. ``update_*`` never raise on bad
+sensor data (``tests/test_deploy_fuzz.py``); :meth:`OnboardRuntime.set_goal` raises ``ValueError``
+for a goal or start that is not a finite 3-vector (an operator's or programmer's error).
 
 Thread safety: ``update_*`` may be called from sensor threads while ``step`` runs in the control
 loop; one lock serialises them.
@@ -139,10 +142,12 @@ class OnboardRuntime:
     # ------------------------------------------------------------------ inputs
     def set_goal(self, goal, start=None) -> None:
         """Set the goal (world ENU); the goal frame's yaw is fixed from ``start`` (default: the
-        current position) toward it, as the env fixes it at reset."""
-        goal = np.asarray(goal, dtype=np.float64).reshape(3)
-        if not np.isfinite(goal).all():
-            raise ValueError(f"goal {goal.tolist()} is not finite")
+        current position) toward it, as the env fixes it at reset.
+
+        Raises ``ValueError`` if ``goal`` or ``start`` is not a finite 3-vector, or if ``start``
+        is None before the first vehicle state."""
+        goal = _finite_vector(goal, "goal")
+        start = None if start is None else _finite_vector(start, "start")
         with self._lock:
             if start is None:
                 if self._pos is None:
@@ -171,10 +176,17 @@ class OnboardRuntime:
     def update_state(self, position, velocity, stamp: float | None = None) -> None:
         """Vehicle position and velocity, world ENU (from PX4's local NED: see frames)."""
         stamp = self.clock() if stamp is None else float(stamp)
-        p = np.asarray(position, dtype=np.float64).reshape(3)
-        v = np.asarray(velocity, dtype=np.float64).reshape(3)
+        try:
+            p = np.asarray(position, dtype=np.float64).reshape(3)
+            v = np.asarray(velocity, dtype=np.float64).reshape(3)
+        except (TypeError, ValueError) as err:
+            p = v = None
+            problem = f"vehicle state rejected: {err}"
         with self._lock:
             if not self._stamp_ok("state", stamp):
+                return
+            if p is None:
+                self._faults["state"] = problem
                 return
             if not (np.isfinite(p).all() and np.isfinite(v).all()):
                 self._faults["state"] = "non-finite vehicle state"
@@ -191,14 +203,16 @@ class OnboardRuntime:
         """Insert depth images (one capture, e.g. all cameras of the rig) into the map; points
         inside tracked obstacles are left out. Returns the points inserted."""
         stamp = self.clock() if stamp is None else float(stamp)
+        try:
+            images, problem = [_checked_image(img) for img in images], ""
+        except (TypeError, ValueError) as err:
+            problem = f"depth image rejected: {err}"
         with self._lock:
             if not self._stamp_ok("map", stamp):
                 return 0
-            for img in images:
-                if not (np.isfinite(np.asarray(img.R)).all() and np.isfinite(np.asarray(img.t)).all()
-                        and all(math.isfinite(x) and x != 0 for x in (img.fx, img.fy))):  # fmt: skip
-                    self._faults["map"] = "depth image with a non-finite camera pose or intrinsics"
-                    return 0
+            if problem:
+                self._faults["map"] = problem
+                return 0
             n = self.map.insert_depth(images, self.config.depth_stride, self.config.depth_max_range,
                                       self._obstacle_boxes())  # fmt: skip
             self._faults.pop("map", None)
@@ -206,11 +220,22 @@ class OnboardRuntime:
             return n
 
     def update_points(self, points, stamp: float | None = None) -> int:
-        """Insert a world-frame point cloud ``(P, 3)``; non-finite points are skipped."""
+        """Insert a world-frame point cloud ``(P, 3)``; non-finite points are skipped, a cloud of
+        another shape is rejected."""
         stamp = self.clock() if stamp is None else float(stamp)
-        pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+        try:
+            pts, problem = np.asarray(points, dtype=np.float32), ""
+            if pts.size == 0:
+                pts = pts.reshape(0, 3)
+            elif pts.ndim != 2 or pts.shape[1] != 3:
+                problem = f"point cloud of shape {pts.shape} rejected: expected (P, 3)"
+        except (TypeError, ValueError) as err:
+            problem = f"point cloud rejected: {err}"
         with self._lock:
             if not self._stamp_ok("map", stamp):
+                return 0
+            if problem:
+                self._faults["map"] = problem
                 return 0
             n = self.map.insert_points(pts, self._obstacle_boxes())
             self._faults.pop("map", None)
@@ -222,16 +247,23 @@ class OnboardRuntime:
     ) -> None:
         """Replace the tracked moving obstacles (world ENU centres and velocities)."""
         stamp = self.clock() if stamp is None else float(stamp)
-        rows = []
-        for o in obstacles:
-            cuboid = (
-                o.cuboid if o.cuboid is not None else o.height < self.config.cuboid_below_height
-            )
-            rows.append([*np.asarray(o.p, dtype=float).reshape(3), *np.asarray(o.v, dtype=float).reshape(3),
-                         float(o.width), float(o.height), float(bool(cuboid))])  # fmt: skip
-        arr = np.asarray(rows, dtype=np.float32).reshape(-1, 9)
+        rows, problem = [], ""
+        try:
+            for o in obstacles:
+                cuboid = (
+                    o.cuboid if o.cuboid is not None else o.height < self.config.cuboid_below_height
+                )
+                rows.append([*np.asarray(o.p, dtype=float).reshape(3), *np.asarray(o.v, dtype=float).reshape(3),
+                             float(o.width), float(o.height), float(bool(cuboid))])  # fmt: skip
+            with np.errstate(over="ignore"):  # beyond float32: inf, rejected below
+                arr = np.asarray(rows, dtype=np.float32).reshape(-1, 9)
+        except (TypeError, ValueError) as err:
+            problem = f"tracked obstacles rejected: {err}"
         with self._lock:
             if not self._stamp_ok("tracker", stamp):
+                return
+            if problem:
+                self._faults["tracker"] = problem
                 return
             if not np.isfinite(arr).all() or (arr[:, 6:8] < 0).any():
                 self._faults["tracker"] = "non-finite or negative-size tracked obstacle"
@@ -334,6 +366,8 @@ class OnboardRuntime:
             if self.config.shield is not None:
                 action, corrected = shield_action(obs, action, self.config.shield)
                 shielded = bool(corrected[0])
+                if not torch.isfinite(action).all():  # absurd (finite) tracker data can do this
+                    return self._hover("shielded action not finite")
             t3 = time.perf_counter()
             # Goal frame -> world (as goal_frame_to_world): rotate by the goal yaw about z.
             a = action[0].numpy().astype(np.float64) * self.cfg.v_max
@@ -348,6 +382,33 @@ class OnboardRuntime:
                 observation={k: v[0].copy() for k, v in np_obs.items()},
                 timings_ms={"observation": (t1 - t0) * 1e3, "policy": (t2 - t1) * 1e3, "shield": (t3 - t2) * 1e3},
             )  # fmt: skip
+
+
+def _finite_vector(x, what: str) -> np.ndarray:
+    """``x`` as a finite float64 3-vector, else ``ValueError`` naming ``what``."""
+    try:
+        v = np.asarray(x, dtype=np.float64).reshape(3)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} {x!r} is not a 3-vector") from None
+    if not np.isfinite(v).all():
+        raise ValueError(f"{what} {v.tolist()} is not finite")
+    return v
+
+
+def _checked_image(img: DepthImage) -> DepthImage:
+    """``img`` with arrays of the documented shapes (depth ``(H, W)`` float32, ``R`` 3x3, ``t``
+    3); ``ValueError`` (or ``TypeError``) if it cannot be read so or its camera pose or
+    intrinsics are not finite (``fx``, ``fy`` also not zero)."""
+    depth = np.asarray(img.depth, dtype=np.float32)
+    if depth.ndim != 2:
+        raise ValueError(f"depth of shape {depth.shape}, expected (H, W)")
+    R = np.asarray(img.R, dtype=np.float64).reshape(3, 3)
+    t = np.asarray(img.t, dtype=np.float64).reshape(3)
+    k = [float(x) for x in (img.fx, img.fy, img.cx, img.cy)]
+    if not (np.isfinite(R).all() and np.isfinite(t).all() and all(map(math.isfinite, k))
+            and k[0] != 0 and k[1] != 0):  # fmt: skip
+        raise ValueError("non-finite camera pose or intrinsics")
+    return DepthImage(depth, *k, R, t)
 
 
 def state_features(pos, vel, goal, yaw: float, v_max: float) -> np.ndarray:

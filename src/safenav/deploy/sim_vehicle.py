@@ -644,11 +644,13 @@ class SimVehicle:
                 self.landed_state = mavlink.MAV_LANDED_STATE_LANDING
             else:  # HOLD, POSCTL, ...: hold the position
                 cmd = (self.hold_pos - self.pos) * 1.0
-        # PX4's velocity limits.
+        # PX4's velocity limits (a negative one, e.g. from a PARAM_SET, counts as 0).
+        xy_max = max(P["MPC_XY_VEL_MAX"], 0.0)
         h = np.linalg.norm(cmd[:2])
-        if h > P["MPC_XY_VEL_MAX"]:
-            cmd[:2] *= P["MPC_XY_VEL_MAX"] / h
-        cmd[2] = float(np.clip(cmd[2], -P["MPC_Z_VEL_MAX_DN"], P["MPC_Z_VEL_MAX_UP"]))
+        if h > xy_max:
+            cmd[:2] *= xy_max / h
+        z_dn, z_up = max(P["MPC_Z_VEL_MAX_DN"], 0.0), max(P["MPC_Z_VEL_MAX_UP"], 0.0)
+        cmd[2] = float(np.clip(cmd[2], -z_dn, z_up))
         old_vel = self.vel
         if self.armed and not self.landed:
             p, v = velocity_tracker(torch.tensor(self.pos[None]), torch.tensor(self.vel[None]), torch.tensor(cmd[None]),
