@@ -1034,3 +1034,19 @@ def test_docstring_counts_match_the_tests() -> None:
               DECODE_RANDOM, DECODE_MUTATED, DECODE_HEADERS, CLIENT_GARBAGE_FRAMES, SIM_DATAGRAMS,
               SIM_MESSAGES, MAVSDK_DATAGRAMS, FLIGHTS, MIN_FLIGHT_TICKS):  # fmt: skip
         assert f"{n:,}" in doc, n
+
+
+@pytest.mark.parametrize(("v", "width", "height"), [((1e30, 0.0, 0.0), 0.5, 1.0), ((0.0, 0.0, 0.0), 1e30, 1.0),
+                                                    ((0.0, 25.0, 0.0), 0.5, 1.0), ((0.0, 0.0, 0.0), 0.5, 60.0)])  # fmt: skip
+def test_runtime_rejects_implausible_tracks(v, width, height) -> None:
+    """Absurd speeds or sizes are tracker faults (hover), not obstacles that overflow the shield."""
+    rt = OnboardRuntime(lambda s, l, d: np.full((1, 3), 0.5, np.float32), CFG,  # noqa: E741
+                        RuntimeConfig(shield=ShieldConfig.for_env(CFG)), clock=lambda: 100.0)  # fmt: skip
+    rt.update_state([0.0, 0.0, 1.5], [0.0, 0.0, 0.0])
+    rt.set_goal([5.0, 0.0, 1.5])
+    rt.update_points(np.zeros((0, 3)))
+    rt.update_obstacles([TrackedObstacle(np.array([2.0, 0.0, 1.5]), np.array(v), width, height)])
+    sp = rt.step()
+    assert sp.hover and "faster than" in sp.reason
+    rt.update_obstacles([TrackedObstacle(np.array([2.0, 0.0, 1.5]), np.zeros(3), 0.5, 1.0)])
+    assert not rt.step().hover

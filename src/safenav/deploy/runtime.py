@@ -71,6 +71,11 @@ class RuntimeConfig:
     fills in, since successive frames see every cell from slightly different places)."""
     depth_max_range: float = 8.0
     """Depth returns beyond this range (m) are skipped."""
+    max_obstacle_speed: float = 20.0
+    """Tracked obstacles faster than this (m/s, per axis) are tracker faults: hover. (Absurd speeds
+    or sizes overflow the shield's float32 geometry and would switch it off.)"""
+    max_obstacle_size: float = 50.0
+    """Tracked obstacles wider or taller than this (m) are tracker faults: hover."""
     cuboid_below_height: float = 2.5
     """Tracked obstacles shorter than this (m) are the env's floating cuboids, taller ones its
     standing cylinders (the env has 1 m cuboids and 5 m cylinders), unless the tracker says."""
@@ -267,6 +272,13 @@ class OnboardRuntime:
                 return
             if not np.isfinite(arr).all() or (arr[:, 6:8] < 0).any():
                 self._faults["tracker"] = "non-finite or negative-size tracked obstacle"
+                return
+            c = self.config
+            if (np.abs(arr[:, 3:6]) > c.max_obstacle_speed).any() or (
+                arr[:, 6:8] > c.max_obstacle_size
+            ).any():
+                self._faults["tracker"] = (f"tracked obstacle faster than {c.max_obstacle_speed} m/s or larger "
+                                           f"than {c.max_obstacle_size} m")  # fmt: skip
                 return
             self._faults.pop("tracker", None)
             self._obstacles, self._obstacle_stamp = arr, stamp
