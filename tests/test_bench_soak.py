@@ -28,7 +28,7 @@ def test_tiny_soak_writes_its_figures(tmp_path) -> None:
     saved = json.loads((tmp_path / "soak.json").read_text())
     assert saved["env_steps"] == 4096 and saved["updates"] == 200
     for key in ("env_rss_start_mb", "env_rss_end_mb", "env_growth_after_warmup_mb",
-                "train_rss_start_mb", "train_rss_buffer_full_mb", "train_rss_end_mb",
+                "train_rss_start_mb", "train_rss_after_buffer_full_mb", "train_rss_last_10pct_mb",
                 "train_growth_after_buffer_full_mb", "buffer_mb"):  # fmt: skip
         assert math.isfinite(saved[key]), key
     assert out == saved | {"machine": out["machine"]}

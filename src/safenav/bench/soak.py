@@ -9,7 +9,9 @@ Two phases in one process, resident memory (RSS) sampled by a background thread:
    (``safenav.algos.csac.train``: replay buffer, logging, TensorBoard, periodic evaluation and
    atomic checkpoints), with a replay buffer of ``buffer_size`` transitions that fills in the first
    half and then wraps around. RSS may grow while the buffer fills (its pages are touched then),
-   and must be flat afterwards: ``train_growth_after_buffer_full_mb``.
+   and must be flat afterwards: ``train_growth_after_buffer_full_mb`` is the median RSS over the
+   last 10 % of training minus the median over the 10 % just after the buffer filled (medians:
+   evaluations and checkpoint writes make short peaks).
 
 The networks are small (``--hidden``, ``--batch-size``) so that 10^5 updates fit in minutes on a
 laptop CPU: leaks come from the loop (lists that grow, tensors kept alive, file handles), not
@@ -20,6 +22,7 @@ from __future__ import annotations
 
 import json
 import platform
+import statistics
 import tempfile
 import threading
 import time
@@ -73,6 +76,13 @@ class RssSampler:
         t_end = self.samples[-1][0]
         return next(r for t, r in self.samples if t >= fraction * t_end)
 
+    def median(self, start: float, end: float) -> float:
+        """Median RSS over ``[start, end]`` fractions of the time span: robust to the transient
+        peaks of evaluations and checkpoint writes."""
+        t_end = self.samples[-1][0]
+        window = [r for t, r in self.samples if start * t_end <= t <= end * t_end]
+        return float(statistics.median(window or [self.samples[-1][1]]))
+
 
 def soak_env(env_steps: int, num_envs: int, preset: str) -> dict[str, Any]:
     from rich.progress import Progress
@@ -122,21 +132,21 @@ def soak_train(updates: int, preset: str, hidden: tuple[int, ...], batch_size: i
     cfg = replace(cfg, batch_size=batch_size, buffer_size=buffer_size, learning_starts=learning_starts,
                   updates_per_step=1.0, net=replace(cfg.net, hidden=tuple(hidden)))  # fmt: skip
     start = rss_mb()
-    with tempfile.TemporaryDirectory() as tmp, RssSampler() as rss:
+    with tempfile.TemporaryDirectory() as tmp, RssSampler() as rss:  # sampled while training
         t0 = time.perf_counter()
         final = csac.train("csac", run, cfg, Path(tmp) / "run", progress=True)
         seconds = time.perf_counter() - t0
-    end = rss_mb()
     # The buffer is full after buffer_size env steps: at that fraction of the run (env steps are
-    # ~uniform in time, one update each), plus a margin.
-    full = min(0.95, buffer_size / total + 0.05)
+    # ~uniform in time, one update each). Compare the median RSS just after it with the last 10 %.
+    full = min(0.85, buffer_size / total + 0.02)
+    after_full, last = rss.median(full, full + 0.1), rss.median(0.9, 1.0)
     return {
         "updates": int(final.get("perf/updates", updates)), "train_env_steps": total,
         "train_seconds": round(seconds, 1), "buffer_size": buffer_size,
         "buffer_mb": round(buffer_size * transition_bytes(preset) / 2**20, 1),
-        "train_rss_start_mb": round(start, 1), "train_rss_buffer_full_mb": round(rss.at(full), 1),
-        "train_rss_end_mb": round(end, 1), "train_rss_max_mb": round(max(r for _, r in rss.samples), 1),
-        "train_growth_after_buffer_full_mb": round(end - rss.at(full), 1),
+        "train_rss_start_mb": round(start, 1), "train_rss_after_buffer_full_mb": round(after_full, 1),
+        "train_rss_last_10pct_mb": round(last, 1), "train_rss_max_mb": round(max(r for _, r in rss.samples), 1),
+        "train_growth_after_buffer_full_mb": round(last - after_full, 1),
     }  # fmt: skip
 
 
