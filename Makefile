@@ -35,6 +35,7 @@ bench: setup
 	$(BIN)/safenav bench env --json benchmarks/results/env.json
 	$(BIN)/safenav bench update --json benchmarks/results/update.json
 	$(BIN)/safenav bench latency --json benchmarks/results/latency.json
+	$(BIN)/safenav bench soak --json benchmarks/results/soak.json
 
 clean:
 	rm -rf $(VENV) .pytest_cache runs
