@@ -130,7 +130,12 @@ def main():
                 yc = cc + 0.99 * (1 - dd) * 0.5 * (qv[2] + qv[3])
             inp = torch.cat([o, aa], -1)
             qq = [q(inp).squeeze(-1) for q in qs]
-            lq = F.mse_loss(qq[0], yr) + F.mse_loss(qq[1], yr) + F.mse_loss(qq[2], yc) + F.mse_loss(qq[3], yc)
+            lq = (
+                F.mse_loss(qq[0], yr)
+                + F.mse_loss(qq[1], yr)
+                + F.mse_loss(qq[2], yc)
+                + F.mse_loss(qq[3], yc)
+            )
             opt_q.zero_grad()
             lq.backward()
             opt_q.step()

@@ -22,7 +22,9 @@ CHECKPOINT = Path("checkpoints/csac-paper.pt")
 def main() -> None:
     console = Console()
     OUT.mkdir(exist_ok=True)
-    have_policy = CHECKPOINT.exists() and importlib.util.find_spec("safenav.algos.policy") is not None
+    have_policy = (
+        CHECKPOINT.exists() and importlib.util.find_spec("safenav.algos.policy") is not None
+    )
     policy_args = [str(CHECKPOINT)] if have_policy else ["--policy", "scripted"]
     name = str(CHECKPOINT) if have_policy else "the scripted potential-field controller"
     console.rule(f"[bold]1. Evaluate {name} on the fixed test scenario (paper preset)")

@@ -441,7 +441,9 @@ class SafeNavVectorEnv(VectorEnv):
                 rel, per_map(self.dyn_vel, nd), width, cuboid, cos_y, sin_y, k, rng_, cfg.v_max)  # fmt: skip
             dynamic = flat(feats)
             kk = idx.shape[-1]
-            tracked_clear[:, :kk] = flat(torch.where(in_range, torch.gather(clear_all, -1, idx), rng_))
+            tracked_clear[:, :kk] = flat(
+                torch.where(in_range, torch.gather(clear_all, -1, idx), rng_)
+            )
 
         to_goal = flat(goal - pos)
         vel, cos_y, sin_y = flat(vel), flat(cos_y), flat(sin_y)
