@@ -160,7 +160,14 @@ def launch(args: list[str], block_sigint: bool = False) -> subprocess.Popen:
     """``python -m safenav ARGS`` with one OpenMP thread; ``block_sigint``: start it with SIGINT
     blocked, the signal mask a Ray worker's child inherits."""
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    preexec = (lambda: signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})) if block_sigint else None  # fmt: skip
+
+    def preexec() -> None:
+        # SIGINT as a terminal gives it, also when this test run inherited it ignored (a
+        # background job of a script: ``make test &``), which the trainer would respect.
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+        if block_sigint:
+            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+
     return subprocess.Popen([sys.executable, "-m", "safenav", *args], env=env, preexec_fn=preexec,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)  # fmt: skip
 
@@ -305,9 +312,14 @@ def test_sigint_during_a_checkpoint_write_waits_for_the_write(tmp_path, monkeypa
             self.f.flush()
 
     monkeypatch.setattr(torch, "save", lambda obj, f: real_save(obj, InterruptingFile(f)))
+    # Ctrl-C's usual handler, also when this test run inherited SIGINT ignored (``make test &``).
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     guard = RunGuard(tmp_path, logger=None, agent=torch.nn.Linear(2, 2))
-    with pytest.raises(KeyboardInterrupt):
-        guard.save(7, {"w": torch.ones(100_000)})
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            guard.save(7, {"w": torch.ones(100_000)})
+    finally:
+        signal.signal(signal.SIGINT, previous)
     monkeypatch.setattr(torch, "save", real_save)
     assert guard.last_saved == 7 and float(load_checkpoint(tmp_path)["w"].sum()) == 100_000
 
