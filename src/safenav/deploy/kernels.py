@@ -240,13 +240,84 @@ def _shield(v_des, rel, ovel, radius, valid, planar, idx, fan, tau, vm):
     return cands[best if best >= 0 else fallback].copy(), True
 
 
+def _shield_obs(action, lidar, dyn, dirs, upward, fan, k_static, projected, lidar_range, v_max,
+                base, width0, n_widths, cuboid_height, tau, max_hit):  # fmt: skip
+    """shield.shield_action for one vehicle, from its observation: ``(action, corrected)``.
+
+    The obstacle decoding is float32 arithmetic in the batched path's order (so that the same hits
+    and distances come out, bit for bit) and the selections are stable sorts, as
+    ``shield.nearest``; the VO search is :func:`_shield`."""
+    f = np.float32
+    inf = np.float32(np.inf)
+    big_r, vm, one = f(lidar_range), f(v_max), f(1.0)
+    # Static obstacles: the k nearest beam hits (range image value (R - d) / R).
+    d = np.empty(lidar.shape[0], np.float32)
+    for i in range(lidar.shape[0]):
+        r = big_r * (one - lidar[i])
+        d[i] = r if r < f(max_hit) else inf
+    order = np.argsort(d, kind="mergesort")[:k_static]
+    nd = dyn.shape[0]
+    use_dyn = False
+    for j in range(nd):
+        for c in range(dyn.shape[1]):
+            if dyn[j, c] != 0:
+                use_dyn = True
+    m = k_static + (nd if use_dyn else 0)
+    rel = np.zeros((m, 3))
+    ovel = np.zeros((m, 3))
+    radius = np.empty(m)
+    valid = np.zeros(m, np.bool_)
+    planar = np.zeros(m, np.bool_)
+    dist = np.full(m, inf, np.float32)
+    for i in range(k_static):
+        b = order[i]
+        ok = d[b] < inf
+        ds = d[b] if ok else f(0.0)
+        for a in range(3):
+            rel[i, a] = dirs[b, a] * ds
+        radius[i] = f(base)
+        valid[i], planar[i] = ok, upward[b]
+        if ok:
+            dist[i] = d[b]
+    if use_dyn:  # the tracked moving obstacles, decoded from their features
+        cz = f((cuboid_height / 2) ** 2)
+        for j in range(nd):
+            i = k_static + j
+            d2, dz = dyn[j, 3] * big_r, dyn[j, 4] * big_r
+            dj = np.sqrt(d2 * d2 + dz * dz)
+            for a in range(3):
+                rel[i, a] = dyn[j, a] * dj
+                ovel[i, a] = dyn[j, 5 + a] * vm
+            half = (dyn[j, 8] * f(n_widths - 1) + one) * f(width0) / f(2.0)
+            cuboid = dyn[j, 9] > f(0.5)
+            r = np.sqrt(f(2.0) * half * half + cz) if cuboid else half
+            radius[i] = r + f(base)
+            total = f(0.0)
+            for c in range(dyn.shape[1]):
+                total += abs(dyn[j, c])
+            valid[i], planar[i] = total > f(0.0), not cuboid
+            if valid[i]:
+                dist[i] = dj
+    idx = np.argsort(dist, kind="mergesort")[: min(projected, m)]
+    v_des = np.empty(3)
+    for a in range(3):
+        v_des[a] = action[a] * vm
+    v, corrected = _shield(v_des, rel, ovel, radius, valid, planar, idx, fan, tau, float(vm))
+    out = np.empty(3, np.float32)
+    for a in range(3):
+        out[a] = min(max(f(v[a]) / vm, f(-1.0)), one)
+    return out, corrected
+
+
 if AVAILABLE:
     insert_depth_kernel = njit(cache=True, nogil=True)(_insert_depth)
     _vo = njit(cache=True, nogil=True)(_vo)
     _boundary = njit(cache=True, nogil=True)(_boundary)
-    shield_kernel = njit(cache=True, nogil=True)(_shield)
+    _shield = njit(cache=True, nogil=True)(_shield)
+    shield_kernel = _shield
+    shield_obs_kernel = njit(cache=True, nogil=True)(_shield_obs)
 else:  # pragma: no cover
-    insert_depth_kernel = shield_kernel = None
+    insert_depth_kernel = shield_kernel = shield_obs_kernel = None
 
 
-__all__ = ["AVAILABLE", "insert_depth_kernel", "shield_kernel"]
+__all__ = ["AVAILABLE", "insert_depth_kernel", "shield_kernel", "shield_obs_kernel"]

@@ -107,12 +107,13 @@ def _vo_test(v: torch.Tensor, rel: torch.Tensor, ovel: torch.Tensor, radius: tor
     return inside.any(-1), ttc.amin(-1) if ttc.shape[-1] else torch.full(inside.shape[:2], math.inf)
 
 
-def _boundary_candidates(v_des, rel, ovel, radius, valid, planar, tau, k):
-    """Closest points on the VO boundary (cone side and cap) of the ``k`` nearest obstacles."""
+def _boundary_candidates(v_des, rel, ovel, radius, valid, planar, tau, k, dist=None):
+    """Closest points on the VO boundary (cone side and cap) of the ``k`` nearest obstacles
+    (nearest by ``dist`` ``(N, M)`` if given, else by ``|rel|``)."""
     n, m = rel.shape[:2]
     k = min(k, m)
-    dist = torch.where(valid, rel.norm(dim=-1), math.inf)
-    _, idx = torch.topk(dist, k, dim=-1, largest=False)
+    dist = torch.where(valid, rel.norm(dim=-1) if dist is None else dist, math.inf)
+    _, idx = nearest(dist, k)
     g3 = lambda t: torch.gather(t, 1, idx[..., None].expand(-1, -1, 3))  # noqa: E731
     p, u = g3(rel), g3(ovel)
     r = torch.gather(radius, 1, idx)
@@ -152,6 +153,13 @@ def _boundary_candidates(v_des, rel, ovel, radius, valid, planar, tau, k):
     return torch.cat([u + leg, u + cap], dim=1)  # (N, 2k, 3)
 
 
+def nearest(dist: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``k`` smallest of ``dist`` ``(N, M)`` along the last axis, ties to the lower index (a
+    stable sort, unlike ``torch.topk``), so that the compiled one-vehicle path picks the same."""
+    values, idx = torch.sort(dist, dim=-1, stable=True)
+    return values[..., :k], idx[..., :k]
+
+
 @functools.lru_cache(maxsize=16)
 def _fan(cfg: ShieldConfig, device, dtype) -> torch.Tensor:
     az = torch.arange(cfg.n_azimuth, device=device, dtype=dtype) * (2 * math.pi / cfg.n_azimuth)
@@ -170,6 +178,7 @@ def velocity_obstacle_shield(
     planar: torch.Tensor | None = None,
     cfg: ShieldConfig = ShieldConfig(),
     compiled: bool | None = None,
+    dist: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Shield desired velocities ``v_des`` ``(N, 3)`` against ``M`` obstacles per env.
 
@@ -177,6 +186,8 @@ def velocity_obstacle_shield(
         rel: ``(N, M, 3)`` obstacle position - UAV position; obs_vel: ``(N, M, 3)`` their velocities.
         radius: ``(N, M)`` combined radii (obstacle + UAV + margin); valid: ``(N, M)`` mask.
         planar: ``(N, M)`` obstacles that span all altitudes (tested in the horizontal plane).
+        dist: ``(N, M)`` distances that rank the obstacles for the boundary candidates (default
+            ``|rel|``).
 
     Returns ``(v, corrected)``: the shielded velocities ``(N, 3)`` (``v_des`` itself, bit for bit,
     where it was admissible) and which envs were corrected ``(N,)``.
@@ -191,7 +202,7 @@ def velocity_obstacle_shield(
         return v_des.clone(), torch.zeros(n, dtype=torch.bool, device=dev)
     tau, vm = cfg.time_horizon, cfg.v_max
     if n == 1 and dev.type == "cpu" and kernels.AVAILABLE and compiled is not False:
-        return _shield_one_compiled(v_des, rel, obs_vel, radius, valid, planar, cfg)
+        return _shield_one_compiled(v_des, rel, obs_vel, radius, valid, planar, cfg, dist)
     inside_des, _ = _vo_test(v_des[:, None, :], rel, obs_vel, radius, valid, planar, tau)
     corrected = inside_des[:, 0]
     out = v_des.clone()
@@ -201,11 +212,12 @@ def velocity_obstacle_shield(
     rows = corrected.nonzero().squeeze(1)
     v_des, rel, obs_vel = v_des[rows], rel[rows], obs_vel[rows]
     radius, valid, planar = radius[rows], valid[rows], planar[rows]
+    dist = dist[rows] if dist is not None else None
     scales = v_des.new_tensor([0.75, 0.5, 0.25, 0.0])
     cands = torch.cat([
         v_des[:, None, :] * scales[None, :, None],
         _fan(cfg, dev, dt)[None].expand(rows.shape[0], -1, -1),
-        _boundary_candidates(v_des, rel, obs_vel, radius, valid, planar, tau, cfg.projected),
+        _boundary_candidates(v_des, rel, obs_vel, radius, valid, planar, tau, cfg.projected, dist),
     ], dim=1).clamp(-vm, vm)  # fmt: skip
     inside, ttc = _vo_test(cands, rel, obs_vel, radius, valid, planar, tau)
     cost = (cands - v_des[:, None, :]).square().sum(-1)
@@ -217,13 +229,13 @@ def velocity_obstacle_shield(
     return out, corrected
 
 
-def _shield_one_compiled(v_des, rel, obs_vel, radius, valid, planar, cfg):
+def _shield_one_compiled(v_des, rel, obs_vel, radius, valid, planar, cfg, dist=None):
     """velocity_obstacle_shield for ``N = 1`` through :func:`safenav.deploy.kernels.shield_kernel`."""
     f64 = lambda t: t[0].detach().double().contiguous().numpy()  # noqa: E731
     k = min(cfg.projected, rel.shape[1])
-    # The nearest obstacles are picked by torch.topk, exactly as _boundary_candidates picks them.
-    dist = torch.where(valid, rel.norm(dim=-1), math.inf)
-    idx = torch.topk(dist, k, dim=-1, largest=False).indices[0].numpy()
+    # The nearest obstacles are picked exactly as _boundary_candidates picks them.
+    dist = torch.where(valid, rel.norm(dim=-1) if dist is None else dist, math.inf)
+    idx = nearest(dist, k)[1][0].numpy()
     fan = _fan(cfg, torch.device("cpu"), torch.float64).numpy()
     v, corrected = kernels.shield_kernel(
         f64(v_des), f64(rel), f64(obs_vel), f64(radius), valid[0].numpy(), planar[0].numpy(),
@@ -257,32 +269,43 @@ def static_obstacles_from_ranges(
     Hits of level and upward beams are columns (``planar``): static obstacles are pillars standing
     on the ground, so the column extends below the hit. Hits of downward beams may be the ground and
     stay points."""
+    rel, valid, planar, _ = _static_hits(ranges, spec, k)
+    return rel, valid, planar
+
+
+def _static_hits(ranges, spec, k):
+    """static_obstacles_from_ranges plus the hits' distances (inf where none)."""
     n = ranges.shape[0]
     dirs, upward = _beams(spec, ranges.device)
     d = ranges.reshape(n, -1)
     k = min(k, d.shape[1])
-    dsel, idx = torch.topk(
-        torch.where(d < spec.max_range - 1e-3, d, math.inf), k, dim=-1, largest=False
-    )
+    dsel, idx = nearest(torch.where(d < spec.max_range - 1e-3, d, math.inf), k)
     valid = torch.isfinite(dsel)
     rel = dirs[idx] * torch.where(valid, dsel, 0.0)[..., None]
-    return rel, valid, upward[idx]
+    return rel, valid, upward[idx], dsel
 
 
 def dynamic_obstacles_from_features(dynamic: torch.Tensor, lidar_range: float, v_max: float):
     """Decode the env's ``dynamic`` features ``(N, k, 10)`` back into geometry in the goal frame:
     ``(rel, vel, radius, valid, planar)``; radius is the obstacle's own (no UAV radius)."""
+    rel, vel, radius, valid, planar, _ = _decode_dynamic(dynamic, lidar_range, v_max)
+    return rel, vel, radius, valid, planar
+
+
+def _decode_dynamic(dynamic, lidar_range, v_max):
+    """dynamic_obstacles_from_features plus the obstacles' distances."""
     unit = dynamic[..., 0:3]
     d2 = dynamic[..., 3] * lidar_range
     dz = dynamic[..., 4] * lidar_range
-    rel = unit * torch.sqrt(d2 * d2 + dz * dz)[..., None]
+    dist = torch.sqrt(d2 * d2 + dz * dz)
+    rel = unit * dist[..., None]
     vel = dynamic[..., 5:8] * v_max
     width = (dynamic[..., 8] * (len(DYN_WIDTHS) - 1) + 1.0) * DYN_WIDTHS[0]
     cuboid = dynamic[..., 9] > 0.5
     half = width / 2
     radius = torch.where(cuboid, torch.sqrt(2 * half * half + (CUBOID_HEIGHT / 2) ** 2), half)
     valid = dynamic.abs().sum(-1) > 0
-    return rel, vel, radius, valid, ~cuboid
+    return rel, vel, radius, valid, ~cuboid, dist
 
 
 @functools.lru_cache(maxsize=16)
@@ -304,22 +327,43 @@ def shield_action(
     """
     spec = _spec(cfg)
     lidar, dyn = obs["lidar"], obs["dynamic"]
+    if action.shape[0] == 1 and action.device.type == "cpu" and kernels.AVAILABLE:
+        return _shield_action_compiled(lidar, dyn, action, cfg, spec)
     ranges = cfg.lidar_range * (1.0 - lidar.to(action.dtype))
-    rel, valid, planar = static_obstacles_from_ranges(ranges, spec, cfg.max_static)
+    rel, valid, planar, dist = _static_hits(ranges, spec, cfg.max_static)
     base = cfg.uav_radius + cfg.margin
     vel = torch.zeros_like(rel)
     radius = torch.full_like(rel[..., 0], base)
     if bool((dyn != 0).any()):  # tracked moving obstacles (rows of zeros are empty slots)
-        d_rel, d_vel, d_rad, d_valid, d_planar = dynamic_obstacles_from_features(
+        d_rel, d_vel, d_rad, d_valid, d_planar, d_dist = _decode_dynamic(
             dyn.to(action.dtype), cfg.lidar_range, cfg.v_max)  # fmt: skip
         rel, vel = torch.cat([rel, d_rel], 1), torch.cat([vel, d_vel], 1)
         radius = torch.cat([radius, d_rad + base], 1)
         valid, planar = torch.cat([valid, d_valid], 1), torch.cat([planar, d_planar], 1)
+        dist = torch.cat([dist, d_dist], 1)
     v, corrected = velocity_obstacle_shield(
-        action * cfg.v_max, rel, vel, radius, valid, planar, cfg
+        action * cfg.v_max, rel, vel, radius, valid, planar, cfg, dist=dist
     )
     out = torch.where(corrected[:, None], (v / cfg.v_max).clamp(-1.0, 1.0), action)
     return out, corrected
+
+
+def _shield_action_compiled(lidar, dyn, action, cfg: ShieldConfig, spec: RangeImageSpec):
+    """shield_action for one vehicle in one call of :func:`safenav.deploy.kernels.shield_obs_kernel`
+    (the same float32 decoding, the same stable nearest-first selection, then the VO search)."""
+    dirs, upward = _beams(spec, torch.device("cpu"))
+    out, corrected = kernels.shield_obs_kernel(
+        action[0].detach().float().contiguous().numpy(),
+        lidar[0].detach().float().contiguous().numpy().reshape(-1),
+        dyn[0].detach().float().contiguous().numpy(),
+        dirs.numpy(), upward.numpy(), _fan(cfg, torch.device("cpu"), torch.float64).numpy(),
+        min(cfg.max_static, dirs.shape[0]), cfg.projected, float(cfg.lidar_range), float(cfg.v_max),
+        float(cfg.uav_radius + cfg.margin), float(DYN_WIDTHS[0]), len(DYN_WIDTHS), float(CUBOID_HEIGHT),
+        float(cfg.time_horizon), float(spec.max_range - 1e-3),
+    )  # fmt: skip
+    if not corrected:
+        return action.clone(), torch.zeros(1, dtype=torch.bool)
+    return torch.from_numpy(out)[None].to(action.dtype), torch.ones(1, dtype=torch.bool)
 
 
 def env_shield(env, obs: dict[str, torch.Tensor], action: torch.Tensor) -> torch.Tensor:
