@@ -324,24 +324,30 @@ def test_sigint_during_a_checkpoint_write_waits_for_the_write(tmp_path, monkeypa
     assert guard.last_saved == 7 and float(load_checkpoint(tmp_path)["w"].sum()) == 100_000
 
 
-@pytest.mark.parametrize("algo", ["ppo", "csac"])
-def test_sigint_stops_training_with_a_checkpoint_that_resumes(tmp_path, algo):
+@pytest.mark.parametrize(
+    ("algo", "sig"), [("ppo", "SIGINT"), ("csac", "SIGINT"), ("csac", "SIGTERM")]
+)
+def test_sigint_stops_training_with_a_checkpoint_that_resumes(tmp_path, algo, sig):
     """With SIGINT blocked at start, as in a trainer a Ray worker started (``safenav
-    reproduce``): that trainer used to ignore Ctrl-C and train on."""
+    reproduce``): that trainer used to ignore Ctrl-C and train on. SIGTERM (``kill PID``, Ray
+    cancelling a trial, a cluster's preemption) stops the same way, with exit code 143."""
     run_dir = tmp_path / "interrupted"
     proc = launch(train_args(algo, run_dir, 10**7), block_sigint=True)
     assert wait_until(lambda: logged_step(run_dir) >= 64, proc), proc.communicate()[1]
     sent = time.monotonic()
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(getattr(signal, sig))
     try:
         _, err = proc.communicate(timeout=20)
     except subprocess.TimeoutExpired:
         proc.kill()
-        raise AssertionError("the trainer kept training after SIGINT") from None
-    assert time.monotonic() - sent < 20 and proc.returncode == 130, err
-    assert err.strip().splitlines()[-1] == "safenav: interrupted" and "Traceback" not in err
+        raise AssertionError(f"the trainer kept training after {sig}") from None
+    code, said = (
+        (130, "safenav: interrupted") if sig == "SIGINT" else (143, "safenav: terminated (SIGTERM)")
+    )
+    assert time.monotonic() - sent < 20 and proc.returncode == code, err
+    assert err.strip().splitlines()[-1] == said and "Traceback" not in err
     last = events(run_dir)[-1]
-    assert last["event"] == "interrupted"
+    assert last["event"] == "interrupted" and last["signal"] == sig
     state = load_checkpoint(run_dir / "checkpoint.pt")
     assert state["global_step"] == last["global_step"] >= 64
     end = state["global_step"] + 128

@@ -31,9 +31,14 @@ def main(argv: list[str] | None = None) -> None:
         # one line even when the message quotes a multi-line library error
         print(f"safenav: error: {one_line(err)}", file=sys.stderr)
         raise SystemExit(2) from None
-    except KeyboardInterrupt:
-        print("safenav: interrupted", file=sys.stderr)
-        raise SystemExit(130) from None
+    except KeyboardInterrupt as err:
+        from safenav.common.stopping import Terminated
+
+        terminated = isinstance(err, Terminated)
+        print(
+            f"safenav: {'terminated (SIGTERM)' if terminated else 'interrupted'}", file=sys.stderr
+        )
+        raise SystemExit(143 if terminated else 130) from None
 
 
 def _value_errors_as_safenav_errors() -> contextlib.AbstractContextManager:

@@ -37,8 +37,18 @@ class TrainingDiverged(SafenavError):
     """A loss or a weight became NaN/Inf; checkpoint.pt holds the last finite state."""
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill PID``, a cluster's preemption, Ray cancelling a trial): stop like Ctrl-C,
+    with a checkpoint; the CLI exits with 143 (128 + SIGTERM)."""
+
+
+def _raise_terminated(signum, frame) -> None:
+    raise Terminated()
+
+
 def enable_sigint() -> None:
-    """Let SIGINT (Ctrl-C, ``kill -INT``) raise ``KeyboardInterrupt`` in this process.
+    """Let SIGINT (Ctrl-C, ``kill -INT``) raise ``KeyboardInterrupt`` and SIGTERM
+    :class:`Terminated` (a ``KeyboardInterrupt``) in this process: both checkpoint and stop.
 
     A child process inherits its parent's signal mask, and Ray's worker threads block SIGINT: a
     trainer started by ``safenav reproduce`` (a Ray task running ``python -m safenav train``)
@@ -48,16 +58,19 @@ def enable_sigint() -> None:
     for ``cmd &`` in a script) stays ignored: that was the caller's choice.
     """
     if hasattr(signal, "pthread_sigmask"):  # POSIX; the mask is per thread, this is the main one
-        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
     # An embedding program may have left the OS default (terminate, no checkpoint) in place.
     main = threading.current_thread() is threading.main_thread()
     if main and signal.getsignal(signal.SIGINT) is signal.SIG_DFL:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+    # SIGTERM, by default an immediate exit (the last periodic checkpoint), stops like Ctrl-C.
+    if main and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+        signal.signal(signal.SIGTERM, _raise_terminated)
 
 
 @contextlib.contextmanager
 def sigint_deferred() -> Iterator[None]:
-    """Hold back a SIGINT that arrives inside the block until the block is done.
+    """Hold back a SIGINT or SIGTERM that arrives inside the block until the block is done.
 
     Around checkpoint writes: a ``KeyboardInterrupt`` raised inside ``torch.save`` makes its zip
     writer fail on exit with a ``RuntimeError`` that replaces the interrupt, so the trainer
@@ -67,13 +80,18 @@ def sigint_deferred() -> Iterator[None]:
         yield  # only the main thread receives signals (and may set handlers)
         return
     received: list[int] = []
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: received.append(signum))
+    held = (signal.SIGINT, signal.SIGTERM)
+    previous = {
+        sig: signal.signal(sig, lambda signum, frame: received.append(signum)) for sig in held
+    }
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
-    if received and callable(previous):
-        previous(signal.SIGINT, None)  # default_int_handler: KeyboardInterrupt, now
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    for sig in dict.fromkeys(received):  # each held signal once, in arrival order
+        if callable(previous[sig]):
+            previous[sig](sig, None)  # e.g. default_int_handler: KeyboardInterrupt, now
 
 
 def nonfinite_metrics(metrics: Mapping[str, float]) -> list[str]:
@@ -131,7 +149,9 @@ class RunGuard:
             except TrainingDiverged as diverged:
                 self.logger.event(step, "diverged", error=str(diverged))
                 raise
-            self.logger.event(step, "interrupted")
+            self.logger.event(
+                step, "interrupted", signal="SIGTERM" if isinstance(err, Terminated) else "SIGINT"
+            )
         elif isinstance(err, TrainingDiverged):
             self.logger.event(step, "diverged", error=str(err))
         else:
@@ -144,5 +164,5 @@ class RunGuard:
             self.logger.event(step, "error", error=one_line(f"{type(err).__name__}: {err}", 500))
 
 
-__all__ = ["RunGuard", "TrainingDiverged", "enable_sigint", "nonfinite_metrics",
+__all__ = ["RunGuard", "Terminated", "TrainingDiverged", "enable_sigint", "nonfinite_metrics",
            "nonfinite_tensors", "sigint_deferred"]  # fmt: skip
