@@ -100,7 +100,7 @@ def test_closed_loop_reaches_goal_and_lands(policy: Path, tmp_path: Path) -> Non
         summary = json.loads(out.read_text()) if out.exists() else {}
         assert fly.returncode == 0, f"{summary}\n{fly.stderr[-3000:]}\n{''.join(sim.err[-30:])}"
         assert summary["reached_goal"] is True
-        assert summary["min_goal_distance_m"] < 0.5
+        assert summary["min_goal_distance_m"] <= 0.5  # < 0.5 m, rounded to mm in the summary
         # Watchdog statistics: the loop ran at its rate and computed setpoints in time.
         assert summary["ticks"] > 20
         assert summary["late_ticks"] <= 0.1 * summary["ticks"]
