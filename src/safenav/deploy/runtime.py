@@ -178,23 +178,29 @@ class OnboardRuntime:
             return False
         return True
 
+    def _accepted(self, source: str, stamp: float, problem: str) -> bool:
+        """Under the lock: False, with the fault recorded, if the input's stamp or its data (a
+        ``problem`` found while reading it, outside the lock) is bad."""
+        if not self._stamp_ok(source, stamp):
+            return False
+        if problem:
+            self._faults[source] = problem
+            return False
+        return True
+
     def update_state(self, position, velocity, stamp: float | None = None) -> None:
         """Vehicle position and velocity, world ENU (from PX4's local NED: see frames)."""
         stamp = self.clock() if stamp is None else float(stamp)
+        problem = ""
         try:
             p = np.asarray(position, dtype=np.float64).reshape(3)
             v = np.asarray(velocity, dtype=np.float64).reshape(3)
+            if not (np.isfinite(p).all() and np.isfinite(v).all()):
+                problem = "non-finite vehicle state"
         except (TypeError, ValueError) as err:
-            p = v = None
             problem = f"vehicle state rejected: {err}"
         with self._lock:
-            if not self._stamp_ok("state", stamp):
-                return
-            if p is None:
-                self._faults["state"] = problem
-                return
-            if not (np.isfinite(p).all() and np.isfinite(v).all()):
-                self._faults["state"] = "non-finite vehicle state"
+            if not self._accepted("state", stamp, problem):
                 return
             self._faults.pop("state", None)
             self._pos, self._vel, self._state_stamp = p, v, stamp
@@ -213,10 +219,7 @@ class OnboardRuntime:
         except (TypeError, ValueError) as err:
             problem = f"depth image rejected: {err}"
         with self._lock:
-            if not self._stamp_ok("map", stamp):
-                return 0
-            if problem:
-                self._faults["map"] = problem
+            if not self._accepted("map", stamp, problem):
                 return 0
             n = self.map.insert_depth(images, self.config.depth_stride, self.config.depth_max_range,
                                       self._obstacle_boxes())  # fmt: skip
@@ -237,10 +240,7 @@ class OnboardRuntime:
         except (TypeError, ValueError) as err:
             problem = f"point cloud rejected: {err}"
         with self._lock:
-            if not self._stamp_ok("map", stamp):
-                return 0
-            if problem:
-                self._faults["map"] = problem
+            if not self._accepted("map", stamp, problem):
                 return 0
             n = self.map.insert_points(pts, self._obstacle_boxes())
             self._faults.pop("map", None)
@@ -262,23 +262,18 @@ class OnboardRuntime:
                              float(o.width), float(o.height), float(bool(cuboid))])  # fmt: skip
             with np.errstate(over="ignore"):  # beyond float32: inf, rejected below
                 arr = np.asarray(rows, dtype=np.float32).reshape(-1, 9)
+            c = self.config
+            if not np.isfinite(arr).all() or (arr[:, 6:8] < 0).any():
+                problem = "non-finite or negative-size tracked obstacle"
+            elif (np.abs(arr[:, 3:6]) > c.max_obstacle_speed).any() or (
+                arr[:, 6:8] > c.max_obstacle_size
+            ).any():
+                problem = (f"tracked obstacle faster than {c.max_obstacle_speed} m/s or larger "
+                           f"than {c.max_obstacle_size} m")  # fmt: skip
         except (TypeError, ValueError) as err:
             problem = f"tracked obstacles rejected: {err}"
         with self._lock:
-            if not self._stamp_ok("tracker", stamp):
-                return
-            if problem:
-                self._faults["tracker"] = problem
-                return
-            if not np.isfinite(arr).all() or (arr[:, 6:8] < 0).any():
-                self._faults["tracker"] = "non-finite or negative-size tracked obstacle"
-                return
-            c = self.config
-            if (np.abs(arr[:, 3:6]) > c.max_obstacle_speed).any() or (
-                arr[:, 6:8] > c.max_obstacle_size
-            ).any():
-                self._faults["tracker"] = (f"tracked obstacle faster than {c.max_obstacle_speed} m/s or larger "
-                                           f"than {c.max_obstacle_size} m")  # fmt: skip
+            if not self._accepted("tracker", stamp, problem):
                 return
             self._faults.pop("tracker", None)
             self._obstacles, self._obstacle_stamp = arr, stamp
