@@ -59,7 +59,7 @@ class HeightMap:
         # The map in the ray caster's storage format (uint8 quanta if the env uses them).
         self.cast_map = _QUANTIZE(self.heights) if _QUANTIZE is not None else self.heights
         self.points_inserted = 0
-        self._mask: np.ndarray | None = None  # scratch grid for the obstacle exclusion
+        self._mask = np.zeros((g, g), dtype=bool)  # scratch grid for the obstacle exclusion
         # Depth insertion through the compiled kernel (kernels) when Numba is installed.
         self.compiled = kernels.AVAILABLE if compiled is None else bool(compiled)
         if self.compiled and not kernels.AVAILABLE:
@@ -104,10 +104,15 @@ class HeightMap:
         self.heights.scatter_reduce_(
             0, cells, torch.from_numpy(np.ascontiguousarray(z[on])), reduce="amax"
         )
+        return self._written(cells)
+
+    def _written(self, cells: torch.Tensor) -> int:
+        """Bring the cast map's ``cells`` (flat indices, repeats allowed) up to date with the
+        heights and count them as inserted points; returns how many."""
         if _QUANTIZE is not None:
             self.cast_map[cells] = _QUANTIZE(self.heights[cells])
-        self.points_inserted += int(flat.size)
-        return int(flat.size)
+        self.points_inserted += int(cells.numel())
+        return int(cells.numel())
 
     def _inside_boxes(self, ix, iy, x, y, z, on, boxes: np.ndarray) -> np.ndarray:
         """Which points lie inside the inflated boxes: cells under the boxes' footprints first
@@ -117,8 +122,6 @@ class HeightMap:
         hi = boxes[:, 1] + self.exclusion_margin
         c0 = np.clip(np.floor((lo[:, :2] - origin) / res).astype(np.int64), 0, g)
         c1 = np.clip(np.floor((hi[:, :2] - origin) / res).astype(np.int64) + 1, 0, g)
-        if self._mask is None:
-            self._mask = np.zeros((g, g), dtype=bool)
         for (a0, b0), (a1, b1) in zip(c0, c1, strict=True):
             self._mask[a0:a1, b0:b1] = True
         cand = np.flatnonzero(on)
@@ -177,20 +180,13 @@ class HeightMap:
         )
         lo = np.ascontiguousarray(boxes[:, 0] - f32(self.exclusion_margin))
         hi = np.ascontiguousarray(boxes[:, 1] + f32(self.exclusion_margin))
-        g = self.grid.size
-        if self._mask is None:
-            self._mask = np.zeros((g, g), dtype=bool)
         touched = np.empty(depth[:, ::stride, ::stride].size, dtype=np.int64)
         n = kernels.insert_depth_kernel(
-            depth, *intr, R, t, int(stride), f32(max_range) if math.isfinite(max_range) else f32(np.inf),
+            depth, *intr, R, t, int(stride), f32(max_range),
             f32(self.ground_band), f32(self.surface_offset), f32(self.grid.origin), f32(self.grid.resolution),
             lo, hi, self._mask, self.heights.numpy(), touched,
         )  # fmt: skip
-        if n and _QUANTIZE is not None:
-            cells = torch.from_numpy(touched[:n])  # repeats write the same value
-            self.cast_map[cells] = _QUANTIZE(self.heights[cells])
-        self.points_inserted += int(n)
-        return int(n)
+        return self._written(torch.from_numpy(touched[:n]))
 
 
 __all__ = ["HeightMap"]
