@@ -38,6 +38,9 @@ from torch import nn
 from safenav.envs.config import EnvConfig, make_config
 
 TARGET_PIPELINE_P99_MS = 2.0
+# What the sensor -> setpoint loop times, whole and by part (runtime timings for the last three).
+PIPELINE_PARTS = ("pipeline", "pipeline_one_camera", "map_update", "control_step", "observation",
+                  "policy", "shield")  # fmt: skip
 
 
 class ReferenceActor(nn.Module):
@@ -121,8 +124,7 @@ def _sensor_frames(cfg: EnvConfig, n: int):
 
 def _time_pipeline(runtime, sensor, vel, iterations: int, warmup: int) -> dict[str, list[float]]:
     """One repeat of the sensor -> setpoint loop: seconds per step, whole and by part."""
-    t: dict[str, list[float]] = {k: [] for k in ("pipeline", "pipeline_one_camera", "map_update",
-                                                  "control_step", "observation", "policy", "shield")}  # fmt: skip
+    t: dict[str, list[float]] = {k: [] for k in PIPELINE_PARTS}
     for i in range(warmup + iterations):
         pos, frame = sensor[i % len(sensor)]
         t0 = time.perf_counter()
@@ -209,19 +211,10 @@ def bench_latency(
             runtime.update_state(sensor[0][0], np.zeros(3))
             runtime.set_goal(goal)
             vel = np.array([1.0, 0.5, 0.0])
-            names = (
-                "pipeline",
-                "pipeline_one_camera",
-                "map_update",
-                "control_step",
-                "observation",
-                "policy",
-                "shield",
-            )
-            per_repeat: dict[str, list[tuple[float, float]]] = {k: [] for k in names}
+            per_repeat: dict[str, list[tuple[float, float]]] = {k: [] for k in PIPELINE_PARTS}
             for _ in range(repeats):
                 t = _time_pipeline(runtime, sensor, vel, iterations, warmup)
-                for k in names:
+                for k in PIPELINE_PARTS:
                     per_repeat[k].append(_percentiles(t[k]))
             # The median over repeats of each percentile: one VM hiccup moves one repeat's p99 only.
             for k, pairs in per_repeat.items():
@@ -244,9 +237,7 @@ def bench_latency(
     })  # fmt: skip
     if not quiet:
         print(f"{'backend':<14}{'p50 ms':>9}{'p99 ms':>9}")
-        names = ("torch", "torchscript", "onnx", "pipeline", "pipeline_one_camera", "map_update",
-                 "control_step", "observation", "policy", "shield")  # fmt: skip
-        for name in names:
+        for name in ("torch", "torchscript", "onnx", *PIPELINE_PARTS):
             print(f"{name:<14}{out[name + '_p50_ms']:>9.3f}{out[name + '_p99_ms']:>9.3f}")
         print(
             f"pipeline p99 target {TARGET_PIPELINE_P99_MS} ms: {'met' if out['pipeline_meets_target'] else 'NOT met'}"

@@ -151,12 +151,13 @@ def soak_train(updates: int, preset: str, hidden: tuple[int, ...], batch_size: i
 
 
 def transition_bytes(preset: str) -> int:
-    """Bytes of one replay-buffer row: obs and next obs, action, reward, cost, terminated (float32)."""
+    """Bytes of one replay-buffer row (obs, next obs, action, reward, cost, terminated), from the
+    buffer's own layout."""
+    from safenav.common.buffer import ReplayBuffer
     from safenav.envs import make_config
+    from safenav.envs.config import observation_shapes
 
-    cfg = make_config(preset)
-    obs = 8 + len(cfg.lidar_v_angles) * cfg.lidar_h_beams + cfg.num_tracked * 10
-    return 4 * (2 * obs + 3 + 3)
+    return ReplayBuffer(1, observation_shapes(make_config(preset)), 3).storage[0].nbytes
 
 
 def bench_soak(
