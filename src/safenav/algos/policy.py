@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from safenav.common.checkpoint import load_checkpoint
+from safenav.envs.config import observation_shapes
 from safenav.errors import SafenavError, one_line
 from safenav.nn.config import NetConfig
 from safenav.nn.networks import (
@@ -109,22 +110,14 @@ def build_actor(meta: dict[str, Any]) -> DeterministicActor:
     )
 
 
-def nav_obs_shapes(env_cfg: dict[str, Any]) -> dict[str, tuple[int, ...]]:
-    """The observation layout of SafeNav-v0 under ``env_cfg`` (an EnvConfig as a dict)."""
-    return {"state": (8,), "lidar": (len(env_cfg["lidar_v_angles"]), env_cfg["lidar_h_beams"]),
-            "dynamic": (env_cfg["num_tracked"], 10)}  # fmt: skip
-
-
 def check_fits_safenav(policy: Policy, env_cfg: Any, where: str | Path) -> None:
     """``SafenavError`` unless ``policy`` was trained on SafeNav and reads the observations the
     env configuration ``env_cfg`` (an EnvConfig) produces: say so before flying, not mid-episode."""
-    from safenav.common.config import to_dict
-
     env_id = str(policy.meta.get("env_id", ""))
     if not env_id.split(":")[-1].startswith("SafeNav-"):
         raise SafenavError(f"{where} is a policy for {env_id or 'an unknown env'}, not SafeNav-v0: "
                            "its observations do not fit the SafeNav test scenario")  # fmt: skip
-    want = nav_obs_shapes(to_dict(env_cfg))
+    want = observation_shapes(env_cfg)
     if policy.obs_shapes != want:
         raise SafenavError(f"{where} reads observations {policy.obs_shapes}, but this SafeNav "
                            f"configuration gives {want}: evaluate it with the preset it was "
@@ -137,7 +130,7 @@ def _check_layout(meta: dict[str, Any], path: Path) -> None:
         raise SafenavError(f"{path}: the policy metadata names no observation layout")
     env_cfg = meta.get("env_config")
     if env_cfg is not None:
-        want = nav_obs_shapes(env_cfg)
+        want = observation_shapes(env_cfg)
         if not is_nav_layout(shapes) or shapes != want:
             raise SafenavError(f"{path}: observation layout {shapes} does not match its SafeNav env "
                                f"configuration {want}: the checkpoint is inconsistent")  # fmt: skip
@@ -182,4 +175,4 @@ def save_policy_only(src: str | Path, dst: str | Path) -> Path:
 
 
 __all__ = ["POLICY_FORMAT_VERSION", "Policy", "build_actor", "check_fits_safenav", "load_policy",
-           "nav_obs_shapes", "save_policy_only"]  # fmt: skip
+           "save_policy_only"]  # fmt: skip

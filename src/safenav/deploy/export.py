@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from safenav.envs.config import EnvConfig
+from safenav.envs.config import EnvConfig, observation_shapes
 from safenav.envs.nav import DIST_SCALE, Z_SCALE
 from safenav.errors import SafenavError
 
@@ -36,11 +36,6 @@ OUTPUT_NAME = "action"
 def sidecar_path(onnx_path: str | Path) -> Path:
     p = Path(onnx_path)
     return p.with_name(p.name + ".json")
-
-
-def observation_shapes(cfg: EnvConfig) -> dict[str, tuple[int, ...]]:
-    return {"state": (8,), "lidar": (len(cfg.lidar_v_angles), cfg.lidar_h_beams),
-            "dynamic": (cfg.num_tracked, 10)}  # fmt: skip
 
 
 def policy_conventions(cfg: EnvConfig) -> dict[str, Any]:

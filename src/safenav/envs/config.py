@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 
 @dataclass(frozen=True)
@@ -199,6 +201,14 @@ PRESETS: dict[str, dict] = {
 }  # fmt: skip
 
 
+def observation_shapes(cfg: EnvConfig | Mapping[str, Any]) -> dict[str, tuple[int, ...]]:
+    """SafeNav-v0's observation layout under ``cfg`` (an EnvConfig, or one as a dict, e.g. from
+    a checkpoint): ``state`` (8,), ``lidar`` (elevations, beams), ``dynamic`` (tracked, 10)."""
+    c = cfg if isinstance(cfg, Mapping) else dataclasses.asdict(cfg)
+    return {"state": (8,), "lidar": (len(c["lidar_v_angles"]), int(c["lidar_h_beams"])),
+            "dynamic": (int(c["num_tracked"]), 10)}  # fmt: skip
+
+
 def make_config(preset: str = "paper", **overrides) -> EnvConfig:
     """The named preset with ``overrides`` applied; ``ValueError`` for unknown names or fields."""
     if preset not in PRESETS:
@@ -210,4 +220,4 @@ def make_config(preset: str = "paper", **overrides) -> EnvConfig:
     return EnvConfig(**{**PRESETS[preset], **overrides})
 
 
-__all__ = ["PRESETS", "EnvConfig", "make_config"]
+__all__ = ["PRESETS", "EnvConfig", "make_config", "observation_shapes"]

@@ -16,7 +16,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from safenav.envs import rng
-from safenav.envs.config import EnvConfig, make_config
+from safenav.envs.config import EnvConfig, make_config, observation_shapes
 from safenav.envs.dynamics import (
     goal_frame_to_world,
     move_obstacles,
@@ -206,12 +206,12 @@ class SafeNavVectorEnv(VectorEnv):
         self.grid = GridSpec.for_config(config)
         self.spec_lidar = RangeImageSpec.for_config(config)
 
-        nv, nh = len(config.lidar_v_angles), config.lidar_h_beams
+        shapes = observation_shapes(config)
         self.single_observation_space = spaces.Dict(
             {
-                "state": spaces.Box(-np.inf, np.inf, (8,), np.float32),
-                "lidar": spaces.Box(0.0, 1.0, (nv, nh), np.float32),
-                "dynamic": spaces.Box(-np.inf, np.inf, (config.num_tracked, 10), np.float32),
+                "state": spaces.Box(-np.inf, np.inf, shapes["state"], np.float32),
+                "lidar": spaces.Box(0.0, 1.0, shapes["lidar"], np.float32),
+                "dynamic": spaces.Box(-np.inf, np.inf, shapes["dynamic"], np.float32),
             }
         )
         self.single_action_space = spaces.Box(-1.0, 1.0, (3,), np.float32)
