@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import gymnasium as gym
+import numpy as np
 import pytest
 import torch
 
@@ -16,3 +18,32 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+class CounterEnv(gym.Env):
+    """obs = [t]; the episode ends at t = 3, terminated (``terminal``) or truncated; cost 1 at t = 3
+    (reported in the step's info, as Safety-Gymnasium does); success = terminated. The truncation
+    and final-observation tests of CSAC and PPO (``from conftest import CounterEnv``)."""
+
+    observation_space = gym.spaces.Box(-np.inf, np.inf, (1,), np.float32)
+    action_space = gym.spaces.Box(-2.0, 2.0, (1,), np.float32)
+
+    def __init__(self, terminal: bool) -> None:
+        self.terminal, self.t = terminal, 0
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        return np.zeros(1, np.float32), {}
+
+    def step(self, action):
+        self.t += 1
+        end = self.t >= 3
+        info = {"cost": 1.0 if end else 0.0, "success": self.terminal and end}
+        return (
+            np.full(1, self.t, np.float32),
+            1.0,
+            self.terminal and end,
+            (not self.terminal) and end,
+            info,
+        )

@@ -11,6 +11,7 @@ import pytest
 import torch
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
+from conftest import CounterEnv
 from safenav.algos.config import CSACConfig
 from safenav.algos.csac import CSAC
 from safenav.algos.losses import reward_target
@@ -20,34 +21,6 @@ from safenav.nn.config import NetConfig
 
 NAV = {"state": (8,), "lidar": (4, 36), "dynamic": (5, 10)}
 SMALL = NetConfig(hidden=(32, 32))
-
-
-class CounterEnv(gym.Env):
-    """obs = [t]; the episode ends at t = 3, terminated (``terminal``) or truncated; cost 1 at t = 3
-    (reported in the step's info, as Safety-Gymnasium does)."""
-
-    observation_space = gym.spaces.Box(-np.inf, np.inf, (1,), np.float32)
-    action_space = gym.spaces.Box(-2.0, 2.0, (1,), np.float32)
-
-    def __init__(self, terminal: bool) -> None:
-        self.terminal, self.t = terminal, 0
-
-    def reset(self, *, seed=None, options=None):
-        super().reset(seed=seed)
-        self.t = 0
-        return np.zeros(1, np.float32), {}
-
-    def step(self, action):
-        self.t += 1
-        end = self.t >= 3
-        info = {"cost": 1.0 if end else 0.0, "success": self.terminal and end}
-        return (
-            np.full(1, self.t, np.float32),
-            1.0,
-            self.terminal and end,
-            (not self.terminal) and end,
-            info,
-        )
 
 
 def counter_envs(mode: AutoresetMode) -> TorchVecEnv:

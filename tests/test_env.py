@@ -146,6 +146,9 @@ def test_pillar_collision_geometry(start, collides):
     _, _, term, _, info = hover_step(env)
     assert bool(info["collision"][0]) is collides
     assert float(info["cost"][0]) == (1.0 if collides else 0.0)
+    if collides:  # the episode record says what was hit
+        ep = info["episode"]
+        assert (bool(ep["hit_static"][0]), bool(ep["hit_dynamic"][0]), bool(ep["out_of_bounds"][0])) == (True, False, False)
 
 
 @pytest.mark.parametrize(
@@ -161,6 +164,9 @@ def test_standing_cylinder_geometry(start, collides):
     place(env, start)
     _, _, _, _, info = hover_step(env)
     assert bool(info["collision"][0]) is collides
+    if collides:
+        ep = info["episode"]
+        assert (bool(ep["hit_static"][0]), bool(ep["hit_dynamic"][0]), bool(ep["out_of_bounds"][0])) == (False, True, False)
 
 
 @pytest.mark.parametrize(
@@ -183,10 +189,12 @@ def test_floating_cuboid_geometry(start, collides):
 
 def test_ground_and_ceiling_are_collisions():
     env = hand_env()
-    place(env, (0.0, 0.0, 0.15))
-    assert bool(hover_step(env)[4]["collision"][0])
-    place(env, (0.0, 0.0, 4.1))
-    assert bool(hover_step(env)[4]["collision"][0])
+    for z in (0.15, 4.1):
+        place(env, (0.0, 0.0, z))
+        info = hover_step(env)[4]
+        assert bool(info["collision"][0])
+        ep = info["episode"]
+        assert (bool(ep["hit_static"][0]), bool(ep["hit_dynamic"][0]), bool(ep["out_of_bounds"][0])) == (False, False, True)
     place(env, (0.0, 0.0, 2.0))
     assert not bool(hover_step(env)[4]["collision"][0])
 

@@ -6,12 +6,11 @@ from __future__ import annotations
 
 import math
 
-import gymnasium as gym
-import numpy as np
 import pytest
 import torch
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
+from conftest import CounterEnv
 from safenav.algos.ppo import PPO, collect_rollout
 from safenav.algos.ppo_config import PPOConfig
 from safenav.algos.ppo_losses import (
@@ -171,33 +170,6 @@ def test_value_norm_tracks_the_returns_and_round_trips():
 
 
 # -------------------------------------------------------------------- rollout and truncation
-class CounterEnv(gym.Env):
-    """obs = [t]; ends at t = 3, terminated (``terminal``) or truncated; cost 1 at t = 3."""
-
-    observation_space = gym.spaces.Box(-np.inf, np.inf, (1,), np.float32)
-    action_space = gym.spaces.Box(-2.0, 2.0, (1,), np.float32)
-
-    def __init__(self, terminal: bool) -> None:
-        self.terminal, self.t = terminal, 0
-
-    def reset(self, *, seed=None, options=None):
-        super().reset(seed=seed)
-        self.t = 0
-        return np.zeros(1, np.float32), {}
-
-    def step(self, action):
-        self.t += 1
-        end = self.t >= 3
-        info = {"cost": 1.0 if end else 0.0}
-        return (
-            np.full(1, self.t, np.float32),
-            1.0,
-            self.terminal and end,
-            (not self.terminal) and end,
-            info,
-        )
-
-
 def counter_envs() -> TorchVecEnv:
     return TorchVecEnv(SyncVectorEnv([lambda: CounterEnv(True), lambda: CounterEnv(False)],
                                      autoreset_mode=AutoresetMode.SAME_STEP))  # fmt: skip

@@ -55,6 +55,7 @@ def eval_(
     table.add_column("metric")
     table.add_column("value", justify="right")
     for key in ("success_rate", "collision_rate", "timeout_rate", "mean_time_to_goal",
+                "collision_static_rate", "collision_dynamic_rate", "collision_bounds_rate",
                 "mean_path_length", "min_clearance", "mean_speed"):  # fmt: skip
         table.add_row(key, f"{result[key]:.3f}")
     Console().print(table)

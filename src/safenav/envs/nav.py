@@ -136,7 +136,9 @@ class SafeNavVectorEnv(VectorEnv):
     Terminated on success (within 0.5 m of the goal) or collision; truncated at the time limit
     (60 s = 600 steps). Autoreset ``SAME_STEP``: the returned observation of a finished env is the
     first of its next episode; ``info["final_obs"]`` holds the last one (``info["_final_obs"]``
-    marks which envs finished) and ``info["episode"]`` its statistics.
+    marks which envs finished) and ``info["episode"]`` its statistics (return, cost, length,
+    success / collision / timeout, time, path length, minimum clearance, mean speed, and what a
+    collision was with: ``hit_static``, ``hit_dynamic``, ``out_of_bounds``).
 
     ## Arguments
     ``num_envs``; ``preset`` (``"easy"``, ``"medium"``, ``"paper"``) or ``config``
@@ -484,7 +486,10 @@ class SafeNavVectorEnv(VectorEnv):
 
         z = self.pos[:, 2]
         clearance = torch.minimum(aux["static_clear"], aux["dyn_clear"])
-        collision = (clearance <= cfg.uav_radius) | (z < cfg.z_min) | (z > cfg.z_max)
+        hit_static = aux["static_clear"] <= cfg.uav_radius
+        hit_dynamic = aux["dyn_clear"] <= cfg.uav_radius
+        out_of_bounds = (z < cfg.z_min) | (z > cfg.z_max)
+        collision = hit_static | hit_dynamic | out_of_bounds
         success = (aux["dist"] < cfg.goal_tolerance) & ~collision
         # Reward (NavRL's terms; see class docstring).
         r_vel = (self.vel * aux["unit_goal"]).sum(-1)
@@ -521,6 +526,10 @@ class SafeNavVectorEnv(VectorEnv):
                 "success": success.clone(), "collision": collision.clone(), "timeout": truncated.clone(),
                 "time": steps_f * cfg.dt, "path_length": st["path_length"].clone(),
                 "min_clearance": self._min_clear.clone(), "mean_speed": st["speed_sum"] / steps_f,
+                # What the collision was with (an episode ends at its first one; both obstacle
+                # kinds can be touched in the same step).
+                "hit_static": hit_static.clone(), "hit_dynamic": hit_dynamic.clone(),
+                "out_of_bounds": out_of_bounds.clone(),
             }  # fmt: skip
             info["_episode"] = done.clone()
             if self.autoreset_mode == AutoresetMode.SAME_STEP:

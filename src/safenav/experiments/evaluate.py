@@ -42,7 +42,9 @@ def evaluate(
     ``mean_time_to_goal`` (s, successful episodes); ``mean_path_length`` (m); ``min_clearance``
     (m, the closest any episode came to an obstacle surface, negative inside one);
     ``mean_min_clearance`` (m, per-episode minimum averaged); ``mean_speed`` (m/s);
-    ``mean_return``, ``mean_cost``; ``episodes``; and ``per_episode`` lists.
+    ``mean_return``, ``mean_cost``; ``collision_static_rate``, ``collision_dynamic_rate``,
+    ``collision_bounds_rate`` (what the collisions were with); ``episodes``; and ``per_episode``
+    lists.
     """
     cfg = (config or make_config("paper")).replace(density=1.0, num_worlds=1)
     starts, goals = fixed_scenario(cfg, env_seed, episodes)
@@ -51,7 +53,7 @@ def evaluate(
     obs, _ = env.reset(seed=env_seed, options={"starts": starts, "goals": goals})
     done = torch.zeros(episodes, dtype=torch.bool, device=env.device)
     keys = ("success", "collision", "timeout", "time", "path_length", "min_clearance",
-            "mean_speed", "return", "cost")  # fmt: skip
+            "mean_speed", "return", "cost", "hit_static", "hit_dynamic", "out_of_bounds")  # fmt: skip
     record = {k: torch.zeros(episodes, device=env.device) for k in keys}
     with Progress(disable=not progress, transient=True) as bar:
         task = bar.add_task(f"eval {episodes} episodes", total=cfg.max_episode_steps)
@@ -82,6 +84,11 @@ def evaluate(
         "mean_speed": float(rec["mean_speed"].mean()),
         "mean_return": float(rec["return"].mean()),
         "mean_cost": float(rec["cost"].mean()),
+        # Fractions of all episodes that ended touching a pillar / a moving obstacle / leaving
+        # the altitude band (a collision can touch both obstacle kinds at once).
+        "collision_static_rate": float((rec["hit_static"] > 0.5).mean()),
+        "collision_dynamic_rate": float((rec["hit_dynamic"] > 0.5).mean()),
+        "collision_bounds_rate": float((rec["out_of_bounds"] > 0.5).mean()),
         "episodes": int(episodes),
         "env_seed": int(env_seed),
         "per_episode": {k: np.round(v, 4).tolist() for k, v in rec.items()},
