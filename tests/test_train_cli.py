@@ -66,6 +66,13 @@ def test_cli_smoke_run_directory(csac_run):
         json.loads(line)["event"] for line in (csac_run / "events.jsonl").read_text().splitlines()
     ]
     assert events[0] == "start" and "eval" in events and events[-1] == "end"
+    # best.pt: the policy of the best periodic evaluation, loadable like any policy checkpoint
+    best = load_checkpoint(csac_run / "best.pt")
+    assert best["policy_only"] and "agent" not in best and best["global_step"] % 200 == 0
+    assert best["evaluation"]["eval/success_rate"] == max(
+        float(r["eval/success_rate"]) for r in rows if r["eval/success_rate"])
+    assert load_policy(csac_run / "best.pt").meta["algo"] == "csac"
+    assert state["best"]["score"][0] == best["evaluation"]["eval/success_rate"]
 
 
 def test_existing_run_dir_is_refused_then_overwritten(csac_run, tmp_path, capsys):

@@ -42,7 +42,7 @@ def train(
 
 @pytest.mark.parametrize("algo", ["ppo", "ppo_lag"])
 def test_ppo_family_on_safenav_run_dir_policy_and_resume(tmp_path, algo):
-    run_dir = train(tmp_path, algo, *PPO_SMALL)
+    run_dir = train(tmp_path, algo, *PPO_SMALL, "--eval-every", "256", "--eval-episodes", "2")
     for name in ("config.json", "progress.csv", "checkpoint.pt", "events.jsonl"):
         assert (run_dir / name).exists(), name
     config = json.loads((run_dir / "config.json").read_text())
@@ -85,6 +85,9 @@ def test_ppo_family_on_safenav_run_dir_policy_and_resume(tmp_path, algo):
     table = rows(run_dir)
     assert int(table[-1]["global_step"]) == 768 and int(table[3]["global_step"]) == 512
     assert load_checkpoint(run_dir)["global_step"] == 768
+    best = load_checkpoint(run_dir / "best.pt")  # the best periodic evaluation's policy
+    assert best["policy_only"] and load_policy(run_dir / "best.pt").meta["algo"] == algo
+    assert load_checkpoint(run_dir)["best"]["score"][0] == best["evaluation"]["eval/success_rate"]
 
 
 def test_ppo_on_a_gymnasium_env(tmp_path):

@@ -52,10 +52,11 @@ from safenav.common.checkpoint import (
     seed_everything,
     set_rng_state,
 )
+from safenav.common.checkpoint import policy_state as checkpoint_policy_state
 from safenav.common.config import RunConfig, to_dict
 from safenav.common.curriculum import ConstraintCurriculum, DensityCurriculum
 from safenav.common.envs import TorchVecEnv, is_safenav, make_vec_env
-from safenav.common.evaluation import EVAL_SEED, evaluate_episodes
+from safenav.common.evaluation import EVAL_SEED, BestPolicy, evaluate_episodes
 from safenav.common.lagrange import Lagrange
 from safenav.common.logger import RunLogger
 from safenav.common.rollout import Rollout, ValueNorm
@@ -297,15 +298,18 @@ def train(algo: str, run: RunConfig, cfg: PPOConfig, run_dir: Path, resume: bool
     logger.event(global_step, "resume" if resume else "start", algo=algo, density=density.density,
                  d=curriculum.d)  # fmt: skip
     guard = RunGuard(run_dir, logger, agent, last_saved=global_step if ckpt is not None else None)
+    best = BestPolicy(run_dir / "best.pt", ckpt.get("best") if ckpt is not None else None)
+
+    def policy_state() -> dict[str, Any]:
+        return checkpoint_policy_state(algo, global_step, updates, elapsed0 + time.perf_counter() - t0,
+                                       {"algo": algo, "run": to_dict(run), "ppo": to_dict(cfg)},
+                                       policy_meta(algo, run, cfg, env, global_step), agent.policy_module())  # fmt: skip
 
     def checkpoint() -> None:
-        state = {"algo": algo, "global_step": global_step, "updates": updates, "rollouts": rollouts,
-                 "elapsed_s": elapsed0 + time.perf_counter() - t0, "agent": agent.state_dict(),
-                 "optimizers": agent.optimizer_state(), "curriculum": curriculum.state_dict(),
-                 "density": density.state_dict(), "rng": rng_state(),
-                 "config": {"algo": algo, "run": to_dict(run), "ppo": to_dict(cfg)},
-                 "policy": {"meta": policy_meta(algo, run, cfg, env, global_step),
-                            "state_dict": agent.policy_module().state_dict()}}  # fmt: skip
+        state = policy_state() | {
+            "rollouts": rollouts, "agent": agent.state_dict(), "optimizers": agent.optimizer_state(),
+            "curriculum": curriculum.state_dict(), "density": density.state_dict(), "rng": rng_state(),
+            "best": best.state_dict()}  # fmt: skip
         guard.save(global_step, state)  # refuses non-finite weights: keeps the last good file
 
     # -- the loop: rollout, lambda, update; curricula, map refreshes and density at rollout edges
@@ -374,6 +378,8 @@ def train(algo: str, run: RunConfig, cfg: PPOConfig, run_dir: Path, resume: bool
                 ev.update({f"eval/{k}_rate": res.get(k, math.nan) for k in ("success", "collision", "timeout")})  # fmt: skip
                 row.update(ev)
                 logger.event(global_step, "eval", **ev)
+                if best.offer(ev, policy_state):
+                    logger.event(global_step, "best", path=str(best.path), **ev)
                 display.note(f"step {global_step}: eval success {ev['eval/success_rate']:.2f} "
                              f"collision {ev['eval/collision_rate']:.2f} return {ev['eval/return']:.1f}")  # fmt: skip
 

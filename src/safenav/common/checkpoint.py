@@ -150,5 +150,14 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+def policy_state(algo: str, global_step: int, updates: int, elapsed_s: float, config: dict[str, Any],
+                 meta: dict[str, Any], actor: torch.nn.Module) -> dict[str, Any]:
+    """The part of a training checkpoint that a policy-only file keeps (``best.pt``, ``safenav
+    export --policy-only``): counters, configs, and the deployable actor with its description."""
+    return {"algo": algo, "global_step": global_step, "updates": updates, "elapsed_s": elapsed_s,
+            "config": config, "policy": {"meta": meta, "state_dict": actor.state_dict()}}
+
+
 __all__ = ["FORMAT", "FORMAT_VERSION", "TRAINING_KEYS", "load_checkpoint", "load_training_checkpoint",
-           "restore_agent", "rng_state", "save_checkpoint", "seed_everything", "set_rng_state"]  # fmt: skip
+           "policy_state", "restore_agent", "rng_state", "save_checkpoint", "seed_everything",
+           "set_rng_state"]  # fmt: skip

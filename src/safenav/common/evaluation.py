@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -43,4 +45,38 @@ def evaluate_episodes(env: TorchVecEnv, act: Callable[[dict[str, torch.Tensor]],
     return out
 
 
-__all__ = ["EVAL_SEED", "evaluate_episodes"]
+class BestPolicy:
+    """Keeps ``best.pt`` in a run directory: the policy of the periodic evaluation with the highest
+    success rate (ties: the lower collision rate), as a policy-only checkpoint.
+
+    Chosen on the evaluation maps (:data:`EVAL_SEED`), never on the fixed test scenario, so the
+    test figures of ``best.pt`` stay an unbiased estimate. The score so far is part of the
+    training checkpoint (:meth:`state_dict`), so a resumed run keeps comparing with it.
+    """
+
+    def __init__(self, path: str | Path, state: dict[str, Any] | None = None) -> None:
+        self.path = Path(path)
+        self.score: tuple[float, float] | None = None
+        if state and state.get("score") is not None:
+            self.score = (float(state["score"][0]), float(state["score"][1]))
+
+    def offer(self, evaluation: dict[str, float], policy_state: Callable[[], dict[str, Any]]) -> bool:
+        """Save ``policy_state()`` (called only when needed) if ``evaluation`` (``eval/*`` keys) beats
+        the best so far; True if it did."""
+        from safenav.common.checkpoint import save_checkpoint
+
+        success, collision = evaluation["eval/success_rate"], evaluation["eval/collision_rate"]
+        if math.isnan(success) or math.isnan(collision):
+            return False
+        score = (success, -collision)
+        if self.score is not None and score <= self.score:
+            return False
+        save_checkpoint(self.path, policy_state() | {"policy_only": True, "evaluation": dict(evaluation)})
+        self.score = score
+        return True
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"score": list(self.score) if self.score is not None else None}
+
+
+__all__ = ["EVAL_SEED", "BestPolicy", "evaluate_episodes"]
