@@ -16,7 +16,8 @@ here = Path(__file__).parent
 summary = json.loads((here / "summary.json").read_text())
 fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
 for k, s in summary.items():
-    rows = list(csv.DictReader(open(here / f"{k}-progress.csv")))
+    with open(here / f"{k}-progress.csv") as f:
+        rows = list(csv.DictReader(f))
     minutes = {int(r["global_step"]): float(r["time/elapsed_s"]) / 60 for r in rows}
     ev = [r for r in rows if r.get("eval/success_rate")]
     label = f"{k}: {s['args'].replace('--csac.', '')}"
