@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from safenav.algos.policy import load_policy
+from safenav.algos.policy import load_policy, save_policy_only
 from safenav.cli import main
 from safenav.common.checkpoint import load_checkpoint, save_checkpoint
 from safenav.envs.config import EnvConfig
@@ -69,6 +69,8 @@ def test_cli_smoke_run_directory(csac_run):
     # best.pt: the policy of the best periodic evaluation, loadable like any policy checkpoint
     best = load_checkpoint(csac_run / "best.pt")
     assert best["policy_only"] and "agent" not in best and best["global_step"] % 200 == 0
+    exported = load_checkpoint(save_policy_only(csac_run / "checkpoint.pt", csac_run.parent / "exported.pt"))
+    assert set(best) == {*exported, "evaluation"}  # what `safenav export --policy-only` keeps
     assert best["evaluation"]["eval/success_rate"] == max(
         float(r["eval/success_rate"]) for r in rows if r["eval/success_rate"])
     assert load_policy(csac_run / "best.pt").meta["algo"] == "csac"

@@ -49,7 +49,7 @@ from safenav.common.curriculum import (
     episode_cost_to_q_scale,
 )
 from safenav.common.envs import TorchVecEnv, env_horizon, is_safenav, make_vec_env
-from safenav.common.evaluation import EVAL_SEED, BestPolicy, evaluate_episodes
+from safenav.common.evaluation import BestPolicy, periodic_evaluation
 from safenav.common.lagrange import Lagrange
 from safenav.common.logger import RunLogger
 from safenav.common.runs import episode_charts, run_summary, write_run_config
@@ -422,25 +422,10 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
 
             if global_step >= next_eval and eval_env is not None:
                 next_eval += run.eval_every
-                res = evaluate_episodes(
-                    eval_env,
-                    lambda o: agent.act(o, deterministic=True),
-                    run.eval_episodes,
-                    EVAL_SEED,
-                )
-                ev = {f"eval/{k}": res.get(k, math.nan) for k in ("return", "cost", "length")}
-                ev.update(
-                    {
-                        f"eval/{k}_rate": res.get(k, math.nan)
-                        for k in ("success", "collision", "timeout")
-                    }
-                )
+                ev, note = periodic_evaluation(eval_env, lambda o: agent.act(o, deterministic=True),
+                                               run.eval_episodes, global_step, logger, best, policy_state)  # fmt: skip
                 row.update(ev)
-                logger.event(global_step, "eval", **ev)
-                if best.offer(ev, policy_state):
-                    logger.event(global_step, "best", path=str(best.path), **ev)
-                display.note(f"step {global_step}: eval success {ev['eval/success_rate']:.2f} "
-                             f"collision {ev['eval/collision_rate']:.2f} return {ev['eval/return']:.1f}")  # fmt: skip
+                display.note(note)
 
             if global_step >= next_log or global_step >= run.total_steps:
                 next_log += run.log_every

@@ -162,15 +162,14 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu") -> Policy:
 def save_policy_only(src: str | Path, dst: str | Path) -> Path:
     """Write the policy of checkpoint ``src`` without optimisers, critics or RNG state (a small
     file that :func:`load_policy` and ``safenav eval`` read, but ``--resume`` cannot continue)."""
-    from safenav.common.checkpoint import save_checkpoint
+    from safenav.common.checkpoint import POLICY_KEYS, save_checkpoint
 
     state = load_checkpoint(Path(src), map_location="cpu")
     if not isinstance(state.get("policy"), dict):
         raise SafenavError(f"{src}: the checkpoint holds no policy")
-    keep = ("algo", "global_step", "updates", "elapsed_s", "config", "policy")
     dst = Path(dst)
     dst.parent.mkdir(parents=True, exist_ok=True)
-    save_checkpoint(dst, {k: state[k] for k in keep if k in state} | {"policy_only": True})
+    save_checkpoint(dst, {k: state[k] for k in POLICY_KEYS if k in state} | {"policy_only": True})
     return dst
 
 

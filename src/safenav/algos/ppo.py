@@ -56,7 +56,7 @@ from safenav.common.checkpoint import policy_state as checkpoint_policy_state
 from safenav.common.config import RunConfig, to_dict
 from safenav.common.curriculum import ConstraintCurriculum, DensityCurriculum
 from safenav.common.envs import TorchVecEnv, is_safenav, make_vec_env
-from safenav.common.evaluation import EVAL_SEED, BestPolicy, evaluate_episodes
+from safenav.common.evaluation import BestPolicy, periodic_evaluation
 from safenav.common.lagrange import Lagrange
 from safenav.common.logger import RunLogger
 from safenav.common.rollout import Rollout, ValueNorm
@@ -372,16 +372,10 @@ def train(algo: str, run: RunConfig, cfg: PPOConfig, run_dir: Path, resume: bool
             if global_step >= next_eval and eval_env is not None:
                 while next_eval <= global_step:
                     next_eval += run.eval_every
-                res = evaluate_episodes(eval_env, lambda o: agent.act(o, deterministic=True)[0],
-                                        run.eval_episodes, EVAL_SEED)  # fmt: skip
-                ev = {f"eval/{k}": res.get(k, math.nan) for k in ("return", "cost", "length")}
-                ev.update({f"eval/{k}_rate": res.get(k, math.nan) for k in ("success", "collision", "timeout")})  # fmt: skip
+                ev, note = periodic_evaluation(eval_env, lambda o: agent.act(o, deterministic=True)[0],
+                                               run.eval_episodes, global_step, logger, best, policy_state)  # fmt: skip
                 row.update(ev)
-                logger.event(global_step, "eval", **ev)
-                if best.offer(ev, policy_state):
-                    logger.event(global_step, "best", path=str(best.path), **ev)
-                display.note(f"step {global_step}: eval success {ev['eval/success_rate']:.2f} "
-                             f"collision {ev['eval/collision_rate']:.2f} return {ev['eval/return']:.1f}")  # fmt: skip
+                display.note(note)
 
             if global_step >= next_log or global_step >= run.total_steps:
                 while next_log <= global_step:

@@ -150,6 +150,10 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+POLICY_KEYS = ("algo", "global_step", "updates", "elapsed_s", "config", "policy")
+"""What a policy-only checkpoint keeps of a training checkpoint (:func:`policy_state`)."""
+
+
 def policy_state(algo: str, global_step: int, updates: int, elapsed_s: float, config: dict[str, Any],
                  meta: dict[str, Any], actor: torch.nn.Module) -> dict[str, Any]:
     """The part of a training checkpoint that a policy-only file keeps (``best.pt``, ``safenav
@@ -158,6 +162,6 @@ def policy_state(algo: str, global_step: int, updates: int, elapsed_s: float, co
             "config": config, "policy": {"meta": meta, "state_dict": actor.state_dict()}}
 
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "TRAINING_KEYS", "load_checkpoint", "load_training_checkpoint",
+__all__ = ["FORMAT", "FORMAT_VERSION", "POLICY_KEYS", "TRAINING_KEYS", "load_checkpoint", "load_training_checkpoint",
            "policy_state", "restore_agent", "rng_state", "save_checkpoint", "seed_everything",
            "set_rng_state"]  # fmt: skip

@@ -79,4 +79,21 @@ class BestPolicy:
         return {"score": list(self.score) if self.score is not None else None}
 
 
-__all__ = ["EVAL_SEED", "BestPolicy", "evaluate_episodes"]
+def periodic_evaluation(env: TorchVecEnv, act: Callable[[dict[str, torch.Tensor]], torch.Tensor],
+                        episodes: int, global_step: int, logger: Any, best: BestPolicy,
+                        policy_state: Callable[[], dict[str, Any]]) -> tuple[dict[str, float], str]:
+    """A trainer's periodic evaluation: run it (:func:`evaluate_episodes` on :data:`EVAL_SEED`),
+    log it as an ``eval`` event, offer it to ``best`` (a ``best`` event when it wins). Returns the
+    ``eval/*`` row entries and a one-line note for the console."""
+    res = evaluate_episodes(env, act, episodes, EVAL_SEED)
+    ev = {f"eval/{k}": res.get(k, math.nan) for k in ("return", "cost", "length")}
+    ev.update({f"eval/{k}_rate": res.get(k, math.nan) for k in ("success", "collision", "timeout")})
+    logger.event(global_step, "eval", **ev)
+    if best.offer(ev, policy_state):
+        logger.event(global_step, "best", path=str(best.path), **ev)
+    note = (f"step {global_step}: eval success {ev['eval/success_rate']:.2f} "
+            f"collision {ev['eval/collision_rate']:.2f} return {ev['eval/return']:.1f}")
+    return ev, note
+
+
+__all__ = ["EVAL_SEED", "BestPolicy", "evaluate_episodes", "periodic_evaluation"]
