@@ -33,3 +33,13 @@ def test_saves_only_improvements_and_survives_a_resume(tmp_path) -> None:
     assert not resumed.offer(ev(0.45, 0.1), state(6))
     assert resumed.offer(ev(0.6, 0.4), state(7)) and load_checkpoint(path)["global_step"] == 7
     assert BestPolicy(path, None).score is None and BestPolicy(path, {"score": None}).score is None
+
+
+def test_keep_dir_holds_every_offered_policy(tmp_path) -> None:
+    best = BestPolicy(tmp_path / "best.pt", keep_dir=tmp_path / "policies")
+    for step, (success, collision) in ((10, (0.5, 0.4)), (20, (0.4, 0.1)), (30, (math.nan, 0.0))):
+        best.offer(ev(success, collision), lambda step=step: {"global_step": step})
+    kept = sorted(p.name for p in (tmp_path / "policies").iterdir())
+    assert kept == ["step_000000010.pt", "step_000000020.pt", "step_000000030.pt"]
+    assert load_checkpoint(tmp_path / "policies" / kept[1])["evaluation"] == ev(0.4, 0.1)
+    assert load_checkpoint(tmp_path / "best.pt")["global_step"] == 10  # best.pt as before

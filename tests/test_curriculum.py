@@ -9,6 +9,7 @@ from safenav.common.curriculum import (
     ConstraintCurriculumConfig,
     DensityCurriculum,
     DensityCurriculumConfig,
+    MeasuredCostScale,
     episode_cost_to_q_scale,
 )
 
@@ -112,6 +113,32 @@ def test_episode_budget_to_q_scale():
     assert episode_cost_to_q_scale(0.3, 1.0, 300) == pytest.approx(0.3 * 301 / 600)
     # a long horizon: the stationary rate / (1 - gamma)
     assert episode_cost_to_q_scale(1.0, 0.99, 100_000) == pytest.approx(1e-5 / 0.01, rel=1e-3)
+
+
+def test_measured_cost_scale_holds_the_episode_cost_at_d():
+    scale = MeasuredCostScale(fallback=0.14, span_episodes=4, span_updates=4, min_episodes=4)
+    scale.observe_q(0.03)
+    scale.observe_episodes([1.0, 0.0, 0.0])
+    assert scale.d_q(0.5) == pytest.approx(0.5 * 0.14)  # too few episodes: the modelled mapping
+    scale.observe_episodes([0.0])  # 4 episodes, mean cost 0.25; E[Q_C] 0.03: rho = 0.12
+    assert scale.ratio == pytest.approx(0.12)
+    # so E[Q_C] = d_Q at d = 0.25 is the measured E[Q_C] when episodes cost 0.25 on average
+    assert scale.d_q(0.25) == pytest.approx(0.03)
+    # moving means after `span` observations: old values fade with weight 1 / span
+    for _ in range(50):
+        scale.observe_q(0.01)
+        scale.observe_episodes([0.5])
+    assert scale.ratio == pytest.approx(0.02, rel=1e-3)
+    # no cost to measure against: the last ratio stays; NaN measurements are ignored
+    for _ in range(50):
+        scale.observe_episodes([0.0])
+        scale.observe_q(float("nan"))
+    assert scale.ratio == pytest.approx(0.02, rel=1e-3)
+    restored = MeasuredCostScale(fallback=0.14, span_episodes=4, span_updates=4, min_episodes=4)
+    restored.load_state_dict(scale.state_dict())
+    assert restored.state_dict() == scale.state_dict() and restored.ratio == scale.ratio
+    with pytest.raises(ValueError):
+        MeasuredCostScale(fallback=0.0)
 
 
 def test_density_linear_ramp():

@@ -36,7 +36,7 @@ def read_csv(path: Path) -> list[dict[str, str]]:
 def csac_run(tmp_path_factory) -> Path:
     run_dir = tmp_path_factory.mktemp("runs") / "csac"
     main(["train", "--algo", "csac", "--env", "SafeNav-v0", "--preset", "easy", "--seed", "3",
-          "--total-steps", "300", "--run-dir", str(run_dir), *FAST])  # fmt: skip
+          "--total-steps", "300", "--keep-policies", "--run-dir", str(run_dir), *FAST])  # fmt: skip
     return run_dir
 
 
@@ -75,6 +75,10 @@ def test_cli_smoke_run_directory(csac_run):
         float(r["eval/success_rate"]) for r in rows if r["eval/success_rate"])
     assert load_policy(csac_run / "best.pt").meta["algo"] == "csac"
     assert state["best"]["score"][0] == best["evaluation"]["eval/success_rate"]
+    # --keep-policies: every evaluated policy, best.pt's among them
+    kept = {int(p.stem.split("_")[1]): p for p in (csac_run / "policies").glob("step_*.pt")}
+    assert sorted(kept) == [int(r["global_step"]) for r in rows if r["eval/success_rate"]]
+    assert load_checkpoint(kept[best["global_step"]])["evaluation"] == best["evaluation"]
 
 
 def test_existing_run_dir_is_refused_then_overwritten(csac_run, tmp_path, capsys):

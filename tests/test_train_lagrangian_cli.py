@@ -184,3 +184,27 @@ def test_csac_ablation_switches_reach_the_run(tmp_path):
     state = load_checkpoint(run_dir)["agent"]
     assert not any(k.startswith("encoder.") for k in state)  # no shared extractor
     assert any(k.startswith("qc.extractor.") for k in state)  # the cost critics own one
+
+
+def test_csac_measured_cost_scale_logs_its_threshold_and_resumes(tmp_path, monkeypatch):
+    """``--csac.cost-scale measured``: d_Q = d * E[Q_C] / episode cost from the run's own data,
+    logged, carried in the checkpoint, restored by --resume."""
+    import functools
+
+    import safenav.algos.csac as csac_module
+
+    # measure from 20 episodes on (100 by default: more than a run of seconds finishes)
+    measured = functools.partial(csac_module.MeasuredCostScale, min_episodes=20)
+    monkeypatch.setattr(csac_module, "MeasuredCostScale", measured)
+    small = ["--csac.cost-scale", "measured", "--csac.learning-starts", "128", "--csac.batch-size", "32",
+             "--csac.net.hidden", "32", "32", "--csac.updates-per-step", "0.0625", "--preset", "paper"]  # fmt: skip
+    run_dir = train(tmp_path, "csac", *small, steps=8192, envs=64)
+    ckpt = load_checkpoint(run_dir)
+    scale = ckpt["cost_scale"]
+    assert scale["cost_n"] >= 20 and scale["q_n"] > 0  # random flights crash: enough episodes
+    last = rows(run_dir)[-1]
+    ratio = max(scale["q_mean"], 0.0) / scale["cost_mean"]
+    assert float(last["constraint/d_q"]) == pytest.approx(float(last["constraint/d"]) * ratio, rel=1e-4)
+    main(["train", "--resume", str(run_dir), "--total-steps", "10240", *FAST])
+    resumed = load_checkpoint(run_dir)["cost_scale"]
+    assert resumed["cost_n"] > scale["cost_n"] and resumed["q_n"] > scale["q_n"]

@@ -64,6 +64,10 @@ class CSACConfig:
     """Reduction of the target cost critics in Eq. 6: mean (paper); min/max are ablations."""
     cost_horizon: int = 0
     """Horizon T mapping the episode budget d onto the Q_C scale; 0 = the env's time limit."""
+    cost_scale: Literal["horizon", "measured"] = "horizon"
+    """How d maps onto the Q_C scale of Eq. 11: ``horizon`` = cost spread evenly over T steps
+    (``cost_horizon``); ``measured`` = d times the measured ratio E[Q_C] / episode cost, so that
+    the constraint holds the episode cost at d (``common.curriculum.MeasuredCostScale``)."""
     net: NetConfig = field(default_factory=NetConfig)
     """Network sizes and extractor sharing."""
     curriculum: ConstraintCurriculumConfig = field(default_factory=ConstraintCurriculumConfig)

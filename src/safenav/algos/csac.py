@@ -46,6 +46,7 @@ from safenav.common.config import RunConfig, to_dict
 from safenav.common.curriculum import (
     ConstraintCurriculum,
     DensityCurriculum,
+    MeasuredCostScale,
     episode_cost_to_q_scale,
 )
 from safenav.common.envs import TorchVecEnv, env_horizon, is_safenav, make_vec_env
@@ -289,12 +290,22 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
                           env.action_dim, device)  # fmt: skip
     curriculum = ConstraintCurriculum(cfg.curriculum)
     horizon = cfg.cost_horizon or env_horizon(env.envs)
+    measured_scale = (MeasuredCostScale(fallback=episode_cost_to_q_scale(1.0, cfg.gamma, horizon))
+                      if cfg.constrained and cfg.cost_scale == "measured" else None)  # fmt: skip
+
+    def d_q_now() -> float:
+        """The threshold of Eq. 11 on the Q_C scale for the curriculum's current d."""
+        if measured_scale is not None:
+            return measured_scale.d_q(curriculum.d)
+        return episode_cost_to_q_scale(curriculum.d, cfg.gamma, horizon)
 
     global_step, updates, elapsed0, update_debt = 0, 0, 0.0, 0.0
     warmup_until = cfg.learning_starts
     if ckpt is not None:
         restore_agent(agent, ckpt, ckpt_path)
         curriculum.load_state_dict(ckpt["curriculum"])
+        if measured_scale is not None and ckpt.get("cost_scale"):
+            measured_scale.load_state_dict(ckpt["cost_scale"])
         density.load_state_dict(ckpt["density"])
         global_step, updates, elapsed0 = ckpt["global_step"], ckpt["updates"], ckpt["elapsed_s"]
         update_debt = ckpt.get("update_debt", 0.0)
@@ -319,7 +330,8 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
         d=curriculum.d,
     )
     guard = RunGuard(run_dir, logger, agent, last_saved=global_step if ckpt is not None else None)
-    best = BestPolicy(run_dir / "best.pt", ckpt.get("best") if ckpt is not None else None)
+    best = BestPolicy(run_dir / "best.pt", ckpt.get("best") if ckpt is not None else None,
+                      keep_dir=run_dir / "policies" if run.keep_policies else None)
 
     def policy_state() -> dict[str, Any]:
         return checkpoint_policy_state(algo, global_step, updates, elapsed0 + time.perf_counter() - t0,
@@ -331,6 +343,8 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
             "update_debt": update_debt, "agent": agent.state_dict(), "optimizers": agent.optimizer_state(),
             "curriculum": curriculum.state_dict(), "density": density.state_dict(), "rng": rng_state(),
             "best": best.state_dict()}  # fmt: skip
+        if measured_scale is not None:
+            state["cost_scale"] = measured_scale.state_dict()
         if run.save_buffer:
             state["buffer"] = buffer.state_dict()
         guard.save(global_step, state)  # refuses non-finite weights: keeps the last good file
@@ -382,6 +396,8 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
                 for k in recent:
                     recent[k].extend(ep[k])
                 curriculum.observe(ep["cost"])
+                if measured_scale is not None:
+                    measured_scale.observe_episodes(ep["cost"])
                 if episode_lambda:
                     lam_costs.extend(ep["cost"])
                 density.observe(ep["success"])
@@ -411,11 +427,13 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
             # lines 11-15: gradient updates
             if global_step >= warmup_until:
                 update_debt += env.num_envs * cfg.updates_per_step
-                d_q = episode_cost_to_q_scale(curriculum.d, cfg.gamma, horizon)
+                d_q = d_q_now()
                 while update_debt >= 1.0:
                     update_debt -= 1.0
                     metrics = agent.update(buffer.sample(cfg.batch_size), d_q)
                     updates += 1
+                    if measured_scale is not None:
+                        measured_scale.observe_q(float(metrics["constraint/qc_pi"]))
                     for k, v in metrics.items():
                         sums[k] = sums[k] + v if k in sums else v.clone()
                     n_sums += 1
@@ -441,7 +459,7 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
                 })  # fmt: skip
                 if cfg.constrained:
                     row.update({"constraint/lambda": float(agent.lam), "constraint/d": curriculum.d,
-                                "constraint/d_q": episode_cost_to_q_scale(curriculum.d, cfg.gamma, horizon),
+                                "constraint/d_q": d_q_now(),
                                 "constraint/stage": curriculum.stage})  # fmt: skip
                 update_metrics = {k: float(v) / n_sums for k, v in sums.items()} if n_sums else {}
                 row.update(update_metrics)

@@ -44,6 +44,9 @@ class RunConfig:
     """Env steps between checkpoint.pt writes (also written at the end and on Ctrl-C)."""
     map_refresh_every: int = 200_000
     """SafeNav-v0: env steps between redraws of the training maps (new seeds); 0 = keep them."""
+    keep_policies: bool = False
+    """Also keep the policy of every periodic evaluation as ``policies/step_<N>.pt`` (policy-only,
+    ~0.6 MB each), to compare a run's policies afterwards (benchmarks/checkpoint_sweep.py)."""
     save_buffer: bool = False
     """Store the replay buffer in checkpoint.pt (large); without it a resume refills it first."""
     matmul_precision: Literal["highest", "high", "medium"] = "highest"

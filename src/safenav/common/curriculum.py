@@ -19,6 +19,7 @@ steps (``CSACConfig.cost_horizon``, by default the env's time limit) the budget 
 ``d / T`` per step; its discounted value from a state, averaged over the states of an episode, is
 ``d_Q``; ``constraint/d_q`` logs it. The mapping is exact for cost spread evenly over episodes of
 length ``T``; for SafeNav, whose episodes end earlier (success, collision), it is an approximation.
+:class:`MeasuredCostScale` (``--csac.cost-scale measured``) measures the ratio instead.
 
 Density curriculum
 ------------------
@@ -56,6 +57,66 @@ def episode_cost_to_q_scale(d: float, gamma: float, horizon: int) -> float:
     if gamma >= 1.0:
         return d * (t + 1.0) / (2.0 * t)
     return d / t * (t - gamma * (1.0 - gamma**t) / (1.0 - gamma)) / (t * (1.0 - gamma))
+
+
+class MeasuredCostScale:
+    """``d -> d_Q`` by measurement instead of a modelled horizon: ``d_Q = d * rho`` with ``rho`` the
+    ratio of running means ``E[Q_C(s, a ~ pi)] / (average episode cost)``, both as training sees
+    them now.
+
+    Why: :func:`episode_cost_to_q_scale` assumes cost spread evenly over ``T`` steps, while
+    SafeNav's cost is one terminal event whose discounted value depends on *when* episodes collide;
+    the measured ratio drifted between ~0.03 and ~0.1 in training, so a fixed ``T`` held the
+    episode cost anywhere between ~0.7 d and ~1.5 d, and the curriculum (judging episode cost
+    against ``d``) stalled. With the measured ratio, λ meeting Eq. 11's threshold means an average
+    episode cost at ``d``, the quantity the curriculum tightens. Eq. 11 itself is unchanged.
+
+    Running means are exponential with weight ``max(1 / n, 1 / span)`` per observation (an exact
+    average until ``span`` observations, then a moving one); the defaults, 1000 episodes and 5000
+    updates, both span ~150k env steps of a ``paper`` run. Until ``min_episodes`` episodes have
+    ended ``fallback`` is used; while the episode cost is ~0 (no ratio to measure), the last ratio.
+    """
+
+    def __init__(self, fallback: float, span_episodes: int = 1000, span_updates: int = 5000,
+                 min_episodes: int = 100) -> None:  # fmt: skip
+        if fallback <= 0 or span_episodes < 1 or span_updates < 1 or min_episodes < 1:
+            raise ValueError("MeasuredCostScale: fallback > 0, spans >= 1, min_episodes >= 1")
+        self.fallback, self.min_episodes = fallback, min_episodes
+        self.span_episodes, self.span_updates = span_episodes, span_updates
+        self.q_mean, self.q_n = 0.0, 0
+        self.cost_mean, self.cost_n = 0.0, 0
+        self.last = fallback
+
+    def observe_episodes(self, episode_costs) -> None:
+        """Record the costs of episodes that just finished."""
+        for c in episode_costs:
+            self.cost_n += 1
+            self.cost_mean += (float(c) - self.cost_mean) * max(1.0 / self.cost_n, 1.0 / self.span_episodes)
+
+    def observe_q(self, q_cost_mean: float) -> None:
+        """Record one measurement of the replay-averaged ``E[Q_C(s, a ~ pi)]`` (an update's)."""
+        if math.isfinite(q_cost_mean):
+            self.q_n += 1
+            self.q_mean += (q_cost_mean - self.q_mean) * max(1.0 / self.q_n, 1.0 / self.span_updates)
+
+    @property
+    def ratio(self) -> float:
+        """``rho``: Q_C-scale value per unit of episode cost (the last valid one while unmeasurable)."""
+        if self.cost_n >= self.min_episodes and self.q_n > 0 and self.cost_mean > 1e-3:
+            self.last = max(self.q_mean, 0.0) / self.cost_mean
+        return self.last if self.cost_n >= self.min_episodes else self.fallback
+
+    def d_q(self, d: float) -> float:
+        return d * self.ratio
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"q_mean": self.q_mean, "q_n": self.q_n, "cost_mean": self.cost_mean,
+                "cost_n": self.cost_n, "last": self.last}  # fmt: skip
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.q_mean, self.q_n = float(state["q_mean"]), int(state["q_n"])
+        self.cost_mean, self.cost_n = float(state["cost_mean"]), int(state["cost_n"])
+        self.last = float(state["last"])
 
 
 @dataclass(frozen=True)
@@ -251,4 +312,4 @@ class DensityCurriculum:
 
 
 __all__ = ["STAGES", "ConstraintCurriculum", "ConstraintCurriculumConfig", "DensityCurriculum",
-           "DensityCurriculumConfig", "episode_cost_to_q_scale"]  # fmt: skip
+           "DensityCurriculumConfig", "MeasuredCostScale", "episode_cost_to_q_scale"]  # fmt: skip

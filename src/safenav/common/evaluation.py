@@ -51,11 +51,15 @@ class BestPolicy:
 
     Chosen on the evaluation maps (:data:`EVAL_SEED`), never on the fixed test scenario, so the
     test figures of ``best.pt`` stay an unbiased estimate. The score so far is part of the
-    training checkpoint (:meth:`state_dict`), so a resumed run keeps comparing with it.
+    training checkpoint (:meth:`state_dict`), so a resumed run keeps comparing with it. With
+    ``keep_dir`` (``--keep-policies``) every offered policy is also kept there as
+    ``step_<global_step>.pt``, for a sweep over a run's policies (benchmarks/checkpoint_sweep.py).
     """
 
-    def __init__(self, path: str | Path, state: dict[str, Any] | None = None) -> None:
+    def __init__(self, path: str | Path, state: dict[str, Any] | None = None,
+                 keep_dir: str | Path | None = None) -> None:  # fmt: skip
         self.path = Path(path)
+        self.keep_dir = Path(keep_dir) if keep_dir is not None else None
         self.score: tuple[float, float] | None = None
         if state and state.get("score") is not None:
             self.score = (float(state["score"][0]), float(state["score"][1]))
@@ -65,13 +69,20 @@ class BestPolicy:
         the best so far; True if it did."""
         from safenav.common.checkpoint import save_checkpoint
 
+        state: dict[str, Any] | None = None
+        if self.keep_dir is not None:
+            state = policy_state() | {"policy_only": True, "evaluation": dict(evaluation)}
+            self.keep_dir.mkdir(parents=True, exist_ok=True)
+            save_checkpoint(self.keep_dir / f"step_{state['global_step']:09d}.pt", state)
         success, collision = evaluation["eval/success_rate"], evaluation["eval/collision_rate"]
         if math.isnan(success) or math.isnan(collision):
             return False
         score = (success, -collision)
         if self.score is not None and score <= self.score:
             return False
-        save_checkpoint(self.path, policy_state() | {"policy_only": True, "evaluation": dict(evaluation)})
+        if state is None:
+            state = policy_state() | {"policy_only": True, "evaluation": dict(evaluation)}
+        save_checkpoint(self.path, state)
         self.score = score
         return True
 

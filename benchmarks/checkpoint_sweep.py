@@ -1,0 +1,118 @@
+"""Which of a run's policies to keep? Every policy of a run on the evaluation maps and on the test
+scenario, side by side (docs/csac.md, "Choosing the policy of a run").
+
+A run's periodic evaluations (``--eval-episodes``, 64 by default in the committed commands) pick
+``best.pt``; with few episodes that choice is noisy. This flies each kept policy (a run's
+``policies/step_*.pt`` from ``safenav train --keep-policies``, or any checkpoint files) on
+
+- the **evaluation maps** (``EVAL_SEED``, the maps the periodic evaluations use: a validation set),
+  ``--val-episodes`` episodes, and
+- the **fixed test scenario** (env seed 1, 200 episodes, as ``safenav eval``),
+
+with deterministic actions, and optionally the **weight average** of the policies whose steps lie
+in ``--average LO HI`` (all parameters of the policy module averaged: stochastic weight averaging
+over the run's late policies). Choosing by the test columns would overfit the test scenario:
+choose by the validation ones and read the test ones.
+
+Run: ``.venv/bin/python benchmarks/checkpoint_sweep.py runs/NAME/policies [--average 3000000 5000000]
+[--json OUT]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import tempfile
+from pathlib import Path
+
+import torch
+from rich.console import Console
+from rich.table import Table
+
+from safenav.common.checkpoint import load_checkpoint, save_checkpoint
+from safenav.common.evaluation import EVAL_SEED
+from safenav.experiments.evaluate import evaluate
+from safenav.experiments.flight import resolve_policy
+
+KEYS = ("success_rate", "collision_rate", "timeout_rate")
+
+
+def policy_files(paths: list[Path]) -> list[Path]:
+    files: list[Path] = []
+    for p in paths:
+        files.extend(sorted(p.glob("*.pt")) if p.is_dir() else [p])
+    if not files:
+        raise SystemExit(f"no checkpoint files in {[str(p) for p in paths]}")
+    return files
+
+
+def fly(path: Path, val_episodes: int, test_episodes: int) -> dict[str, dict[str, float]]:
+    fn, cfg = resolve_policy(path, "checkpoint", "cpu")
+    out = {}
+    for name, seed, episodes in (("val", EVAL_SEED, val_episodes), ("test", 1, test_episodes)):
+        res = evaluate(fn, cfg, env_seed=seed, episodes=episodes, device="cpu")
+        out[name] = {k: float(res[k]) for k in KEYS}
+    return out
+
+
+def weight_average(states: list[dict]) -> dict:
+    """The last state with every floating-point tensor of its policy replaced by the mean over
+    ``states`` (same architecture required)."""
+    avg = copy.deepcopy(states[-1])
+    sd = avg["policy"]["state_dict"]
+    for key, value in sd.items():
+        if value.is_floating_point():
+            sd[key] = torch.stack([s["policy"]["state_dict"][key] for s in states]).mean(0)
+    avg["averaged_steps"] = [int(s["global_step"]) for s in states]
+    return avg
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("paths", nargs="+", type=Path, help="checkpoint files or directories of them")
+    ap.add_argument("--val-episodes", type=int, default=512)
+    ap.add_argument("--test-episodes", type=int, default=200)
+    ap.add_argument(
+        "--average",
+        nargs=2,
+        type=int,
+        metavar=("LO", "HI"),
+        action="append",
+        default=[],
+        help="also fly the weight average of the policies with LO <= step <= HI (repeatable)",
+    )
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args()
+
+    states = {f: load_checkpoint(f) for f in policy_files(args.paths)}
+    rows = []
+    for f, st in sorted(states.items(), key=lambda kv: kv[1]["global_step"]):
+        rows.append({"policy": str(f), "global_step": int(st["global_step"]),
+                     **fly(f, args.val_episodes, args.test_episodes)})  # fmt: skip
+    for lo, hi in args.average:
+        chosen = sorted((s for s in states.values() if lo <= s["global_step"] <= hi),
+                        key=lambda s: s["global_step"])  # fmt: skip
+        if not chosen:
+            raise SystemExit(f"--average {lo} {hi}: no policy in that range of steps")
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / "average.pt"
+            save_checkpoint(path, weight_average(chosen))
+            rows.append({"policy": f"average of {len(chosen)} ({lo}..{hi})", "global_step": hi,
+                         **fly(path, args.val_episodes, args.test_episodes)})  # fmt: skip
+
+    table = Table(title=f"validation: evaluation maps, {args.val_episodes} episodes; "
+                        f"test: env seed 1, {args.test_episodes} episodes")  # fmt: skip
+    for col in ("policy", "step", "val success", "val collision", "val timeout", "test success",
+                "test collision", "test timeout"):  # fmt: skip
+        table.add_column(col, justify="left" if col == "policy" else "right")
+    for r in rows:
+        table.add_row(Path(r["policy"]).name, f"{r['global_step']:,}",
+                      *(f"{r[part][k]:.3f}" for part in ("val", "test") for k in KEYS))  # fmt: skip
+    Console(width=150).print(table)
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,106 @@
+"""Do the cost critics predict the real cost? (docs/csac.md, "Three runs of the 60-minute budget")
+
+Loads a CSAC *training* checkpoint (``RUN/checkpoint.pt``: it holds the critics), flies its
+stochastic policy (as in training) on the run's env at full density, and compares, over every
+transition of the episodes that finished:
+
+- ``predicted``: ``1/2 sum_j Q_C,j(s, a)``, the cost critics' value of the action taken (what
+  Eq. 9 and Eq. 11 use), and
+- ``realised``: the discounted cost-to-go ``sum_k gamma^k c_{t+k}`` until the episode's end
+  (collisions end episodes, so this is ``gamma^(steps to the collision)`` or 0), a Monte-Carlo
+  sample of the same quantity.
+
+Averaged over transitions, equal means an unbiased critic; ``predicted / realised`` well below 1
+means the constraint holds a cost lower than the real one. The same for the reward critics
+(``min_j Q_R,j``, realised reward-to-go plus the entropy bonus left out: a rough check only).
+
+Run: ``.venv/bin/python benchmarks/cost_critic_bias.py runs/NAME/checkpoint.pt [--steps 400]
+[--json OUT]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import torch
+
+from safenav.algos.config import CSACConfig
+from safenav.algos.csac import CSAC
+from safenav.common.checkpoint import load_checkpoint, restore_agent
+from safenav.common.config import RunConfig, from_dict
+from safenav.common.envs import TorchVecEnv, make_vec_env
+
+
+@torch.no_grad()
+def measure(path: Path, num_envs: int, steps: int, seed: int) -> dict[str, float]:
+    state = load_checkpoint(path)
+    if "agent" not in state:
+        raise SystemExit(f"{path} is policy-only: the critics are in the run's checkpoint.pt")
+    run = from_dict(RunConfig, state["config"]["run"])
+    cfg = from_dict(CSACConfig, state["config"]["csac"])
+    env = TorchVecEnv(
+        make_vec_env(run.env, num_envs, "cpu", run.preset, density=run.density.end), "cpu"
+    )
+    agent = CSAC(env.obs_shapes, env.action_dim, cfg)
+    restore_agent(agent, state, path)
+    torch.manual_seed(seed)
+    obs = env.reset(seed=seed)
+    rows = []  # per step: predicted Q_C, Q_R, cost, reward, done
+    for _ in range(steps):
+        x = agent.encoder(obs) if agent.encoder is not None else obs
+        action = agent.actor.sample(x)[0]
+        q_c = (
+            agent.qc(x, action).mean(0).squeeze(-1)
+            if agent.qc is not None
+            else torch.zeros(num_envs)
+        )
+        q_r = agent.qr(x, action).min(0).values.squeeze(-1)
+        step = env.step(action)
+        rows.append((q_c, q_r, step.cost, step.reward, step.terminated | step.truncated))
+        obs = step.next_obs
+    gamma = cfg.gamma
+    pred_c, pred_r, real_c, real_r = [], [], [], []
+    g_c = torch.zeros(num_envs)
+    g_r = torch.zeros(num_envs)
+    finished = torch.zeros(num_envs, dtype=torch.bool)  # an episode end lies ahead of this step
+    for q_c, q_r, cost, reward, done in reversed(rows):
+        g_c = torch.where(done, cost, cost + gamma * g_c)
+        g_r = torch.where(done, reward, reward + gamma * g_r)
+        finished |= done
+        pred_c.append(q_c[finished])
+        pred_r.append(q_r[finished])
+        real_c.append(g_c[finished])
+        real_r.append(g_r[finished])
+    pc, rc = torch.cat(pred_c), torch.cat(real_c)
+    pr, rr = torch.cat(pred_r), torch.cat(real_r)
+    near = rc > 0.5  # within ~70 steps of a collision
+    return {"transitions": int(pc.numel()), "predicted_qc": float(pc.mean()), "realised_qc": float(rc.mean()),
+            "ratio_qc": float(pc.mean() / rc.mean()) if rc.mean() > 0 else float("nan"),
+            "predicted_qc_near_collision": float(pc[near].mean()) if near.any() else float("nan"),
+            "realised_qc_near_collision": float(rc[near].mean()) if near.any() else float("nan"),
+            "predicted_qr": float(pr.mean()), "realised_qr": float(rr.mean()),
+            "lambda": float(agent.lam) if agent.lagrange is not None else 0.0,
+            "global_step": int(state["global_step"])}  # fmt: skip
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("checkpoint", type=Path)
+    ap.add_argument("--num-envs", type=int, default=64)
+    ap.add_argument(
+        "--steps", type=int, default=400, help="vector steps (episodes cut at the end are left out)"
+    )
+    ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args()
+    res = measure(args.checkpoint, args.num_envs, args.steps, args.seed)
+    for k, v in res.items():
+        print(f"{k:30s} {v:.4f}" if isinstance(v, float) else f"{k:30s} {v}")
+    if args.json:
+        args.json.write_text(json.dumps(res, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
