@@ -1,8 +1,8 @@
 """Which of a run's policies to keep? Every policy of a run on the evaluation maps and on the test
-scenario, side by side (docs/csac.md, "Choosing the policy of a run").
+scenario, side by side (docs/csac.md, "Three runs of the 60-minute budget, and choosing a run's policy").
 
-A run's periodic evaluations (``--eval-episodes``, 64 by default in the committed commands) pick
-``best.pt``; with few episodes that choice is noisy. This flies each kept policy (a run's
+A run's periodic evaluations (``--eval-episodes``; 50, i.e. 64 flown, in the committed command)
+pick ``best.pt``; with few episodes that choice is noisy. This flies each kept policy (a run's
 ``policies/step_*.pt`` from ``safenav train --keep-policies``, or any checkpoint files) on
 
 - the **evaluation maps** (``EVAL_SEED``, the maps the periodic evaluations use: a validation set),

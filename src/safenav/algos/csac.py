@@ -330,8 +330,7 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
         d=curriculum.d,
     )
     guard = RunGuard(run_dir, logger, agent, last_saved=global_step if ckpt is not None else None)
-    best = BestPolicy(run_dir / "best.pt", ckpt.get("best") if ckpt is not None else None,
-                      keep_dir=run_dir / "policies" if run.keep_policies else None)
+    best = BestPolicy.for_run(run_dir, run.keep_policies, ckpt)
 
     def policy_state() -> dict[str, Any]:
         return checkpoint_policy_state(algo, global_step, updates, elapsed0 + time.perf_counter() - t0,

@@ -64,27 +64,31 @@ class BestPolicy:
         if state and state.get("score") is not None:
             self.score = (float(state["score"][0]), float(state["score"][1]))
 
+    @classmethod
+    def for_run(cls, run_dir: Path, keep_policies: bool, checkpoint: dict[str, Any] | None) -> BestPolicy:
+        """A trainer's: ``run_dir/best.pt``, the score carried by a resumed ``checkpoint``, and
+        ``run_dir/policies`` when ``--keep-policies``."""
+        return cls(run_dir / "best.pt", checkpoint.get("best") if checkpoint is not None else None,
+                   keep_dir=run_dir / "policies" if keep_policies else None)  # fmt: skip
+
     def offer(self, evaluation: dict[str, float], policy_state: Callable[[], dict[str, Any]]) -> bool:
         """Save ``policy_state()`` (called only when needed) if ``evaluation`` (``eval/*`` keys) beats
         the best so far; True if it did."""
         from safenav.common.checkpoint import save_checkpoint
 
-        state: dict[str, Any] | None = None
+        success, collision = evaluation["eval/success_rate"], evaluation["eval/collision_rate"]
+        score = (success, -collision)
+        wins = not (math.isnan(success) or math.isnan(collision)) and (self.score is None or score > self.score)
+        if not wins and self.keep_dir is None:
+            return False
+        state = policy_state() | {"policy_only": True, "evaluation": dict(evaluation)}
         if self.keep_dir is not None:
-            state = policy_state() | {"policy_only": True, "evaluation": dict(evaluation)}
             self.keep_dir.mkdir(parents=True, exist_ok=True)
             save_checkpoint(self.keep_dir / f"step_{state['global_step']:09d}.pt", state)
-        success, collision = evaluation["eval/success_rate"], evaluation["eval/collision_rate"]
-        if math.isnan(success) or math.isnan(collision):
-            return False
-        score = (success, -collision)
-        if self.score is not None and score <= self.score:
-            return False
-        if state is None:
-            state = policy_state() | {"policy_only": True, "evaluation": dict(evaluation)}
-        save_checkpoint(self.path, state)
-        self.score = score
-        return True
+        if wins:
+            save_checkpoint(self.path, state)
+            self.score = score
+        return wins
 
     def state_dict(self) -> dict[str, Any]:
         return {"score": list(self.score) if self.score is not None else None}
