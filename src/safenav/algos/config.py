@@ -62,6 +62,9 @@ class CSACConfig:
     """Divide the actor loss (Eq. 9) by ``1 + lambda`` (OmniSafe SAC-Lag)."""
     cost_target: Literal["mean", "min", "max"] = "mean"
     """Reduction of the target cost critics in Eq. 6: mean (paper); min/max are ablations."""
+    cost_n_step: int = 1
+    """Steps of the cost target: 1 = Eq. 6; n > 1 = the n-step return of the behaviour policy's
+    costs, then the target critics (beyond the paper, ``common.nstep``); reward stays one-step."""
     cost_horizon: int = 0
     """Horizon T mapping the episode budget d onto the Q_C scale; 0 = the env's time limit."""
     cost_scale: Literal["horizon", "measured"] = "horizon"
@@ -84,6 +87,8 @@ class CSACConfig:
             raise ValueError(
                 "updates-per-step > 0, learning-starts >= 0 and num-critics >= 1 are required"
             )
+        if self.cost_n_step < 1:
+            raise ValueError(f"cost-n-step={self.cost_n_step} must be >= 1")
         if self.num_cost_critics < 0 or self.lambda_every < 1 or self.episode_lambda_lr <= 0:
             raise ValueError("num-cost-critics >= 0, lambda-every >= 1, episode-lambda-lr > 0")
         if self.init_alpha <= 0 or self.init_lambda < 0:

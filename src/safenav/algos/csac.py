@@ -31,7 +31,14 @@ import torch
 from torch import nn
 
 from safenav.algos.config import CSACConfig
-from safenav.algos.losses import actor_loss, alpha_loss, cost_target, critic_loss, reward_target
+from safenav.algos.losses import (
+    actor_loss,
+    alpha_loss,
+    cost_target,
+    critic_loss,
+    n_step_cost_target,
+    reward_target,
+)
 from safenav.algos.policy import POLICY_FORMAT_VERSION
 from safenav.common.buffer import Batch, ReplayBuffer
 from safenav.common.checkpoint import (
@@ -53,6 +60,7 @@ from safenav.common.envs import TorchVecEnv, env_horizon, is_safenav, make_vec_e
 from safenav.common.evaluation import BestPolicy, periodic_evaluation
 from safenav.common.lagrange import Lagrange
 from safenav.common.logger import RunLogger
+from safenav.common.nstep import NStepWindow
 from safenav.common.runs import episode_charts, run_summary, write_run_config
 from safenav.common.stopping import RunGuard, enable_sigint
 from safenav.nn.networks import Actor, DeterministicActor, QEnsemble, input_order, make_extractor
@@ -141,7 +149,8 @@ class CSAC(nn.Module):
         """One gradient update (Algorithm 1, lines 12-15); ``d_q`` is the threshold on the Q_C scale.
         Returns detached scalar metrics."""
         cfg = self.cfg
-        obs, actions, rewards, costs, next_obs, terminated = batch
+        obs, actions, rewards, costs, next_obs, terminated = batch[:6]
+        n_step = self.qc is not None and batch.costs_n is not None
         alpha = self.log_alpha.exp().detach()
         # Features: with a shared extractor the critics train it and the actor reads it detached.
         if self.encoder is not None:
@@ -149,16 +158,27 @@ class CSAC(nn.Module):
             x_actor = x.detach()
             with torch.no_grad():
                 x_next, x_next_target = self.encoder(next_obs), self.encoder_target(next_obs)
+                if n_step:
+                    x_n, x_n_target = (
+                        self.encoder(batch.next_obs_n),
+                        self.encoder_target(batch.next_obs_n),
+                    )
         else:
             x = x_actor = obs
             x_next = x_next_target = next_obs
+            if n_step:
+                x_n = x_n_target = batch.next_obs_n
 
         # -- line 12: targets (Eqs. 5-6) and critic losses (Eqs. 7-8)
         with torch.no_grad():
             next_actions, next_log_prob, _ = self.actor.sample(x_next)
             y_r = reward_target(rewards, terminated, self.qr_target(x_next_target, next_actions),
                                 next_log_prob, alpha, cfg.gamma)  # fmt: skip
-            if self.qc is not None:
+            if n_step:  # beyond the paper: Eq. 6 over n steps (common.nstep)
+                actions_n, _, _ = self.actor.sample(x_n)
+                y_c = n_step_cost_target(batch.costs_n, batch.discount_n,
+                                         self.qc_target(x_n_target, actions_n), cfg.cost_target)  # fmt: skip
+            elif self.qc is not None:
                 y_c = cost_target(costs, terminated, self.qc_target(x_next_target, next_actions),
                                   cfg.gamma, cfg.cost_target)  # fmt: skip
         q_r = self.qr(x, actions)
@@ -286,8 +306,10 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
         eval_env = TorchVecEnv(make_vec_env(run.env, min(run.eval_episodes, 32), run.device, run.preset,
                                             **eval_kwargs), device)  # fmt: skip
     agent = CSAC(env.obs_shapes, env.action_dim, cfg).to(device)
+    n_step = cfg.constrained and cfg.cost_n_step > 1
     buffer = ReplayBuffer(min(cfg.buffer_size, max(run.total_steps, cfg.batch_size)), env.obs_shapes,
-                          env.action_dim, device)  # fmt: skip
+                          env.action_dim, device, n_step=n_step)  # fmt: skip
+    nstep = NStepWindow(cfg.cost_n_step, cfg.gamma) if n_step else None
     curriculum = ConstraintCurriculum(cfg.curriculum)
     horizon = cfg.cost_horizon or env_horizon(env.envs)
     measured_scale = (MeasuredCostScale(fallback=episode_cost_to_q_scale(1.0, cfg.gamma, horizon))
@@ -312,6 +334,8 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
         set_rng_state(ckpt["rng"])
         if "buffer" in ckpt:
             buffer.load_state_dict(ckpt["buffer"])
+            if nstep is not None and ckpt.get("nstep_window"):
+                nstep.load_state_dict(ckpt["nstep_window"])
         # without the buffer: refill it with the current policy before updating again
         warmup_until = (
             global_step
@@ -346,6 +370,8 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
             state["cost_scale"] = measured_scale.state_dict()
         if run.save_buffer:
             state["buffer"] = buffer.state_dict()
+            if nstep is not None:
+                state["nstep_window"] = nstep.state_dict()
         guard.save(global_step, state)  # refuses non-finite weights: keeps the last good file
 
     # -- the loop (Algorithm 1): one vector step = num_envs transitions
@@ -376,15 +402,13 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
             else:
                 actions = agent.act(obs)
             step = env.step(actions)
-            buffer.add(
-                obs,
-                actions,
-                step.reward,
-                step.cost,
-                step.real_next_obs,
-                step.terminated,
-                step.valid,
-            )
+            transition = (obs, actions, step.reward, step.cost, step.real_next_obs, step.terminated)
+            if nstep is None:
+                buffer.add(*transition, step.valid)
+            else:  # enters the buffer n vector steps later, with its n-step cost return
+                released = nstep.push(*transition, step.truncated, step.valid)
+                if released is not None:
+                    buffer.add(*released)
             obs = step.next_obs
             global_step += env.num_envs
 
@@ -409,6 +433,8 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
             if refresh_every and global_step // refresh_every > refresh:  # new maps, new episodes
                 refresh = global_step // refresh_every
                 obs = env.reset(seed=run.train_env_seed(refresh))
+                if nstep is not None:
+                    nstep.cut()
             new_density = density.step(global_step)
             if new_density is not None and env.set_density(new_density):
                 logger.event(global_step, "density", density=new_density)
@@ -424,7 +450,8 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
                     lam_costs = []
 
             # lines 11-15: gradient updates
-            if global_step >= warmup_until:
+            # (len: an n-step window delays the first rows of the buffer)
+            if global_step >= warmup_until and len(buffer):
                 update_debt += env.num_envs * cfg.updates_per_step
                 d_q = d_q_now()
                 while update_debt >= 1.0:

@@ -33,15 +33,30 @@ def cost_target(cost: torch.Tensor, terminated: torch.Tensor, next_q: torch.Tens
     the mean is less biased low than the minimum). ``reduce="min"`` / ``"max"`` are the ablations.
     No entropy term: the cost value is a plain discounted sum of costs.
     """
+    return cost + gamma * (1.0 - terminated.float()) * _reduce_critics(next_q, reduce)
+
+
+def n_step_cost_target(cost_n: torch.Tensor, discount_n: torch.Tensor, next_q: torch.Tensor,
+                       reduce: str = "mean") -> torch.Tensor:  # fmt: skip
+    """Eq. 6 over ``m <= n`` steps (beyond the paper, :mod:`safenav.common.nstep`):
+    ``y_C = sum_{k<m} gamma^k c_{t+k} + gamma^m (1 - terminated) (1/2 sum_j Q_C_j(s_{t+m}, a'))``.
+
+    ``cost_n`` is the discounted cost sum, ``discount_n`` ``gamma^m (1 - terminated)`` (0 after a
+    collision), ``next_q`` ``(E, B)`` the target cost critics at ``(s_{t+m}, a' ~ pi)``. With
+    ``m = 1`` it is :func:`cost_target`.
+    """
+    return cost_n + discount_n * _reduce_critics(next_q, reduce)
+
+
+def _reduce_critics(q: torch.Tensor, reduce: str) -> torch.Tensor:
+    """The ``(E, B)`` critics' mean (Eq. 6), or min / max (ablations), over ``E``."""
     if reduce == "mean":
-        value = next_q.mean(0)
-    elif reduce == "min":
-        value = next_q.min(0).values
-    elif reduce == "max":
-        value = next_q.max(0).values
-    else:
-        raise ValueError(f"reduce={reduce!r}: choose mean, min or max")
-    return cost + gamma * (1.0 - terminated.float()) * value
+        return q.mean(0)
+    if reduce == "min":
+        return q.min(0).values
+    if reduce == "max":
+        return q.max(0).values
+    raise ValueError(f"reduce={reduce!r}: choose mean, min or max")
 
 
 def critic_loss(q: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -92,5 +107,6 @@ __all__ = [
     "cost_target",
     "critic_loss",
     "lagrange_loss",
+    "n_step_cost_target",
     "reward_target",
 ]
