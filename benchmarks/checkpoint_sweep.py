@@ -12,10 +12,12 @@ pick ``best.pt``; with few episodes that choice is noisy. This flies each kept p
 with deterministic actions, and optionally the **weight average** of the policies whose steps lie
 in ``--average LO HI`` (all parameters of the policy module averaged: stochastic weight averaging
 over the run's late policies). Choosing by the test columns would overfit the test scenario:
-choose by the validation ones and read the test ones.
+choose by the validation ones and read the test ones. ``--sampled`` also flies each policy on the
+evaluation maps with actions *sampled* from its squashed Gaussian, as in training (CSAC/SAC
+policies): equal timeouts mean caution, not a deadlock of the deterministic mean action.
 
 Run: ``.venv/bin/python benchmarks/checkpoint_sweep.py runs/NAME/policies [--average 3000000 5000000]
-[--json OUT]``.
+[--sampled] [--json OUT]``.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import torch
 from rich.console import Console
 from rich.table import Table
 
+from safenav.algos.policy import load_policy
 from safenav.common.checkpoint import load_checkpoint, save_checkpoint
 from safenav.common.evaluation import EVAL_SEED
 from safenav.experiments.evaluate import evaluate
@@ -47,11 +50,28 @@ def policy_files(paths: list[Path]) -> list[Path]:
     return files
 
 
-def fly(path: Path, val_episodes: int, test_episodes: int) -> dict[str, dict[str, float]]:
+def sampled_actions(path: Path):
+    """The policy of ``path`` acting with ``tanh(mean + std * noise)`` instead of ``tanh(mean)``."""
+    actor = load_policy(path).actor
+    if not hasattr(actor.actor, "sample"):
+        raise SystemExit(f"--sampled: {path} is not a squashed-Gaussian (CSAC/SAC) policy")
+
+    def act(obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        obs = {k: obs[k] for k in actor.input_names}
+        return actor.actor.sample(actor.encoder(obs) if actor.encoder is not None else obs)[0]
+
+    return act
+
+
+def fly(path: Path, val_episodes: int, test_episodes: int, sampled: bool = False) -> dict[str, dict[str, float]]:  # fmt: skip
     fn, cfg = resolve_policy(path, "checkpoint", "cpu")
+    runs = [("val", fn, EVAL_SEED, val_episodes), ("test", fn, 1, test_episodes)]
+    if sampled:
+        runs.append(("val_sampled", sampled_actions(path), EVAL_SEED, val_episodes))
     out = {}
-    for name, seed, episodes in (("val", EVAL_SEED, val_episodes), ("test", 1, test_episodes)):
-        res = evaluate(fn, cfg, env_seed=seed, episodes=episodes, device="cpu")
+    for name, act, seed, episodes in runs:
+        torch.manual_seed(0)  # the sampled actions' noise
+        res = evaluate(act, cfg, env_seed=seed, episodes=episodes, device="cpu")
         out[name] = {k: float(res[k]) for k in KEYS}
     return out
 
@@ -82,6 +102,8 @@ def main() -> None:
         default=[],
         help="also fly the weight average of the policies with LO <= step <= HI (repeatable)",
     )
+    ap.add_argument("--sampled", action="store_true",
+                    help="also fly the evaluation maps with sampled (training) actions")  # fmt: skip
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
 
@@ -89,7 +111,7 @@ def main() -> None:
     rows = []
     for f, st in sorted(states.items(), key=lambda kv: kv[1]["global_step"]):
         rows.append({"policy": str(f), "global_step": int(st["global_step"]),
-                     **fly(f, args.val_episodes, args.test_episodes)})  # fmt: skip
+                     **fly(f, args.val_episodes, args.test_episodes, args.sampled)})  # fmt: skip
     for lo, hi in args.average:
         chosen = sorted((s for s in states.values() if lo <= s["global_step"] <= hi),
                         key=lambda s: s["global_step"])  # fmt: skip
@@ -99,16 +121,20 @@ def main() -> None:
             path = Path(tmp) / "average.pt"
             save_checkpoint(path, weight_average(chosen))
             rows.append({"policy": f"average of {len(chosen)} ({lo}..{hi})", "global_step": hi,
-                         **fly(path, args.val_episodes, args.test_episodes)})  # fmt: skip
+                         **fly(path, args.val_episodes, args.test_episodes, args.sampled)})  # fmt: skip
 
     table = Table(title=f"validation: evaluation maps, {args.val_episodes} episodes; "
                         f"test: env seed 1, {args.test_episodes} episodes")  # fmt: skip
-    for col in ("policy", "step", "val success", "val collision", "val timeout", "test success",
-                "test collision", "test timeout"):  # fmt: skip
-        table.add_column(col, justify="left" if col == "policy" else "right")
+    parts = ("val", "test", "val_sampled") if args.sampled else ("val", "test")
+    names = {"val": "val", "test": "test", "val_sampled": "val sampled"}
+    table.add_column("policy", justify="left")
+    table.add_column("step", justify="right")
+    for part in parts:
+        for k in ("success", "collision", "timeout"):
+            table.add_column(f"{names[part]} {k}", justify="right")
     for r in rows:
         table.add_row(Path(r["policy"]).name, f"{r['global_step']:,}",
-                      *(f"{r[part][k]:.3f}" for part in ("val", "test") for k in KEYS))  # fmt: skip
+                      *(f"{r[part][k]:.3f}" for part in parts for k in KEYS))  # fmt: skip
     Console(width=150).print(table)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1) + "\n")

@@ -1,0 +1,56 @@
+"""The diagnostic scripts of ``benchmarks/`` that docs/csac.md quotes run on a tiny CSAC run:
+``checkpoint_sweep.py`` (with ``--sampled``) and ``cost_critic_bias.py``."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import sys
+from pathlib import Path
+
+import pytest
+
+from safenav.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def script(name: str):
+    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory) -> Path:
+    from tests.test_train_cli import FAST
+
+    run_dir = tmp_path_factory.mktemp("runs") / "csac"
+    main(["train", "--algo", "csac", "--preset", "easy", "--seed", "2", "--total-steps", "400",
+          "--keep-policies", "--run-dir", str(run_dir), *FAST])  # fmt: skip
+    return run_dir
+
+
+def test_checkpoint_sweep_flies_every_policy_and_sampled_actions(tiny_run, tmp_path, monkeypatch):
+    out = tmp_path / "sweep.json"
+    monkeypatch.setattr(sys, "argv", ["checkpoint_sweep.py", str(tiny_run / "policies"),
+                                      "--val-episodes", "3", "--test-episodes", "2", "--sampled",
+                                      "--json", str(out)])  # fmt: skip
+    script("checkpoint_sweep").main()
+    rows = json.loads(out.read_text())
+    assert [r["global_step"] for r in rows] == [200, 400]
+    for r in rows:
+        for part in ("val", "test", "val_sampled"):
+            rates = [r[part][k] for k in ("success_rate", "collision_rate", "timeout_rate")]
+            assert sum(rates) == pytest.approx(1.0)
+
+
+def test_cost_critic_bias_compares_prediction_with_the_realised_cost(tiny_run):
+    bias = script("cost_critic_bias")
+    res = bias.measure(tiny_run / "checkpoint.pt", num_envs=4, steps=120, seed=0)
+    assert res["transitions"] > 0 and res["global_step"] == 400
+    assert math.isfinite(res["predicted_qc"]) and 0.0 <= res["realised_qc"] <= 1.0
+    with pytest.raises(SystemExit, match="policy-only"):
+        bias.measure(tiny_run / "best.pt", num_envs=2, steps=5, seed=0)
