@@ -1,7 +1,7 @@
 """Which of a run's policies to keep? Every policy of a run on the evaluation maps and on the test
 scenario, side by side (docs/csac.md, "Three runs of the 60-minute budget, and choosing a run's policy").
 
-A run's periodic evaluations (``--eval-episodes``; 50, i.e. 64 flown, in the committed command)
+A run's periodic evaluations (``--eval-episodes``; 400, i.e. 416 flown, in the committed command)
 pick ``best.pt``; with few episodes that choice is noisy. This flies each kept policy (a run's
 ``policies/step_*.pt`` from ``safenav train --keep-policies``, or any checkpoint files) on
 
