@@ -70,7 +70,8 @@ def fly(path: Path, val_episodes: int, test_episodes: int, sampled: bool = False
         runs.append(("val_sampled", sampled_actions(path), EVAL_SEED, val_episodes))
     out = {}
     for name, act, seed, episodes in runs:
-        torch.manual_seed(0)  # the sampled actions' noise
+        if name == "val_sampled":
+            torch.manual_seed(0)  # the sampled actions' noise
         res = evaluate(act, cfg, env_seed=seed, episodes=episodes, device="cpu")
         out[name] = {k: float(res[k]) for k in KEYS}
     return out

@@ -10,7 +10,7 @@ from safenav.algos.config import CSACConfig
 from safenav.algos.csac import CSAC
 from safenav.algos.losses import cost_target, n_step_cost_target
 from safenav.cli import main
-from safenav.common.buffer import ReplayBuffer
+from safenav.common.buffer import Batch, ReplayBuffer
 from safenav.common.checkpoint import load_checkpoint
 from safenav.common.nstep import NStepWindow
 
@@ -22,8 +22,9 @@ def push(window: NStepWindow, t: int, cost, terminated, truncated):
     n = len(cost)
     obs = {"x": torch.full((n, 1), float(t))}
     nxt = {"x": torch.full((n, 1), float(t + 1))}
-    return window.push(obs, torch.zeros(n, 1), torch.zeros(n), T(cost), nxt, T(terminated),
-                       T(truncated), torch.ones(n, dtype=torch.bool))  # fmt: skip
+    released = window.push(Batch(obs, torch.zeros(n, 1), torch.zeros(n), T(cost), nxt, T(terminated)),
+                           T(truncated), torch.ones(n, dtype=torch.bool))  # fmt: skip
+    return None if released is None else released[0]
 
 
 def test_window_returns_hand_computed_n_step_costs():

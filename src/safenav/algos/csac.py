@@ -402,13 +402,16 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
             else:
                 actions = agent.act(obs)
             step = env.step(actions)
-            transition = (obs, actions, step.reward, step.cost, step.real_next_obs, step.terminated)
+            transition = Batch(
+                obs, actions, step.reward, step.cost, step.real_next_obs, step.terminated
+            )
             if nstep is None:
-                buffer.add(*transition, step.valid)
+                buffer.add(*transition[:6], step.valid)
             else:  # enters the buffer n vector steps later, with its n-step cost return
-                released = nstep.push(*transition, step.truncated, step.valid)
+                released = nstep.push(transition, step.truncated, step.valid)
                 if released is not None:
-                    buffer.add(*released)
+                    batch, valid = released
+                    buffer.add(*batch[:6], valid, batch.costs_n, batch.next_obs_n, batch.discount_n)
             obs = step.next_obs
             global_step += env.num_envs
 

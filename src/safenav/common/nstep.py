@@ -11,8 +11,9 @@ with ``m = n``, or fewer when the episode ends (terminated or truncated) at step
 truncation bootstraps from the true final observation, as the one-step target does.
 
 :class:`NStepWindow` holds the last ``n`` vector steps of every env and, once full, releases the
-oldest step's transition together with ``(cost_n, next_obs_n, discount_n)``, the three inputs of
-that target, so the replay buffer stores them beside the one-step fields (the reward target,
+oldest step's transition (a :class:`~safenav.common.buffer.Batch`) with its n-step fields
+``(costs_n, next_obs_n, discount_n)`` set, the three inputs of that target, so the replay buffer
+stores them beside the one-step fields (the reward target,
 Eq. 5, stays one-step). The sum uses the costs the *behaviour* policy paid: with older policies
 that collided more, it errs towards more cost, the safe side.
 """
@@ -24,32 +25,16 @@ from typing import NamedTuple
 
 import torch
 
+from safenav.common.buffer import Batch
+
 
 class WindowStep(NamedTuple):
-    obs: dict[str, torch.Tensor]
-    actions: torch.Tensor
-    rewards: torch.Tensor
-    costs: torch.Tensor
-    next_obs: dict[str, torch.Tensor]
-    terminated: torch.Tensor
+    transition: Batch
+    """One vector step's one-step fields (its n-step fields None until it leaves the window)."""
     done: torch.Tensor
+    """Terminated or truncated: the episode ends after this step."""
     valid: torch.Tensor
-
-
-class NStepTransition(NamedTuple):
-    """One vector step's transitions (the arguments of ``ReplayBuffer.add``) plus the n-step
-    cost target's inputs."""
-
-    obs: dict[str, torch.Tensor]
-    actions: torch.Tensor
-    rewards: torch.Tensor
-    costs: torch.Tensor
-    next_obs: dict[str, torch.Tensor]
-    terminated: torch.Tensor
-    valid: torch.Tensor
-    costs_n: torch.Tensor
-    next_obs_n: dict[str, torch.Tensor]
-    discount_n: torch.Tensor
+    """``ReplayBuffer.add``'s mask of real transitions."""
 
 
 class NStepWindow:
@@ -65,15 +50,15 @@ class NStepWindow:
     def __len__(self) -> int:
         return len(self.steps)
 
-    def push(self, obs: dict[str, torch.Tensor], actions: torch.Tensor, rewards: torch.Tensor,
-             costs: torch.Tensor, next_obs: dict[str, torch.Tensor], terminated: torch.Tensor,
-             truncated: torch.Tensor, valid: torch.Tensor) -> NStepTransition | None:  # fmt: skip
-        """Add one vector step (``next_obs`` the true ``s'``); release the oldest once ``n`` are held."""
-        terminated, truncated, valid = terminated.bool(), truncated.bool(), valid.bool()
-        self.steps.append(WindowStep({k: v.clone() for k, v in obs.items()}, actions.clone(),
-                                     rewards.clone(), costs.clone(),
-                                     {k: v.clone() for k, v in next_obs.items()},
-                                     terminated.clone(), (terminated | truncated).clone(), valid.clone()))  # fmt: skip
+    def push(self, transition: Batch, truncated: torch.Tensor,
+             valid: torch.Tensor) -> tuple[Batch, torch.Tensor] | None:  # fmt: skip
+        """Add one vector step (``transition.next_obs`` the true ``s'``); once ``n`` are held,
+        release the oldest: its transition with the n-step fields set, and its ``valid`` mask."""
+        t = transition
+        terminated = t.terminated.bool()
+        held = Batch({k: v.clone() for k, v in t.obs.items()}, t.actions.clone(), t.rewards.clone(),
+                     t.costs.clone(), {k: v.clone() for k, v in t.next_obs.items()}, terminated.clone())  # fmt: skip
+        self.steps.append(WindowStep(held, terminated | truncated.bool(), valid.bool().clone()))
         return self.pop() if len(self.steps) >= self.n else None
 
     def cut(self) -> None:
@@ -83,11 +68,11 @@ class NStepWindow:
             last = self.steps[-1]
             self.steps[-1] = last._replace(done=torch.ones_like(last.done))
 
-    def pop(self) -> NStepTransition:
+    def pop(self) -> tuple[Batch, torch.Tensor]:
         """The oldest held step with its n-step cost return over the steps held after it."""
-        steps = list(self.steps)
-        first = self.steps.popleft()
-        done = torch.stack([s.done for s in steps])  # (m, N)
+        steps = [s.transition for s in self.steps]
+        done = torch.stack([s.done for s in self.steps])  # (m, N)
+        first, valid = steps[0], self.steps.popleft().valid
         costs = torch.stack([s.costs.float() for s in steps])
         m, n_envs = done.shape
         # step j still belongs to the first step's episode iff no episode end before j
@@ -105,16 +90,15 @@ class NStepWindow:
         next_obs_n = {
             k: torch.stack([s.next_obs[k] for s in steps])[last, rows] for k in first.next_obs
         }
-        return NStepTransition(first.obs, first.actions, first.rewards, first.costs, first.next_obs,
-                               first.terminated, first.valid, costs_n, next_obs_n, discount_n)  # fmt: skip
+        return first._replace(costs_n=costs_n, next_obs_n=next_obs_n, discount_n=discount_n), valid
 
     def state_dict(self) -> dict:
-        return {"n": self.n, "steps": [tuple(s) for s in self.steps]}
+        return {"n": self.n, "steps": [(tuple(s.transition), s.done, s.valid) for s in self.steps]}
 
     def load_state_dict(self, state: dict) -> None:
         if int(state["n"]) != self.n:
             raise ValueError(f"the saved n-step window has n={state['n']}, this run n={self.n}")
-        self.steps = deque(WindowStep(*s) for s in state["steps"])
+        self.steps = deque(WindowStep(Batch(*t), done, valid) for t, done, valid in state["steps"])
 
 
-__all__ = ["NStepTransition", "NStepWindow"]
+__all__ = ["NStepWindow", "WindowStep"]
