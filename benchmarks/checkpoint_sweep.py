@@ -127,12 +127,11 @@ def main() -> None:
     table = Table(title=f"validation: evaluation maps, {args.val_episodes} episodes; "
                         f"test: env seed 1, {args.test_episodes} episodes")  # fmt: skip
     parts = ("val", "test", "val_sampled") if args.sampled else ("val", "test")
-    names = {"val": "val", "test": "test", "val_sampled": "val sampled"}
     table.add_column("policy", justify="left")
     table.add_column("step", justify="right")
     for part in parts:
         for k in ("success", "collision", "timeout"):
-            table.add_column(f"{names[part]} {k}", justify="right")
+            table.add_column(f"{part.replace('_', ' ')} {k}", justify="right")
     for r in rows:
         table.add_row(Path(r["policy"]).name, f"{r['global_step']:,}",
                       *(f"{r[part][k]:.3f}" for part in parts for k in KEYS))  # fmt: skip

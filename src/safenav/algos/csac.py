@@ -405,13 +405,15 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
             transition = Batch(
                 obs, actions, step.reward, step.cost, step.real_next_obs, step.terminated
             )
-            if nstep is None:
-                buffer.add(*transition[:6], step.valid)
-            else:  # enters the buffer n vector steps later, with its n-step cost return
-                released = nstep.push(transition, step.truncated, step.valid)
-                if released is not None:
-                    batch, valid = released
-                    buffer.add(*batch[:6], valid, batch.costs_n, batch.next_obs_n, batch.discount_n)
+            # with n-step cost targets a transition enters the buffer n vector steps later
+            released = (
+                (transition, step.valid)
+                if nstep is None
+                else nstep.push(transition, step.truncated, step.valid)
+            )
+            if released is not None:
+                batch, valid = released  # add() takes valid between the one- and n-step fields
+                buffer.add(*batch[:6], valid, *batch[6:])
             obs = step.next_obs
             global_step += env.num_envs
 
