@@ -1,5 +1,5 @@
 """The diagnostic scripts of ``benchmarks/`` that docs/csac.md quotes run on a tiny CSAC run:
-``checkpoint_sweep.py`` (with ``--sampled``) and ``cost_critic_bias.py``."""
+``checkpoint_sweep.py`` (with ``--sampled``), ``cost_critic_bias.py`` and ``timeout_paths.py``."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import math
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from safenav.cli import main
@@ -54,3 +55,20 @@ def test_cost_critic_bias_compares_prediction_with_the_realised_cost(tiny_run):
     assert math.isfinite(res["predicted_qc"]) and 0.0 <= res["realised_qc"] <= 1.0
     with pytest.raises(SystemExit, match="policy-only"):
         bias.measure(tiny_run / "best.pt", num_envs=2, steps=5, seed=0)
+
+
+def test_timeout_paths_splits_the_eval_episodes_by_outcome(tiny_run, tmp_path):
+    result = tmp_path / "eval.json"
+    main(["eval", str(tiny_run / "best.pt"), "--episodes", "6", "--json", str(result)])
+    data = json.loads(result.read_text())
+    rows = script("timeout_paths").summarise(data)
+    assert sum(r["episodes"] for r in rows.values()) == 6
+    per = data["per_episode"]
+    for outcome, r in rows.items():
+        paths = [p for p, hit in zip(per["path_length"], per[outcome], strict=True) if hit]
+        assert r["path_m"] == pytest.approx([min(paths), float(np.median(paths)), max(paths)])
+        lo, med, hi = r["path_over_distance"]
+        assert 0 < lo <= med <= hi and r["distance_m"][0] > 0
+    data["per_episode"] = {k: v[:3] for k, v in per.items()}
+    with pytest.raises(SystemExit, match="differ in length"):
+        script("timeout_paths").summarise(data)
