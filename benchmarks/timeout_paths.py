@@ -49,7 +49,9 @@ def summarise(result: dict) -> dict[str, dict[str, list[float]]]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("result", type=Path, help="a `safenav eval --json` file (with per_episode lists)")
+    ap.add_argument(
+        "result", type=Path, help="a `safenav eval --json` file (with per_episode lists)"
+    )
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     rows = summarise(json.loads(args.result.read_text()))
