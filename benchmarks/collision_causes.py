@@ -28,9 +28,10 @@ from pathlib import Path
 
 import torch
 
-from safenav.envs.nav import SafeNavVectorEnv, fixed_scenario
+from safenav.envs.nav import SafeNavVectorEnv
 from safenav.envs.sensors import moving_obstacle_clearance
 from safenav.envs.world import CUBOID_HEIGHT, CYLINDER_HEIGHT
+from safenav.experiments.evaluate import fixed_test_scenario
 from safenav.experiments.flight import resolve_policy
 
 LOOKBACK = 10  # steps = 1 s at 10 Hz
@@ -39,8 +40,7 @@ LOOKBACK = 10  # steps = 1 s at 10 Hz
 @torch.no_grad()
 def classify(checkpoint: str, episodes: int = 200) -> dict:
     policy, cfg = resolve_policy(Path(checkpoint), "checkpoint", "cpu")
-    cfg = cfg.replace(density=1.0, num_worlds=1)
-    starts, goals = fixed_scenario(cfg, 1, episodes)
+    cfg, starts, goals = fixed_test_scenario(cfg, 1, episodes)
     env = SafeNavVectorEnv(episodes, config=cfg, output="torch", autoreset_mode="Disabled")
     obs, _ = env.reset(seed=1, options={"starts": starts, "goals": goals})
     p = env.n_static

@@ -1,8 +1,8 @@
 """Do timed-out episodes hover or wander? (docs/csac.md, "Not done / open")
 
 Reads the per-episode lists of a ``safenav eval --json`` result and the start-goal pairs of the
-same fixed test scenario (``fixed_scenario`` with the result's env seed and episode count, the
-checkpoint's env config at full density), and prints, per outcome (success, collision,
+same fixed test scenario (``experiments.evaluate.fixed_test_scenario`` with the result's env seed
+and episode count and the checkpoint's env config), and prints, per outcome (success, collision,
 timeout), the start-goal distance, the flown path length, their ratio and the mean speed
 (minimum / median / maximum). A hovering policy times out with a short path; a wandering one with
 a path far longer than the distance.
@@ -20,7 +20,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from safenav.envs.nav import fixed_scenario
+from safenav.experiments.evaluate import fixed_test_scenario
 from safenav.experiments.flight import resolve_policy
 
 OUTCOMES = ("success", "collision", "timeout")
@@ -29,8 +29,7 @@ OUTCOMES = ("success", "collision", "timeout")
 def summarise(result: dict) -> dict[str, dict[str, list[float]]]:
     per = result["per_episode"]
     _, cfg = resolve_policy(Path(result["checkpoint"]), "checkpoint", "cpu")
-    cfg = cfg.replace(density=1.0, num_worlds=1)
-    starts, goals = fixed_scenario(cfg, int(result["env_seed"]), int(result["episodes"]))
+    _, starts, goals = fixed_test_scenario(cfg, int(result["env_seed"]), int(result["episodes"]))
     distance = np.linalg.norm(np.asarray(goals) - np.asarray(starts), axis=-1)
     path = np.asarray(per["path_length"], dtype=float)
     speed = np.asarray(per["mean_speed"], dtype=float)

@@ -23,6 +23,16 @@ Policy = Callable[[dict[str, torch.Tensor]], torch.Tensor]
 Shield = Callable[[SafeNavVectorEnv, dict[str, torch.Tensor], torch.Tensor], torch.Tensor]
 
 
+def fixed_test_scenario(
+    config: EnvConfig | None, env_seed: int, episodes: int
+) -> tuple[EnvConfig, Any, Any]:
+    """The test scenario's env config (``config``, else the ``paper`` preset, at full density on
+    one world) and the start/goal pairs of its first ``episodes`` episodes."""
+    cfg = (config or make_config("paper")).replace(density=1.0, num_worlds=1)
+    starts, goals = fixed_scenario(cfg, env_seed, episodes)
+    return cfg, starts, goals
+
+
 @torch.no_grad()
 def evaluate(
     policy: Policy,
@@ -46,8 +56,7 @@ def evaluate(
     ``collision_bounds_rate`` (what the collisions were with); ``episodes``; and ``per_episode``
     lists.
     """
-    cfg = (config or make_config("paper")).replace(density=1.0, num_worlds=1)
-    starts, goals = fixed_scenario(cfg, env_seed, episodes)
+    cfg, starts, goals = fixed_test_scenario(config, env_seed, episodes)
     env = SafeNavVectorEnv(episodes, config=cfg, device=device, output="torch",
                            autoreset_mode="Disabled")  # fmt: skip
     obs, _ = env.reset(seed=env_seed, options={"starts": starts, "goals": goals})

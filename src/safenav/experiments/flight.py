@@ -9,9 +9,10 @@ import numpy as np
 import torch
 
 from safenav.envs.config import make_config
-from safenav.envs.nav import SafeNavVectorEnv, fixed_scenario
+from safenav.envs.nav import SafeNavVectorEnv
 from safenav.envs.scripted import potential_field
 from safenav.errors import SafenavError
+from safenav.experiments.evaluate import fixed_test_scenario
 
 
 def resolve_policy(checkpoint: Path | None, policy: str, device: str = "cpu"):
@@ -46,8 +47,7 @@ def render_episode(
     fn, cfg = resolve_policy(checkpoint, policy)
     if preset is not None or cfg is None:
         cfg = make_config(preset or "paper")
-    cfg = cfg.replace(density=1.0, num_worlds=1)
-    starts, goals = fixed_scenario(cfg, env_seed, episode + 1)
+    cfg, starts, goals = fixed_test_scenario(cfg, env_seed, episode + 1)
     env = SafeNavVectorEnv(1, config=cfg, output="torch", autoreset_mode="Disabled",
                            render_mode="rgb_array")  # fmt: skip
     obs, _ = env.reset(
