@@ -11,8 +11,9 @@ pick ``best.pt``; with few episodes that choice is noisy. This flies each kept p
 
 with deterministic actions, and optionally the **weight average** of the policies whose steps lie
 in ``--average LO HI`` (all parameters of the policy module averaged: stochastic weight averaging
-over the run's late policies). Choosing by the test columns would overfit the test scenario:
-choose by the validation ones and read the test ones. ``--sampled`` also flies each policy on the
+over the run's late policies, as ``safenav average``; ``--averages-only`` flies only those).
+Choosing by the test columns would overfit the test scenario: choose by the validation ones and
+read the test ones. ``--sampled`` also flies each policy on the
 evaluation maps with actions *sampled* from its squashed Gaussian, as in training (CSAC/SAC
 policies): equal timeouts mean caution, not a deadlock of the deterministic mean action.
 
@@ -23,7 +24,6 @@ Run: ``.venv/bin/python benchmarks/checkpoint_sweep.py runs/NAME/policies [--ave
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import tempfile
 from pathlib import Path
@@ -32,6 +32,7 @@ import torch
 from rich.console import Console
 from rich.table import Table
 
+from safenav.algos.averaging import average_policy_states, policy_files
 from safenav.algos.policy import load_policy
 from safenav.common.checkpoint import load_checkpoint, save_checkpoint
 from safenav.common.evaluation import EVAL_SEED
@@ -39,15 +40,6 @@ from safenav.experiments.evaluate import evaluate
 from safenav.experiments.flight import resolve_policy
 
 KEYS = ("success_rate", "collision_rate", "timeout_rate")
-
-
-def policy_files(paths: list[Path]) -> list[Path]:
-    files: list[Path] = []
-    for p in paths:
-        files.extend(sorted(p.glob("*.pt")) if p.is_dir() else [p])
-    if not files:
-        raise SystemExit(f"no checkpoint files in {[str(p) for p in paths]}")
-    return files
 
 
 def sampled_actions(path: Path):
@@ -77,18 +69,6 @@ def fly(path: Path, val_episodes: int, test_episodes: int, sampled: bool = False
     return out
 
 
-def weight_average(states: list[dict]) -> dict:
-    """The last state with every floating-point tensor of its policy replaced by the mean over
-    ``states`` (same architecture required)."""
-    avg = copy.deepcopy(states[-1])
-    sd = avg["policy"]["state_dict"]
-    for key, value in sd.items():
-        if value.is_floating_point():
-            sd[key] = torch.stack([s["policy"]["state_dict"][key] for s in states]).mean(0)
-    avg["averaged_steps"] = [int(s["global_step"]) for s in states]
-    return avg
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("paths", nargs="+", type=Path, help="checkpoint files or directories of them")
@@ -105,12 +85,17 @@ def main() -> None:
     )
     ap.add_argument("--sampled", action="store_true",
                     help="also fly the evaluation maps with sampled (training) actions")  # fmt: skip
+    ap.add_argument("--averages-only", action="store_true",
+                    help="fly only the --average policies, not each policy on its own")  # fmt: skip
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
 
     states = {f: load_checkpoint(f) for f in policy_files(args.paths)}
     rows = []
-    for f, st in sorted(states.items(), key=lambda kv: kv[1]["global_step"]):
+    singles = (
+        [] if args.averages_only else sorted(states.items(), key=lambda kv: kv[1]["global_step"])
+    )
+    for f, st in singles:
         rows.append({"policy": str(f), "global_step": int(st["global_step"]),
                      **fly(f, args.val_episodes, args.test_episodes, args.sampled)})  # fmt: skip
     for lo, hi in args.average:
@@ -120,7 +105,7 @@ def main() -> None:
             raise SystemExit(f"--average {lo} {hi}: no policy in that range of steps")
         with tempfile.TemporaryDirectory() as tmp:
             path = Path(tmp) / "average.pt"
-            save_checkpoint(path, weight_average(chosen))
+            save_checkpoint(path, average_policy_states(chosen))
             rows.append({"policy": f"average of {len(chosen)} ({lo}..{hi})", "global_step": hi,
                          **fly(path, args.val_episodes, args.test_episodes, args.sampled)})  # fmt: skip
 

@@ -1,6 +1,7 @@
 """The CLI verbs, one module each; importing this package registers them on ``safenav.cli.app``."""
 
 from safenav.commands import (  # noqa: F401
+    average,
     bench,
     eval,
     export,

@@ -1,0 +1,124 @@
+"""Weight averaging of a run's late policies: ``safenav average``.
+
+Stochastic weight averaging (Izmailov et al., 2018, "Averaging Weights Leads to Wider Optima and
+Better Generalization"; for deep RL, Nikishin et al., 2018, "Improving Stability in Deep
+Reinforcement Learning with Weight Averaging"): the uniform mean of every floating-point
+parameter of several snapshots of one network, taken along one training run. Here the snapshots
+are the policies ``safenav train --keep-policies`` keeps at each periodic evaluation
+(``policies/step_<N>.pt``), and the network is the deployable actor of each (the shared
+extractor with it: the whole module a policy file holds), so the average is again a policy file
+that ``safenav eval``, ``export`` and ``fly`` read.
+
+Why: with the constraint active, λ grows and the policy swings between consecutive snapshots by
+up to 0.1 in success (docs/csac.md); choosing one snapshot by evaluation picks a noisy maximum.
+The average of the 3.0-5.0 M-step policies of each of the seven 60-minute CSAC runs flies the
+test scenario better than the snapshot chosen on 512 validation episodes, in five of them, and
+without any choice (docs/csac.md, "Weight averaging of the late policies"). This is beyond the
+paper, which deploys the last policy.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from safenav.common.checkpoint import POLICY_KEYS, load_checkpoint
+from safenav.errors import SafenavError
+
+
+def policy_files(paths: Sequence[str | Path]) -> list[Path]:
+    """The ``*.pt`` files of ``paths`` (files as given; directories: their ``*.pt``, sorted)."""
+    files: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_dir():
+            files.extend(sorted(p.glob("*.pt")))
+        elif p.exists():
+            files.append(p)
+        else:
+            raise SafenavError(f"{p}: no such file or directory")
+    if not files:
+        raise SafenavError(f"no policy files (*.pt) in {[str(p) for p in paths]}")
+    return files
+
+
+def _description(meta: dict[str, Any]) -> dict[str, Any]:
+    """What must agree for two policies to be averaged: everything but the training step."""
+    return {k: v for k, v in meta.items() if k not in ("global_step", "averaged_steps")}
+
+
+def average_policy_states(states: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """The policy-only checkpoint state whose actor parameters are the uniform mean of those of
+    ``states`` (checkpoint dicts, as :func:`~safenav.common.checkpoint.load_checkpoint` returns;
+    ordered by step). Counters, configs and metadata are the last state's; ``averaged_steps``
+    lists the steps averaged. Non-float tensors (none in today's actors) must be equal.
+
+    ``SafenavError`` when a state holds no policy, or when the policies differ in algorithm,
+    observation layout, network or parameter shapes: only snapshots of one network average.
+    """
+    if not states:
+        raise SafenavError("no policies to average")
+    for i, st in enumerate(states):
+        pol = st.get("policy")
+        if not isinstance(pol, dict) or "meta" not in pol or "state_dict" not in pol:
+            raise SafenavError(f"policy {i}: the checkpoint holds no policy")
+    last = states[-1]
+    meta = dict(last["policy"]["meta"])
+    ref_sd = last["policy"]["state_dict"]
+    steps = [int(st["global_step"]) for st in states]
+    for st, step in zip(states, steps, strict=True):
+        if st.get("algo") != last.get("algo"):
+            raise SafenavError(f"cannot average a {st.get('algo')} policy (step {step}) with "
+                               f"{last.get('algo')} ones")  # fmt: skip
+        other = _description(st["policy"]["meta"])
+        mine = _description(meta)
+        if other != mine:
+            diff = sorted(k for k in set(other) | set(mine) if other.get(k) != mine.get(k))
+            raise SafenavError(f"the policy of step {step} differs from the others in {diff}: "
+                               "only snapshots of one network average")  # fmt: skip
+        sd = st["policy"]["state_dict"]
+        if set(sd) != set(ref_sd):
+            raise SafenavError(f"the policy of step {step} has other parameters than the others")
+        for key, value in sd.items():
+            if value.shape != ref_sd[key].shape:
+                raise SafenavError(f"the policy of step {step}: {key} has shape {tuple(value.shape)}, "
+                                   f"the others {tuple(ref_sd[key].shape)}")  # fmt: skip
+    averaged: dict[str, torch.Tensor] = {}
+    for key, ref in ref_sd.items():
+        values = [st["policy"]["state_dict"][key] for st in states]
+        if ref.is_floating_point():
+            # accumulate in float64: the mean of n float32 snapshots, rounded once
+            averaged[key] = torch.stack([v.double() for v in values]).mean(0).to(ref.dtype)
+        else:
+            if any(not torch.equal(v, ref) for v in values):
+                raise SafenavError(f"{key}: a non-float tensor differs between the policies")
+            averaged[key] = ref.clone()
+    meta["averaged_steps"] = steps
+    out = {k: last[k] for k in POLICY_KEYS if k in last and k != "policy"}
+    return out | {"policy": {"meta": meta, "state_dict": averaged}, "policy_only": True,
+                  "averaged_steps": steps}  # fmt: skip
+
+
+def average_policies(
+    paths: Sequence[str | Path], steps: tuple[int, int] | None = None
+) -> dict[str, Any]:
+    """Load the policy files of ``paths`` (files or directories of them, such as a run's
+    ``policies/``), keep those with ``lo <= global_step <= hi`` when ``steps = (lo, hi)``, and
+    return their average (:func:`average_policy_states`)."""
+    files = policy_files(paths)
+    states = sorted(
+        (load_checkpoint(f) for f in files), key=lambda s: int(s.get("global_step", -1))
+    )
+    if steps is not None:
+        lo, hi = steps
+        if lo > hi:
+            raise SafenavError(f"--steps {lo} {hi}: the first step must not exceed the second")
+        states = [s for s in states if lo <= int(s.get("global_step", -1)) <= hi]
+        if not states:
+            raise SafenavError(f"no policy with {lo} <= step <= {hi} in {[str(p) for p in paths]}")
+    return average_policy_states(states)
+
+
+__all__ = ["average_policies", "average_policy_states", "policy_files"]
