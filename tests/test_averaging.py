@@ -28,10 +28,12 @@ def kept(tmp_path_factory) -> Path:
     return run_dir / "policies"
 
 
-def synthetic(step: int, weight: list[float], count: int = 7, algo: str = "csac") -> dict:
+def synthetic(
+    step: int, weight: list[float], count: int = 7, algo: str = "csac", seed: int = 1
+) -> dict:
     meta = {"algo": algo, "net": {"hidden": [4]}, "global_step": step}
     return {"algo": algo, "global_step": step, "updates": step // 10, "elapsed_s": step / 100.0,
-            "config": {"seed": 1}, "policy": {"meta": meta, "state_dict": {
+            "config": {"run": {"seed": seed}}, "policy": {"meta": meta, "state_dict": {
                 "w": torch.tensor(weight), "n": torch.tensor(count)}}}  # fmt: skip
 
 
@@ -64,6 +66,10 @@ def test_policies_that_are_not_snapshots_of_one_network_are_refused():
     extra["policy"]["state_dict"]["b"] = torch.zeros(1)
     with pytest.raises(SafenavError, match="other parameters"):
         average_policy_states([extra, synthetic(200, [1.0, 2.0])])
+    with pytest.raises(SafenavError, match="two policies of step 100"):
+        average_policy_states([a, synthetic(100, [1.0, 2.0])])
+    with pytest.raises(SafenavError, match="different seeds"):
+        average_policy_states([a, synthetic(200, [1.0, 2.0], seed=2)])
     with pytest.raises(SafenavError, match="holds no policy"):
         average_policy_states([a, {"algo": "csac", "global_step": 5}])
 

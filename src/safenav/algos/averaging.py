@@ -49,14 +49,20 @@ def _description(meta: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in meta.items() if k not in ("global_step", "averaged_steps")}
 
 
+def _seed(state: dict[str, Any]) -> Any:
+    run = state.get("config", {}).get("run", {})
+    return run.get("seed") if isinstance(run, dict) else None
+
+
 def average_policy_states(states: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """The policy-only checkpoint state whose actor parameters are the uniform mean of those of
     ``states`` (checkpoint dicts, as :func:`~safenav.common.checkpoint.load_checkpoint` returns;
     ordered by step). Counters, configs and metadata are the last state's; ``averaged_steps``
     lists the steps averaged. Non-float tensors (none in today's actors) must be equal.
 
-    ``SafenavError`` when a state holds no policy, or when the policies differ in algorithm,
-    observation layout, network or parameter shapes: only snapshots of one network average.
+    ``SafenavError`` when a state holds no policy, when two share a step or their runs' seeds
+    differ (snapshots of different runs: their weights lie in unrelated basins), or when the
+    policies differ in algorithm, observation layout, network or parameter shapes.
     """
     if not states:
         raise SafenavError("no policies to average")
@@ -65,9 +71,17 @@ def average_policy_states(states: Sequence[dict[str, Any]]) -> dict[str, Any]:
         if not isinstance(pol, dict) or "meta" not in pol or "state_dict" not in pol:
             raise SafenavError(f"policy {i}: the checkpoint holds no policy")
     last = states[-1]
+    steps = [int(st["global_step"]) for st in states]
+    repeated = sorted({s for s in steps if steps.count(s) > 1})
+    if repeated:
+        raise SafenavError(f"two policies of step {repeated[0]:,}: snapshots of different runs do "
+                           "not average (one run's policies/ directory does)")  # fmt: skip
+    seeds = sorted({str(_seed(st)) for st in states})
+    if len(seeds) > 1:
+        raise SafenavError(f"policies of runs with different seeds ({', '.join(seeds)}): only "
+                           "snapshots of one run average")  # fmt: skip
     meta = dict(last["policy"]["meta"])
     ref_sd = last["policy"]["state_dict"]
-    steps = [int(st["global_step"]) for st in states]
     for st, step in zip(states, steps, strict=True):
         if st.get("algo") != last.get("algo"):
             raise SafenavError(f"cannot average a {st.get('algo')} policy (step {step}) with "
