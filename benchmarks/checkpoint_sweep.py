@@ -9,7 +9,9 @@ pick ``best.pt``; with few episodes that choice is noisy. This flies each kept p
   ``--val-episodes`` episodes, and
 - the **fixed test scenario** (env seed 1, 200 episodes, as ``safenav eval``),
 
-with deterministic actions, and optionally the **weight average** of the policies whose steps lie
+with deterministic actions, optionally the **greedy soup** (``--greedy-soup``, as
+``safenav average --greedy``: the weight average of the policies added one by one in decreasing order of validation success while
+validation success does not drop), and optionally the **weight average** of the policies whose steps lie
 in ``--average LO HI`` (all parameters of the policy module averaged: stochastic weight averaging
 over the run's late policies, as ``safenav average``; ``--averages-only`` flies only those).
 Choosing by the test columns would overfit the test scenario: choose by the validation ones and
@@ -38,6 +40,7 @@ from safenav.common.checkpoint import load_checkpoint, save_checkpoint
 from safenav.common.evaluation import EVAL_SEED
 from safenav.experiments.evaluate import evaluate
 from safenav.experiments.flight import resolve_policy
+from safenav.experiments.soup import greedy_soup, validation_score
 
 KEYS = ("success_rate", "collision_rate", "timeout_rate")
 
@@ -57,7 +60,9 @@ def sampled_actions(path: Path):
 
 def fly(path: Path, val_episodes: int, test_episodes: int, sampled: bool = False) -> dict[str, dict[str, float]]:  # fmt: skip
     fn, cfg = resolve_policy(path, "checkpoint", "cpu")
-    runs = [("val", fn, EVAL_SEED, val_episodes), ("test", fn, 1, test_episodes)]
+    runs = [("val", fn, EVAL_SEED, val_episodes)]
+    if test_episodes > 0:
+        runs.append(("test", fn, 1, test_episodes))
     if sampled:
         runs.append(("val_sampled", sampled_actions(path), EVAL_SEED, val_episodes))
     out = {}
@@ -67,6 +72,24 @@ def fly(path: Path, val_episodes: int, test_episodes: int, sampled: bool = False
         res = evaluate(act, cfg, env_seed=seed, episodes=episodes, device="cpu")
         out[name] = {k: float(res[k]) for k in KEYS}
     return out
+
+
+def soup_row(states: dict[Path, dict], singles: list[dict], val_episodes: int, test_episodes: int, sampled: bool = False) -> dict:  # fmt: skip
+    """The greedy soup (``safenav average --greedy``, :mod:`safenav.experiments.soup`) of the
+    policies of ``singles``, reusing their validation figures; its test columns flown once."""
+    val_of = {r["global_step"]: r["val"]["success_rate"] for r in singles}
+    fly_val = validation_score(val_episodes)
+
+    def score(state: dict) -> float:
+        return fly_val(state) if "averaged_steps" in state else val_of[int(state["global_step"])]
+
+    soup, _ = greedy_soup(list(states.values()), score)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "soup.pt"
+        save_checkpoint(path, soup)
+        return {"policy": f"greedy soup of {len(soup['averaged_steps'])}",
+                "global_step": soup["global_step"], "soup_steps": soup["averaged_steps"],
+                **fly(path, val_episodes, test_episodes, sampled)}  # fmt: skip
 
 
 def main() -> None:
@@ -87,8 +110,14 @@ def main() -> None:
                     help="also fly the evaluation maps with sampled (training) actions")  # fmt: skip
     ap.add_argument("--averages-only", action="store_true",
                     help="fly only the --average policies, not each policy on its own")  # fmt: skip
+    ap.add_argument("--greedy-soup", action="store_true",
+                    help="also fly the greedy soup of the policies (chosen on validation)")  # fmt: skip
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
+    if args.greedy_soup and args.averages_only:
+        raise SystemExit(
+            "--greedy-soup needs each policy's validation figures: drop --averages-only"
+        )
 
     states = {f: load_checkpoint(f) for f in policy_files(args.paths)}
     rows = []
@@ -108,6 +137,13 @@ def main() -> None:
             save_checkpoint(path, average_policy_states(chosen))
             rows.append({"policy": f"average of {len(chosen)} ({lo}..{hi})", "global_step": hi,
                          **fly(path, args.val_episodes, args.test_episodes, args.sampled)})  # fmt: skip
+
+    if args.greedy_soup:
+        rows.append(
+            soup_row(
+                states, rows[: len(singles)], args.val_episodes, args.test_episodes, args.sampled
+            )
+        )
 
     table = Table(title=f"validation: evaluation maps, {args.val_episodes} episodes; "
                         f"test: env seed 1, {args.test_episodes} episodes")  # fmt: skip

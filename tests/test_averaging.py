@@ -15,6 +15,7 @@ from safenav.cli import main
 from safenav.common.checkpoint import load_checkpoint
 from safenav.envs.nav import SafeNavVectorEnv
 from safenav.errors import SafenavError
+from safenav.experiments.soup import greedy_soup
 
 
 @pytest.fixture(scope="module")
@@ -116,3 +117,31 @@ def test_cli_errors_are_one_line_and_write_nothing(kept, tmp_path, capsys):
         assert err.value.code == 2
         assert capsys.readouterr().err.startswith("safenav: error:")
     assert not out.exists()
+
+
+def test_greedy_soup_keeps_a_policy_only_when_the_soup_does_not_get_worse():
+    # score: closeness of the averaged weight to 2.4; alone: w=2 scores best, then 3, then 0
+    def score(state):
+        return -((state["policy"]["state_dict"]["w"].item() - 2.4) ** 2)
+
+    states = [synthetic(100, [3.0]), synthetic(200, [2.0]), synthetic(300, [0.0])]
+    soup, log = greedy_soup(states, score)
+    # {2} -> {2, 3}: mean 2.5, better, kept -> {0, 2, 3}: mean 1.67, worse, dropped
+    assert soup["averaged_steps"] == [100, 200]
+    assert soup["policy"]["state_dict"]["w"].item() == pytest.approx(2.5)
+    assert [(r["kind"], r["steps"], r.get("kept")) for r in log] == [
+        ("single", [100], None), ("single", [200], None), ("single", [300], None),
+        ("soup", [100, 200], True), ("soup", [100, 200, 300], False)]  # fmt: skip
+    with pytest.raises(SafenavError, match="no policies"):
+        greedy_soup([], score)
+    with pytest.raises(SafenavError, match="shape"):  # refused before anything is flown
+        greedy_soup([synthetic(100, [1.0]), synthetic(200, [1.0, 2.0])], lambda s: pytest.fail())
+
+
+def test_cli_greedy_soup_validates_on_the_evaluation_maps(kept, tmp_path, capsys):
+    out = tmp_path / "soup.pt"
+    main(["average", str(kept), "--greedy", "--val-episodes", "2", "--out", str(out)])
+    text = capsys.readouterr().out
+    assert "greedy soup" in text and text.count("alone") == 2 and "wrote" in text
+    soup = load_checkpoint(out)
+    assert set(soup["averaged_steps"]) <= {200, 400} and load_policy(out).meta["algo"] == "csac"

@@ -38,11 +38,12 @@ def test_checkpoint_sweep_flies_every_policy_and_sampled_actions(tiny_run, tmp_p
     out = tmp_path / "sweep.json"
     monkeypatch.setattr(sys, "argv", ["checkpoint_sweep.py", str(tiny_run / "policies"),
                                       "--val-episodes", "3", "--test-episodes", "2", "--sampled",
-                                      "--json", str(out)])  # fmt: skip
+                                      "--greedy-soup", "--json", str(out)])  # fmt: skip
     script("checkpoint_sweep").main()
     rows = json.loads(out.read_text())
-    assert [r["global_step"] for r in rows] == [200, 400]
-    for r in rows:
+    assert [r["global_step"] for r in rows[:2]] == [200, 400]
+    assert rows[2]["policy"].startswith("greedy soup") and set(rows[2]["soup_steps"]) <= {200, 400}
+    for r in rows[:2]:
         for part in ("val", "test", "val_sampled"):
             rates = [r[part][k] for k in ("success_rate", "collision_rate", "timeout_rate")]
             assert sum(rates) == pytest.approx(1.0)

@@ -115,12 +115,12 @@ def average_policy_states(states: Sequence[dict[str, Any]]) -> dict[str, Any]:
                   "averaged_steps": steps}  # fmt: skip
 
 
-def average_policies(
+def load_policy_states(
     paths: Sequence[str | Path], steps: tuple[int, int] | None = None
-) -> dict[str, Any]:
-    """Load the policy files of ``paths`` (files or directories of them, such as a run's
-    ``policies/``), keep those with ``lo <= global_step <= hi`` when ``steps = (lo, hi)``, and
-    return their average (:func:`average_policy_states`)."""
+) -> list[dict[str, Any]]:
+    """The checkpoint dicts of the policy files of ``paths`` (files or directories of them, such
+    as a run's ``policies/``), ordered by step; only those with ``lo <= global_step <= hi`` when
+    ``steps = (lo, hi)``."""
     files = policy_files(paths)
     states = sorted(
         (load_checkpoint(f) for f in files), key=lambda s: int(s.get("global_step", -1))
@@ -132,7 +132,14 @@ def average_policies(
         states = [s for s in states if lo <= int(s.get("global_step", -1)) <= hi]
         if not states:
             raise SafenavError(f"no policy with {lo} <= step <= {hi} in {[str(p) for p in paths]}")
-    return average_policy_states(states)
+    return states
 
 
-__all__ = ["average_policies", "average_policy_states", "policy_files"]
+def average_policies(
+    paths: Sequence[str | Path], steps: tuple[int, int] | None = None
+) -> dict[str, Any]:
+    """The average (:func:`average_policy_states`) of :func:`load_policy_states`."""
+    return average_policy_states(load_policy_states(paths, steps))
+
+
+__all__ = ["average_policies", "average_policy_states", "load_policy_states", "policy_files"]
