@@ -10,14 +10,15 @@ pick ``best.pt``; with few episodes that choice is noisy. This flies each kept p
 - the **fixed test scenario** (env seed 1, 200 episodes, as ``safenav eval``),
 
 with deterministic actions, optionally the **greedy soup** (``--greedy-soup``, as
-``safenav average --greedy``: the weight average of the policies added one by one in decreasing order of validation success while
-validation success does not drop), and optionally the **weight average** of the policies whose steps lie
-in ``--average LO HI`` (all parameters of the policy module averaged: stochastic weight averaging
-over the run's late policies, as ``safenav average``; ``--averages-only`` flies only those).
-Choosing by the test columns would overfit the test scenario: choose by the validation ones and
-read the test ones. ``--sampled`` also flies each policy on the
-evaluation maps with actions *sampled* from its squashed Gaussian, as in training (CSAC/SAC
-policies): equal timeouts mean caution, not a deadlock of the deterministic mean action.
+``safenav average --greedy``: the weight average of the policies added one by one in decreasing
+order of validation success while validation success does not drop), and optionally the
+**weight average** of the policies whose steps lie in ``--average LO HI`` (all parameters of the
+policy module averaged: stochastic weight averaging over the run's late policies, as ``safenav
+average``; ``--averages-only`` flies only those). Choosing by the test columns would overfit the
+test scenario: choose by the validation ones and read the test ones. ``--sampled`` also flies
+each policy on the evaluation maps with actions *sampled* from its squashed Gaussian, as in
+training (CSAC/SAC policies): equal timeouts mean caution, not a deadlock of the deterministic
+mean action.
 
 Run: ``.venv/bin/python benchmarks/checkpoint_sweep.py runs/NAME/policies [--average 3000000 5000000]
 [--sampled] [--json OUT]``.
@@ -34,7 +35,7 @@ import torch
 from rich.console import Console
 from rich.table import Table
 
-from safenav.algos.averaging import average_policy_states, policy_files
+from safenav.algos.averaging import average_policy_states, between_steps, policy_files
 from safenav.algos.policy import load_policy
 from safenav.common.checkpoint import load_checkpoint, save_checkpoint
 from safenav.common.evaluation import EVAL_SEED
@@ -128,8 +129,7 @@ def main() -> None:
         rows.append({"policy": str(f), "global_step": int(st["global_step"]),
                      **fly(f, args.val_episodes, args.test_episodes, args.sampled)})  # fmt: skip
     for lo, hi in args.average:
-        chosen = sorted((s for s in states.values() if lo <= s["global_step"] <= hi),
-                        key=lambda s: s["global_step"])  # fmt: skip
+        chosen = between_steps(states.values(), lo, hi)
         if not chosen:
             raise SystemExit(f"--average {lo} {hi}: no policy in that range of steps")
         with tempfile.TemporaryDirectory() as tmp:

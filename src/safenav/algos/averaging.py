@@ -20,7 +20,7 @@ the paper, which deploys the last policy.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -55,16 +55,12 @@ def _seed(state: dict[str, Any]) -> Any:
     return run.get("seed") if isinstance(run, dict) else None
 
 
-def average_policy_states(states: Sequence[dict[str, Any]]) -> dict[str, Any]:
-    """The policy-only checkpoint state whose actor parameters are the uniform mean of those of
-    ``states`` (checkpoint dicts, as :func:`~safenav.common.checkpoint.load_checkpoint` returns;
-    ordered by step). Counters, configs and metadata are the last state's; ``averaged_steps``
-    lists the steps averaged. Non-float tensors (none in today's actors) must be equal.
-
-    ``SafenavError`` when a state holds no policy, when two share a step or their runs' seeds
-    differ (snapshots of different runs: their weights lie in unrelated basins), or when the
-    policies differ in algorithm, observation layout, network or parameter shapes.
-    """
+def check_snapshots(states: Sequence[dict[str, Any]]) -> None:
+    """``SafenavError`` unless ``states`` (checkpoint dicts) are policies of one network and one
+    run, so that their weights may be averaged: when a state holds no policy, when two share a
+    step or their runs' seeds differ (snapshots of different runs: their weights lie in unrelated
+    basins), or when the policies differ in algorithm, observation layout, network or parameter
+    shapes."""
     if not states:
         raise SafenavError("no policies to average")
     for i, st in enumerate(states):
@@ -81,14 +77,13 @@ def average_policy_states(states: Sequence[dict[str, Any]]) -> dict[str, Any]:
     if len(seeds) > 1:
         raise SafenavError(f"policies of runs with different seeds ({', '.join(seeds)}): only "
                            "snapshots of one run average")  # fmt: skip
-    meta = dict(last["policy"]["meta"])
+    mine = _description(last["policy"]["meta"])
     ref_sd = last["policy"]["state_dict"]
     for st, step in zip(states, steps, strict=True):
         if st.get("algo") != last.get("algo"):
             raise SafenavError(f"cannot average a {st.get('algo')} policy (step {step}) with "
                                f"{last.get('algo')} ones")  # fmt: skip
         other = _description(st["policy"]["meta"])
-        mine = _description(meta)
         if other != mine:
             diff = sorted(k for k in set(other) | set(mine) if other.get(k) != mine.get(k))
             raise SafenavError(f"the policy of step {step} differs from the others in {diff}: "
@@ -100,6 +95,18 @@ def average_policy_states(states: Sequence[dict[str, Any]]) -> dict[str, Any]:
             if value.shape != ref_sd[key].shape:
                 raise SafenavError(f"the policy of step {step}: {key} has shape {tuple(value.shape)}, "
                                    f"the others {tuple(ref_sd[key].shape)}")  # fmt: skip
+
+
+def average_policy_states(states: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """The policy-only checkpoint state whose actor parameters are the uniform mean of those of
+    ``states`` (checkpoint dicts, as :func:`~safenav.common.checkpoint.load_checkpoint` returns;
+    ordered by step). Counters, configs and metadata are the last state's; ``averaged_steps``
+    lists the steps averaged. Non-float tensors (none in today's actors) must be equal.
+    ``SafenavError`` from :func:`check_snapshots` for policies that do not average."""
+    check_snapshots(states)
+    last = states[-1]
+    ref_sd = last["policy"]["state_dict"]
+    steps = [int(st["global_step"]) for st in states]
     averaged: dict[str, torch.Tensor] = {}
     for key, ref in ref_sd.items():
         values = [st["policy"]["state_dict"][key] for st in states]
@@ -110,7 +117,7 @@ def average_policy_states(states: Sequence[dict[str, Any]]) -> dict[str, Any]:
             if any(not torch.equal(v, ref) for v in values):
                 raise SafenavError(f"{key}: a non-float tensor differs between the policies")
             averaged[key] = ref.clone()
-    meta["averaged_steps"] = steps
+    meta = dict(last["policy"]["meta"]) | {"averaged_steps": steps}
     out = {k: last[k] for k in POLICY_KEYS if k in last and k != "policy"}
     return out | {"policy": {"meta": meta, "state_dict": averaged}, "policy_only": True,
                   "averaged_steps": steps}  # fmt: skip
@@ -130,10 +137,16 @@ def load_policy_states(
         lo, hi = steps
         if lo > hi:
             raise SafenavError(f"--steps {lo} {hi}: the first step must not exceed the second")
-        states = [s for s in states if lo <= int(s.get("global_step", -1)) <= hi]
+        states = between_steps(states, lo, hi)
         if not states:
             raise SafenavError(f"no policy with {lo} <= step <= {hi} in {[str(p) for p in paths]}")
     return states
+
+
+def between_steps(states: Iterable[dict[str, Any]], lo: int, hi: int) -> list[dict[str, Any]]:
+    """The states with ``lo <= global_step <= hi``, ordered by step."""
+    chosen = (s for s in states if lo <= int(s.get("global_step", -1)) <= hi)
+    return sorted(chosen, key=lambda s: int(s["global_step"]))
 
 
 def average_policies(
@@ -143,4 +156,5 @@ def average_policies(
     return average_policy_states(load_policy_states(paths, steps))
 
 
-__all__ = ["average_policies", "average_policy_states", "load_policy_states", "policy_files"]
+__all__ = ["average_policies", "average_policy_states", "between_steps", "check_snapshots",
+           "load_policy_states", "policy_files"]  # fmt: skip

@@ -21,7 +21,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from safenav.algos.averaging import average_policy_states
+from safenav.algos.averaging import average_policy_states, check_snapshots
 from safenav.common.checkpoint import save_checkpoint
 from safenav.errors import SafenavError
 
@@ -40,7 +40,7 @@ def greedy_soup(
     leaves the score unchanged is kept (as in the paper's ``>=``)."""
     if not states:
         raise SafenavError("no policies to make a soup of")
-    average_policy_states(states)  # refuse policies of different networks or runs before flying
+    check_snapshots(states)  # refuse policies of different networks or runs before flying
     log: list[dict[str, Any]] = []
 
     def record(row: dict[str, Any]) -> None:
