@@ -1,4 +1,4 @@
-"""Feasibility probe: a minimal SAC / CSAC-style learner (flattened observation, MLP) on SafeNav-v0.
+"""Feasibility probe: a minimal SAC / CSAC-style learner (flattened observation, MLP) on SafeNav-v1.
 
 Not the product's trainer (see ``safenav train``): a quick, dependency-light script to learn how
 fast the paper scenario is learnable on a CPU, to choose env-count, update ratio and curriculum.

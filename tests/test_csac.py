@@ -86,7 +86,7 @@ def test_truncated_transition_bootstraps_terminated_does_not():
 
 
 def test_safenav_vector_env_adapter_keeps_torch_and_reports_cost():
-    env = TorchVecEnv(make_vec_env("SafeNav-v0", 4, preset="easy"))
+    env = TorchVecEnv(make_vec_env("SafeNav-v1", 4, preset="easy"))
     obs = env.reset(seed=3)
     assert {k: tuple(v.shape) for k, v in obs.items()} == {
         "state": (4, 8),

@@ -97,7 +97,7 @@ def test_observation_equals_the_envs_given_its_map_and_obstacles() -> None:
 def _bracket_maps(env):
     """The true height map grown and shrunk by one cell (and raised/lowered by one cell height):
     a range image within the map resolution of the truth lies between their range images."""
-    truth = height_map(env.worlds[0], env.n_static)
+    truth = height_map(env.worlds[0], env.n_static, env._walls)  # the geofence wall included
     dil = F.max_pool2d(truth[None, None], 3, 1, 1)[0, 0]
     ero = -F.max_pool2d(-truth[None, None], 3, 1, 1)[0, 0]
     res = env.cfg.grid_resolution
@@ -162,11 +162,11 @@ def test_tracked_obstacles_stay_out_of_the_map() -> None:
               for R, t in rig_poses(p, 0.0)]  # fmt: skip
     seen = OnboardRuntime(const_policy(), cfg, RuntimeConfig(require_tracker=False))
     seen.update_depth(images)
-    assert float(seen.map.heights.max()) > 1.5
+    assert float((seen.map.heights - seen.map.floor).max()) > 1.5
     excluded = OnboardRuntime(const_policy(), cfg)
     excluded.update_obstacles([TrackedObstacle(box_c, np.zeros(3), 1.0, 1.0, True)])
     excluded.update_depth(images)
-    assert float(excluded.map.heights.max()) == 0.0
+    assert torch.equal(excluded.map.heights, excluded.map.floor)  # only the geofence wall
 
 
 def _ready_runtime(policy=None, **cfg_kwargs):

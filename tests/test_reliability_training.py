@@ -377,7 +377,7 @@ def test_bad_training_options_are_one_line_errors_and_create_no_run_dir(tmp_path
     fails(capsys, [*base, "--algo", "foo"], "unknown algorithm 'foo'", "csac, sac, ppo")
     fails(capsys, ["train", "--run-dir", str(run_dir), "--env", "NoSuchEnv-v0"], "unknown env id")
     fails(capsys, ["train", "--run-dir", str(run_dir), "--preset", "hard"], "unknown preset 'hard'")
-    fails(capsys, [*base, "--env", "Pendulum-v1"], "--preset applies to SafeNav-v0 only")
+    fails(capsys, [*base, "--env", "Pendulum-v1"], "--preset applies to SafeNav-v1 only")
     fails(capsys, [*base, "--csac.actor-lr", "-1"], "actor-lr=-1.0")
     fails(capsys, [*base, "--algo", "ppo", "--ppo.lr", "nan"], "lr=nan")
     fails(capsys, [*base, "--num-envs", "0"], "num-envs=0")
@@ -455,7 +455,7 @@ def test_unusable_checkpoints_for_eval_are_one_line_errors(reference, tmp_path, 
     pendulum = tmp_path / "pendulum"
     main(["train", "--algo", "sac", "--env", "Pendulum-v1", "--num-envs", "2", "--total-steps", "64",
           "--run-dir", str(pendulum), *FAST[4:], *SMALL["csac"]])  # fmt: skip
-    fails(capsys, ["eval", str(pendulum), "--episodes", "2"], "Pendulum-v1", "not SafeNav-v0")
+    fails(capsys, ["eval", str(pendulum), "--episodes", "2"], "Pendulum-v1", "not SafeNav")
     # a SafeNav policy on a scenario with another sensor layout
     with pytest.raises(SafenavError, match="reads observations"):
         check_fits_safenav(

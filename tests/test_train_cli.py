@@ -35,7 +35,7 @@ def read_csv(path: Path) -> list[dict[str, str]]:
 @pytest.fixture(scope="module")
 def csac_run(tmp_path_factory) -> Path:
     run_dir = tmp_path_factory.mktemp("runs") / "csac"
-    main(["train", "--algo", "csac", "--env", "SafeNav-v0", "--preset", "easy", "--seed", "3",
+    main(["train", "--algo", "csac", "--env", "SafeNav-v1", "--preset", "easy", "--seed", "3",
           "--total-steps", "300", "--keep-policies", "--run-dir", str(run_dir), *FAST])  # fmt: skip
     return run_dir
 
@@ -168,7 +168,7 @@ def test_any_gymnasium_box_env_trains(tmp_path):
 
 def test_load_policy(csac_run):
     policy = load_policy(csac_run / "checkpoint.pt")
-    assert policy.meta["algo"] == "csac" and policy.meta["env_id"] == "SafeNav-v0"
+    assert policy.meta["algo"] == "csac" and policy.meta["env_id"] == "SafeNav-v1"
     cfg = policy.env_config()
     assert isinstance(cfg, EnvConfig) and cfg.map_size == 20.0 and cfg.density == 1.0
     g = torch.Generator().manual_seed(0)

@@ -31,10 +31,10 @@ def rows(run_dir) -> list[dict[str, str]]:
 
 
 def train(
-    tmp_path, algo: str, *args: str, env: str = "SafeNav-v0", steps: int = 512, envs: int = 16
+    tmp_path, algo: str, *args: str, env: str = "SafeNav-v1", steps: int = 512, envs: int = 16
 ):
     run_dir = tmp_path / algo
-    preset = ["--preset", "easy"] if env == "SafeNav-v0" else []
+    preset = ["--preset", "easy"] if env == "SafeNav-v1" else []
     main(["train", "--algo", algo, "--env", env, *preset, "--num-envs", str(envs), "--total-steps",
           str(steps), "--log-every", "128", "--run-dir", str(run_dir), *FAST, *args])  # fmt: skip
     return run_dir

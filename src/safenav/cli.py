@@ -1,36 +1,66 @@
 """``safenav <verb>``: the one command-line entry point.
 
 Each verb is a function whose typed signature and docstring tyro turns into ``--help``. Bodies
-import lazily so that ``safenav --help`` stays fast. A :class:`~safenav.errors.SafenavError`
-(or a ``ValueError`` from config validation) becomes one line on stderr and exit code 2.
+import lazily so that ``safenav --help`` stays fast. Every failure is one line
+``safenav: error: ...`` on stderr and an exit code (README, "Exit codes"): 2 for a usage error
+(tyro's parse errors, :class:`~safenav.errors.SafenavError`, ``ValueError`` from config
+validation, a missing input file), 1 for a runtime error
+(:class:`~safenav.errors.SafenavRuntimeError`, ``OSError`` such as a port in use or no permission,
+out of memory), 130/143 for Ctrl-C/SIGTERM.
 """
 
 from __future__ import annotations
 
 import contextlib
+import difflib
+import os
 import sys
 from typing import Annotated
 
 import tyro
 
-from safenav.errors import SafenavError, one_line
+from safenav.errors import EXIT_RUNTIME, EXIT_USAGE, SafenavError, one_line
 
 app = tyro.extras.SubcommandApp()
 
+# The verbs in the order ``safenav --help`` lists them, with their one-line summaries (the detail
+# is each verb's own --help).
+VERBS = {
+    "train": "train CSAC, SAC, PPO, PPO-Lag or SAC-Lag into a run directory",
+    "eval": "fly a policy on the fixed test scenario: success / collision / timeout",
+    "render": "fly one test episode and write a GIF",
+    "reproduce": "every algorithm x seed trained and evaluated on Ray; results table",
+    "plot": "learning curves and test results of runs as PNG",
+    "average": "weight average of a run's kept policies into one policy",
+    "export": "a checkpoint's policy as ONNX (or as a small policy-only file)",
+    "sim-vehicle": "a simulated PX4 vehicle speaking MAVLink on loopback",
+    "fly": "fly an ONNX policy on PX4 (or --demo against sim-vehicle)",
+    "bench": "throughput, latency and memory benchmarks",
+}
+EXIT_CODES = ("0 success, 1 runtime error (port in use, no memory or permission), 2 usage error "
+              "(bad option, value or path), 3 flight aborted, 4 flight collided, 130 Ctrl-C, "
+              "143 SIGTERM")  # fmt: skip
+
 
 def main(argv: list[str] | None = None) -> None:
-    """Run the CLI; user mistakes print one line and exit 2, never a traceback."""
-    from safenav import commands  # noqa: F401  (registers the verbs on ``app``)
+    """Run the CLI; every failure prints one line and exits non-zero, never a traceback."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    if args in (["-h"], ["--help"]):
+        print(short_help())
+        return
+    if args in (["--version"], ["-V"]):
+        from safenav import __version__
 
+        print(f"safenav {__version__}")
+        return
+    if not args:
+        _fail("no verb given: safenav VERB [options]; safenav --help lists the verbs", EXIT_USAGE)
+    if not args[0].startswith("-") and args[0] not in VERBS:
+        close = difflib.get_close_matches(args[0], list(VERBS), n=1)
+        hint = f"did you mean {close[0]!r}? " if close else ""
+        _fail(f"unknown verb {args[0]!r}: {hint}safenav --help lists the verbs", EXIT_USAGE)
     try:
-        with _value_errors_as_safenav_errors():
-            app.cli(
-                args=argv, prog="safenav", description="Safe UAV navigation with constrained RL."
-            )
-    except (SafenavError, ValueError, FileNotFoundError, PermissionError) as err:
-        # one line even when the message quotes a multi-line library error
-        print(f"safenav: error: {one_line(err)}", file=sys.stderr)
-        raise SystemExit(2) from None
+        _run(args)
     except KeyboardInterrupt as err:
         from safenav.common.stopping import Terminated
 
@@ -39,25 +69,141 @@ def main(argv: list[str] | None = None) -> None:
             f"safenav: {'terminated (SIGTERM)' if terminated else 'interrupted'}", file=sys.stderr
         )
         raise SystemExit(143 if terminated else 130) from None
+    except SystemExit:
+        raise
+    except BrokenPipeError:  # `safenav ... | head`: the reader left; nothing to report
+        with contextlib.suppress(OSError):
+            sys.stdout = open(os.devnull, "w")  # noqa: SIM115 -- keeps the exit flush quiet
+        raise SystemExit(EXIT_RUNTIME) from None
+    except BaseException as err:  # noqa: BLE001 -- one line instead of a traceback
+        message, code = describe(err)
+        if code is None:  # a bug: say so, and how to see it in full
+            if os.environ.get("SAFENAV_TRACEBACK"):
+                raise
+            print(f"safenav: error: {message}", file=sys.stderr)
+            _fail("this is a bug in safenav: please report it (SAFENAV_TRACEBACK=1 shows where)",
+                  EXIT_RUNTIME)  # fmt: skip
+        _fail(message, code)
 
 
-def _value_errors_as_safenav_errors() -> contextlib.AbstractContextManager:
-    """Make a bad option value (``--csac.actor-lr -1``, ``--num-envs abc``) a one-line
-    :class:`SafenavError` too: tyro catches the ``ValueError`` of a nested config's validation
-    and would print a boxed usage message instead. Uses tyro's parse-error hook, which tyro
-    marks private; with a tyro that lacks it the boxed message (also exit code 2) remains."""
+def _run(args: list[str]) -> None:
+    from safenav import commands  # noqa: F401  (registers the verbs on ``app``)
+    from safenav.common.checks import registry
+
+    with _parse_errors_as_safenav_errors():
+        app.cli(args=args, prog="safenav", description="Safe UAV navigation with constrained RL.",
+                registry=registry())  # fmt: skip
+
+
+def _fail(message: str, code: int) -> None:
+    print(f"safenav: error: {one_line(message)}", file=sys.stderr)
+    raise SystemExit(code)
+
+
+def describe(err: BaseException) -> tuple[str, int | None]:
+    """The one-line message and exit code of an exception, or ``(message, None)`` for a bug."""
+    import errno
+
+    if isinstance(err, SafenavError):
+        return str(err), err.exit_code
+    if isinstance(err, ValueError):  # config validation (__post_init__)
+        return str(err), EXIT_USAGE
+    if isinstance(err, (FileNotFoundError, IsADirectoryError, NotADirectoryError)):
+        return _os_message(err), EXIT_USAGE
+    if isinstance(err, MemoryError) or type(err).__name__ == "OutOfMemoryError":
+        return f"out of memory ({one_line(err, 200) or type(err).__name__})", EXIT_RUNTIME
+    if isinstance(err, OSError):
+        if err.errno == errno.EADDRINUSE:
+            return f"address already in use ({_os_message(err)})", EXIT_RUNTIME
+        return _os_message(err), EXIT_RUNTIME
+    return f"{type(err).__name__}: {one_line(err, 300)}", None
+
+
+def _os_message(err: OSError) -> str:
+    where = f": {err.filename}" if getattr(err, "filename", None) else ""
+    return f"{err.strerror or err}{where}"
+
+
+def short_help() -> str:
+    """``safenav --help``: one screen, the verbs with one line each."""
+    from safenav import __version__
+
+    width = max(map(len, VERBS))
+    lines = [
+        "usage: safenav [-h] [--version] VERB [options]",
+        "",
+        f"Safe UAV navigation with constrained RL (safenav {__version__}).",
+        "",
+        "verbs:",
+        *(f"  {verb:<{width}}  {text}" for verb, text in VERBS.items()),
+        "",
+        "options:",
+        f"  {'-h, --help':<{width}}  show this help and exit",
+        f"  {'--version':<{width}}  show the version and exit",
+        "",
+        "safenav VERB --help documents every option of VERB.",
+        "Exit codes: " + EXIT_CODES + ".",
+    ]
+    return "\n".join(lines)
+
+
+def _parse_errors_as_safenav_errors() -> contextlib.AbstractContextManager:
+    """Make every tyro parse error (unknown option, missing or malformed value, bad choice, a
+    nested config's ``ValueError``) a one-line :class:`SafenavError`, not a boxed message. Uses
+    tyro's parse-error hook, which tyro marks private; with a tyro that lacks it the boxed
+    message (also exit code 2) remains."""
     on_parse_error = getattr(getattr(tyro, "_errors", None), "on_parse_error", None)
     if on_parse_error is None:
         return contextlib.nullcontext()
 
     def hook(event: object) -> None:
-        if type(event).__name__ != "InstantiationFailure":
-            return  # tyro's own message: unknown flags with suggestions, missing values, ...
-        lowered = getattr(getattr(event, "argument", None), "lowered", None)
-        flag = "/".join(getattr(lowered, "name_or_flags", None) or ())
-        raise SafenavError(f"invalid {flag or 'option'} value: {getattr(event, 'message', event)}")
+        raise SafenavError(parse_error_message(event))
 
     return on_parse_error(hook)
 
 
-__all__ = ["Annotated", "app", "main"]
+def _flag(argument: object) -> str:
+    lowered = getattr(argument, "lowered", None)
+    names = getattr(lowered, "name_or_flags", None) or ()
+    if names:
+        return "/".join(names)
+    metavar = getattr(lowered, "metavar", None)
+    return str(metavar) if metavar else "argument"
+
+
+def _help_of(prog: str) -> str:
+    return f"see {prog} --help"
+
+
+def parse_error_message(event: object) -> str:
+    """One line for a tyro ``ParseErrorEvent`` (matched by class name: the module is private)."""
+    kind = type(event).__name__
+    prog = str(getattr(event, "prog", "safenav"))
+    if kind == "InstantiationFailure":
+        message = str(getattr(event, "message", event)).replace("[bold]", "").replace("[/bold]", "")
+        return f"invalid {_flag(getattr(event, 'argument', None))} value: {message}"
+    if kind == "UnrecognizedArgs":
+        tokens = [str(t) for t in getattr(event, "tokens", [])]
+        return f"unrecognized option(s) {' '.join(tokens)}: {_help_of(prog)}"
+    if kind == "MissingArgs":
+        names = [_flag(getattr(a, "arg", a)) for a in getattr(event, "missing_arguments", [])]
+        return f"missing {', '.join(names)}: {_help_of(prog)}"
+    if kind == "BadValue":
+        flag = _flag(getattr(event, "argument", None))
+        nargs = getattr(getattr(getattr(event, "argument", None), "lowered", None), "nargs", 1)
+        if getattr(event, "reason", "") == "too_few_values":
+            return f"{flag} needs {nargs} value{'s' if nargs != 1 else ''}: {_help_of(prog)}"
+        return f"{flag} takes no value ({getattr(event, 'offending_value', '')!r}): {_help_of(prog)}"
+    if kind == "InvalidChoice":
+        flag = _flag(getattr(event, "argument", None))
+        choices = ", ".join(map(str, getattr(event, "choices", ())))
+        return f"{flag} {getattr(event, 'value', '')!r}: choose one of {choices}"
+    if kind == "MissingSubcommand":
+        return f"no verb given: safenav VERB [options]; {_help_of(prog)}"
+    if kind == "MutexConflict":
+        first, second = getattr(event, "first_token", "?"), getattr(event, "second_token", "?")
+        return f"{first} and {second} cannot be used together: {_help_of(prog)}"
+    return f"invalid command line ({kind}): {_help_of(prog)}"
+
+
+__all__ = ["Annotated", "VERBS", "app", "describe", "main", "parse_error_message", "short_help"]

@@ -33,7 +33,7 @@ def main() -> None:
     run(["render", *policy_args, "--episode", "0", "--out", str(OUT / "flight.gif")])
     if importlib.util.find_spec("safenav.commands.train") is not None:
         console.rule("[bold]3. A short CSAC training run of its own (easy preset)")
-        run(["train", "--algo", "csac", "--env", "SafeNav-v0", "--preset", "easy", "--seed", "0",
+        run(["train", "--algo", "csac", "--env", "SafeNav-v1", "--preset", "easy", "--seed", "0",
              "--total-steps", "20000", "--run-dir", str(OUT / "run"), "--overwrite"])  # fmt: skip
     console.print(f"[green]done:[/] {OUT}/eval.json, {OUT}/flight.gif")
 

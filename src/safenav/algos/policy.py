@@ -115,7 +115,7 @@ def check_fits_safenav(policy: Policy, env_cfg: Any, where: str | Path) -> None:
     env configuration ``env_cfg`` (an EnvConfig) produces: say so before flying, not mid-episode."""
     env_id = str(policy.meta.get("env_id", ""))
     if not env_id.split(":")[-1].startswith("SafeNav-"):
-        raise SafenavError(f"{where} is a policy for {env_id or 'an unknown env'}, not SafeNav-v0: "
+        raise SafenavError(f"{where} is a policy for {env_id or 'an unknown env'}, not SafeNav: "
                            "its observations do not fit the SafeNav test scenario")  # fmt: skip
     want = observation_shapes(env_cfg)
     if policy.obs_shapes != want:

@@ -97,7 +97,7 @@ def bench_env(
         "machine": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads",
         "date": time.strftime("%Y-%m-%d"),
     }
-    table = Table(title=f"SafeNav-v0 ({preset}) env-steps/s, median of {repeats}")
+    table = Table(title=f"SafeNav-v1 ({preset}) env-steps/s, median of {repeats}")
     for col in ("device", "num_envs", "steps/s"):
         table.add_column(col, justify="right")
     for r in results:

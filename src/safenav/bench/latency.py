@@ -112,8 +112,12 @@ def _sensor_frames(cfg: EnvConfig, n: int):
         frames = []
         for i in range(n):
             a = 0.1 + 0.8 * i / max(1, n - 1)
-            sim.pos = start + a * (goal - start)
-            sim.pos[2] = 1.5
+            while True:  # the straight line may cross obstacles: skip ahead to a free spot
+                sim.pos = start + a * (goal - start)
+                sim.pos[2] = 1.5
+                if min(sim.clearance()[:2]) > 0.5:
+                    break
+                a += 0.005
             for _ in range(2):
                 sim.obstacles.step()
             frames.append((sim.pos.copy(), sim.perception_frame()))

@@ -31,7 +31,7 @@ def bench_ppo(num_envs: int = 256, rollouts: int = 3, preset: str = "paper", dev
         torch.set_num_threads(threads)
     torch.manual_seed(seed)
     cfg = PPOConfig(constrained=constrained)
-    env = TorchVecEnv(make_vec_env("SafeNav-v0", num_envs, device, preset), device)
+    env = TorchVecEnv(make_vec_env("SafeNav-v1", num_envs, device, preset), device)
     agent = PPO(env.obs_shapes, env.action_dim, cfg).to(device)
     rollout = Rollout(cfg.rollout_steps, num_envs, env.obs_shapes, env.action_dim,
                       agent.num_values, device)  # fmt: skip

@@ -125,7 +125,7 @@ def soak_train(updates: int, preset: str, hidden: tuple[int, ...], batch_size: i
 
     learning_starts = 1_000
     total = learning_starts + updates  # one update per env step
-    run = RunConfig(env="SafeNav-v0", preset=preset, num_envs=num_envs, seed=0, total_steps=total,
+    run = RunConfig(env="SafeNav-v1", preset=preset, num_envs=num_envs, seed=0, total_steps=total,
                     torch_threads=torch.get_num_threads(), log_every=max(1_000, total // 50),
                     eval_every=max(1, total // 4), eval_episodes=16, checkpoint_every=max(1, total // 10))  # fmt: skip
     cfg = CSACConfig()

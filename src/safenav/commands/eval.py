@@ -18,19 +18,23 @@ def eval_(
     episodes: int = 200,
     shield: bool = False,
     json_out: Annotated[Path | None, tyro.conf.arg(name="json")] = None,
-    policy: Literal["checkpoint", "scripted", "random"] = "checkpoint",
+    policy: Literal["checkpoint", "scripted", "straight", "border", "random"] = "checkpoint",
     preset: str | None = None,
     device: str = "cpu",
 ) -> None:
     """Evaluate a policy on the fixed test scenario (map of env seed 1, full density, 200 fixed
-    start/goal episodes, deterministic actions) and print success / collision / timeout rates.
+    start/goal episodes, deterministic actions) and print success / collision / timeout rates and
+    how it flew (detour ratio, time near the border).
 
     ``--shield`` corrects actions with the velocity-obstacle safety shield. ``--preset`` overrides
-    the checkpoint's env preset. ``--policy scripted`` evaluates the potential-field baseline.
+    the checkpoint's env preset. ``--policy scripted`` evaluates the potential-field baseline,
+    ``straight`` flies straight at the goal, ``border`` around the field along the border (the
+    loophole probe: it must fail in the closed arena).
     """
     from rich.console import Console
     from rich.table import Table
 
+    from safenav import ENV_ID
     from safenav.envs.config import make_config
     from safenav.experiments.evaluate import evaluate
     from safenav.experiments.flight import resolve_policy
@@ -42,6 +46,11 @@ def eval_(
         from safenav.algos.policy import check_fits_safenav
 
         check_fits_safenav(fn, cfg, checkpoint)
+        trained_on = str(fn.meta.get("env_id", ""))
+        if trained_on.split(":")[-1] != ENV_ID:
+            # Same observations, another arena: SafeNav-v0 had no border and a free ring.
+            Console(stderr=True).print(f"note: {checkpoint} was trained on {trained_on}; "
+                                       f"evaluating it on {ENV_ID}")  # fmt: skip
     shield_fn = None
     if shield:
         from safenav.deploy.shield import env_shield
@@ -51,12 +60,16 @@ def eval_(
                       shield=shield_fn, progress=True)  # fmt: skip
     result["checkpoint"] = str(checkpoint) if checkpoint else policy
     result["shield"] = shield
+    result["env"] = ENV_ID
+    if policy == "checkpoint":
+        result["trained_on"] = str(fn.meta.get("env_id", ""))
     table = Table(title=f"fixed test scenario: env seed {env_seed}, {episodes} episodes")
     table.add_column("metric")
     table.add_column("value", justify="right")
     for key in ("success_rate", "collision_rate", "timeout_rate", "mean_time_to_goal",
                 "collision_static_rate", "collision_dynamic_rate", "collision_bounds_rate",
-                "mean_path_length", "min_clearance", "mean_speed"):  # fmt: skip
+                "collision_border_rate", "detour_ratio", "border_time_fraction",
+                "outside_time_fraction", "mean_path_length", "min_clearance", "mean_speed"):  # fmt: skip
         table.add_row(key, f"{result[key]:.3f}")
     Console().print(table)
     if json_out is not None:

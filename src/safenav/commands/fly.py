@@ -68,7 +68,7 @@ def fly(
         demo: Start the simulated vehicle and fly a test episode (see above).
         checkpoint: Checkpoint flown by ``--demo`` (exported to ONNX on the fly).
         scripted: With ``--demo``: fly the scripted go-to-goal actor instead of a checkpoint.
-        preset: With ``--demo``: SafeNav-v0 preset of the scenario.
+        preset: With ``--demo``: SafeNav-v1 preset of the scenario.
         episode: With ``--demo``: test episode (start and goal) of the fixed scenario.
         gif: With ``--demo``: where to write the flight's GIF (default flight.gif).
         verbose: Log MAVSDK's own messages and debug output.

@@ -14,7 +14,7 @@ from safenav.cli import app
 def render(
     checkpoint: tyro.conf.Positional[Path | None] = None,
     out: Path = Path("episode.gif"),
-    policy: Literal["checkpoint", "scripted", "random"] = "checkpoint",
+    policy: Literal["checkpoint", "scripted", "straight", "border", "random"] = "checkpoint",
     preset: str | None = None,
     env_seed: int = 1,
     episode: int = 0,

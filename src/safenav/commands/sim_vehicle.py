@@ -23,7 +23,7 @@ def sim_vehicle(
     param: tuple[str, ...] = (),
     quiet: bool = False,
 ) -> None:
-    """Run a PX4-like multicopter on loopback UDP, driven by SafeNav-v0's dynamics and world.
+    """Run a PX4-like multicopter on loopback UDP, driven by SafeNav-v1's dynamics and world.
 
     It sends to ``--connect`` (a ground station or ``safenav fly --connect udpin://...`` listens
     there; PX4 SITL's convention is port 14540) and serves depth images and tracked obstacles for
@@ -33,7 +33,7 @@ def sim_vehicle(
     ``COM_OF_LOSS_T=1.0`` or ``COM_OBL_RC_ACT=4`` (land on offboard loss; 5 = hold).
 
     Args:
-        preset: SafeNav-v0 preset of the world (easy, medium, paper).
+        preset: SafeNav-v1 preset of the world (easy, medium, paper).
         world_seed: World seed (1 = the fixed test environment).
         density: Fraction of the obstacles that are active.
         episode: Test episode whose start is the takeoff point (when ``--start`` is not given).

@@ -1,4 +1,4 @@
-"""``safenav train``: train CSAC, SAC, PPO, PPO-Lag or SAC-Lag on SafeNav-v0 or any Gymnasium env
+"""``safenav train``: train CSAC, SAC, PPO, PPO-Lag or SAC-Lag on SafeNav-v1 or any Gymnasium env
 into a run directory."""
 
 from __future__ import annotations

@@ -20,10 +20,10 @@ from safenav.common.curriculum import DensityCurriculumConfig
 class RunConfig:
     """What to train on, for how long, where, and how to log it (shared by all algorithms)."""
 
-    env: str = "SafeNav-v0"
-    """Gymnasium env id: SafeNav-v0 or any registered id (Box actions; Box or Dict observations)."""
+    env: str = "SafeNav-v1"
+    """Gymnasium env id: SafeNav-v1 or any registered id (Box actions; Box or Dict observations)."""
     preset: str | None = None
-    """SafeNav-v0 preset (easy, medium, paper); None = paper. Only for SafeNav-v0."""
+    """SafeNav-v1 preset (easy, medium, paper); None = paper. Only for SafeNav-v1."""
     num_envs: int = 16
     """Parallel envs in the training vector env."""
     seed: int = 1
@@ -43,7 +43,7 @@ class RunConfig:
     checkpoint_every: int = 50_000
     """Env steps between checkpoint.pt writes (also written at the end and on Ctrl-C)."""
     map_refresh_every: int = 200_000
-    """SafeNav-v0: env steps between redraws of the training maps (new seeds); 0 = keep them."""
+    """SafeNav-v1: env steps between redraws of the training maps (new seeds); 0 = keep them."""
     keep_policies: bool = False
     """Also keep the policy of every periodic evaluation as ``policies/step_<N>.pt`` (policy-only,
     ~0.6 MB each), to compare a run's policies afterwards (benchmarks/checkpoint_sweep.py)."""
@@ -55,7 +55,7 @@ class RunConfig:
     tensorboard: bool = True
     """Write TensorBoard events to tb/ besides progress.csv."""
     density: DensityCurriculumConfig = field(default_factory=DensityCurriculumConfig)
-    """Obstacle-density curriculum (SafeNav-v0 only)."""
+    """Obstacle-density curriculum (SafeNav-v1 only)."""
 
     def __post_init__(self) -> None:
         for name in ("num_envs", "total_steps", "log_every", "checkpoint_every", "eval_episodes"):

@@ -1,6 +1,6 @@
 """Any Gymnasium env as a batch of torch tensors, with costs, true final observations and episodes.
 
-:func:`make_vec_env` builds a vector env for any registered id: ``SafeNav-v0`` natively batched
+:func:`make_vec_env` builds a vector env for any registered id: ``SafeNav-v1`` natively batched
 (torch tensors on the training device), anything else as a ``SyncVectorEnv`` created with
 ``SAME_STEP`` autoreset. :class:`TorchVecEnv` then gives every algorithm the same view of it:
 
@@ -41,7 +41,7 @@ def check_env(env_id: str, preset: str | None = None) -> None:
     if preset is None:
         return
     if not is_safenav(env_id):
-        raise SafenavError(f"--preset applies to SafeNav-v0 only, not {env_id!r}")
+        raise SafenavError(f"--preset applies to SafeNav-v1 only, not {env_id!r}")
     from safenav.envs.config import PRESETS
 
     if preset not in PRESETS:

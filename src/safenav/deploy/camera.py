@@ -6,7 +6,7 @@ the world is ENU. A camera's pose is its camera-to-world rotation ``R`` and posi
 ``p_world = R @ p_cam + t``.
 
 :func:`render_depth` is the simulator's camera: every pixel ray against axis-aligned boxes (the
-pillars and moving obstacles of a SafeNav-v0 world) and the ground plane ``z = 0``.
+pillars and moving obstacles of a SafeNav-v1 world) and the ground plane ``z = 0``.
 """
 
 from __future__ import annotations

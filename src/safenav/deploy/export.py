@@ -39,7 +39,7 @@ def sidecar_path(onnx_path: str | Path) -> Path:
 
 
 def policy_conventions(cfg: EnvConfig) -> dict[str, Any]:
-    """The observation and action conventions of SafeNav-v0, as written into the sidecar."""
+    """The observation and action conventions of SafeNav-v1, as written into the sidecar."""
     return {
         "observation": {
             "state": {
@@ -93,7 +93,7 @@ def call_actor(
     unknown = sorted(set(names) - set(named))
     if unknown:
         raise SafenavError(
-            f"the actor reads observation entries {unknown}: not a SafeNav-v0 policy"
+            f"the actor reads observation entries {unknown}: not a SafeNav-v1 policy"
         )
     return actor(*(named[k] for k in names))
 

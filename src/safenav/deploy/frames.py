@@ -1,6 +1,6 @@
 """Coordinate frames of deployment: the world (ENU), PX4's local NED frame, and the goal frame.
 
-- **World** = the map frame of SafeNav-v0: x east, y north, z up (ENU), metres. Perception (the
+- **World** = the map frame of SafeNav-v1: x east, y north, z up (ENU), metres. Perception (the
   occupancy map, tracked obstacles, camera poses) and the goal are expressed in it.
 - **Local NED** = PX4's ``LOCAL_POSITION_NED`` / ``SET_POSITION_TARGET_LOCAL_NED`` frame: x north,
   y east, z down, with its origin at ``origin`` in world coordinates (PX4's EKF origin; with a

@@ -22,7 +22,13 @@ from safenav.deploy import kernels
 from safenav.deploy.camera import backproject
 from safenav.deploy.perception_link import DepthImage
 from safenav.envs import sensors as _sensors
-from safenav.envs.world import GridSpec
+from safenav.envs.world import WALL_HEIGHT, GridSpec, border_walls
+
+
+def height_map_walls(grid: GridSpec, half: float) -> torch.Tensor:
+    """Flat ``(G * G,)`` heights: ``WALL_HEIGHT`` outside the ``[-half, half]^2`` arena, else 0."""
+    return border_walls(grid, half).reshape(-1).to(torch.float32) * WALL_HEIGHT
+
 
 _QUANTIZE = getattr(_sensors, "quantize_heights", None)
 
@@ -35,6 +41,7 @@ class HeightMap:
         ground_band: points below this altitude (m) are ground and leave the map unchanged.
         exclusion_margin: tracked obstacles' boxes are inflated by this much (m) when points
             inside them are left out of the map.
+        geofence: half side (m) of the arena whose border is a wall in the map (None: no wall).
     """
 
     def __init__(
@@ -44,6 +51,7 @@ class HeightMap:
         exclusion_margin: float = 0.25,
         surface_offset: float | None = None,
         compiled: bool | None = None,
+        geofence: float | None = None,
     ) -> None:
         self.grid = grid
         # Returns lie on surfaces. Moving them half a cell into the obstacle (against the surface
@@ -55,7 +63,12 @@ class HeightMap:
         self.ground_band = float(ground_band)
         self.exclusion_margin = float(exclusion_margin)
         g = grid.size
-        self.heights = torch.zeros(g * g, dtype=torch.float32)
+        # The arena's border as the simulator's wall (cells outside [-geofence, geofence]^2): the
+        # map's floor, which sensor data raises and clear() restores.
+        self.floor = torch.zeros(g * g, dtype=torch.float32)
+        if geofence is not None:
+            self.floor = height_map_walls(grid, float(geofence))
+        self.heights = self.floor.clone()
         # The map in the ray caster's storage format (uint8 quanta if the env uses them).
         self.cast_map = _QUANTIZE(self.heights) if _QUANTIZE is not None else self.heights
         self.points_inserted = 0
@@ -66,8 +79,9 @@ class HeightMap:
             raise ValueError("compiled=True needs Numba (pip install 'safenav[deploy]')")
 
     def clear(self) -> None:
-        self.heights.zero_()
-        self.cast_map.zero_()
+        """Forget all sensor data (the geofence wall stays)."""
+        self.heights.copy_(self.floor)
+        self.cast_map.copy_(_QUANTIZE(self.heights) if _QUANTIZE is not None else self.heights)
         self.points_inserted = 0
 
     def insert_points(self, points, exclude_boxes=None, normals=None) -> int:

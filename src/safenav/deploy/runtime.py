@@ -1,6 +1,6 @@
 """The onboard runtime: sensor data -> observation -> policy -> velocity setpoint, with guards.
 
-:class:`OnboardRuntime` builds the observation exactly as ``SafeNav-v0`` does, from what a drone
+:class:`OnboardRuntime` builds the observation exactly as ``SafeNav-v1`` does, from what a drone
 has instead of the simulator's ground truth:
 
 - **range image**: an occupancy grid (:class:`~safenav.deploy.mapping.HeightMap`, the env's grid
@@ -81,6 +81,9 @@ class RuntimeConfig:
     standing cylinders (the env has 1 m cuboids and 5 m cylinders), unless the tracker says."""
     shield: ShieldConfig | None = None
     """Velocity-obstacle shield applied to the policy's action (None: off)."""
+    geofence: bool = True
+    """Mark the env's arena border as a wall in the onboard map, as the simulator does (SafeNav-v1
+    trains policies in a closed arena): the flight area is a geofence the policy sees coming."""
 
 
 @dataclass
@@ -129,7 +132,10 @@ class OnboardRuntime:
         self.config = config or RuntimeConfig()
         self.clock = clock
         self.spec = RangeImageSpec.for_config(env_config)
-        self.map = HeightMap(grid or GridSpec.for_config(env_config))
+        self.map = HeightMap(
+            grid or GridSpec.for_config(env_config),
+            geofence=env_config.half if self.config.geofence else None,
+        )
         self._lock = threading.Lock()
         self._goal: np.ndarray | None = None
         self._yaw = 0.0

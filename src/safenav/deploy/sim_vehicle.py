@@ -1,4 +1,4 @@
-"""A simulated PX4 multicopter that speaks real MAVLink on loopback, driven by SafeNav-v0.
+"""A simulated PX4 multicopter that speaks real MAVLink on loopback, driven by SafeNav-v1.
 
 To a ground station or companion computer (MAVSDK, QGroundControl, pymavlink) it looks like PX4
 SITL: it sends ``HEARTBEAT`` (autopilot PX4, PX4 custom modes), ``SYS_STATUS`` (sensor health and
@@ -12,7 +12,7 @@ OFFBOARD is refused until setpoints stream in, and when they stop for ``COM_OF_L
 falls back to Hold or Land (``COM_OBL_RC_ACT`` 5 or 4). Malformed or unexpected messages are
 counted and ignored.
 
-The physics is SafeNav-v0's: the world of ``(preset, world_seed)`` (pillars and moving obstacles,
+The physics is SafeNav-v1's: the world of ``(preset, world_seed)`` (pillars and moving obstacles,
 which move exactly as in the env), the UAV's velocity tracker, and the env's collision geometry
 (collisions are counted, not fatal). Frames: the world is ENU; PX4's local NED frame has its origin
 at the world origin (as with motion capture; see :mod:`safenav.deploy.frames`).
@@ -57,7 +57,13 @@ from safenav.envs.dynamics import (
 )
 from safenav.envs.nav import fixed_scenario
 from safenav.envs.sensors import moving_obstacle_clearance, pillar_clearance
-from safenav.envs.world import CUBOID_HEIGHT, CUBOID_Z_RANGE, CYLINDER_HEIGHT, generate_world
+from safenav.envs.world import (
+    CUBOID_HEIGHT,
+    CUBOID_Z_RANGE,
+    CYLINDER_HEIGHT,
+    border_clearance,
+    generate_world,
+)
 
 log = logging.getLogger("safenav.deploy.sim_vehicle")
 
@@ -97,7 +103,7 @@ class MovingObstacles:
     def _goal(self, counter: torch.Tensor) -> torch.Tensor:
         cfg = self.cfg
         return sample_obstacle_goals(self.seed[:, None], self.ids[None], counter, self.origin, self.is_cuboid[None],
-                                     cfg.dyn_local_range, cfg.half - cfg.edge_margin - 0.5, CUBOID_Z_RANGE,
+                                     cfg.dyn_local_range, cfg.mover_limit, CUBOID_Z_RANGE,
                                      CYLINDER_HEIGHT / 2)  # fmt: skip
 
     def step(self) -> None:
@@ -119,7 +125,7 @@ class SimVehicleConfig:
     """Settings of the simulated vehicle (``safenav sim-vehicle``)."""
 
     preset: str = "easy"
-    """SafeNav-v0 preset of the world (easy, medium, paper)."""
+    """SafeNav-v1 preset of the world (easy, medium, paper)."""
     world_seed: int = 1
     """World seed (1 = the fixed test environment, paper IV-B)."""
     density: float = 1.0
@@ -157,6 +163,7 @@ class SimStats:
     collisions: int = 0
     collisions_static: int = 0
     collisions_dynamic: int = 0
+    collisions_border: int = 0  # touching the arena's border wall (SafeNav-v1's closed arena)
     min_clearance: float = math.inf
     flight_time: float = 0.0
     path: list = field(default_factory=list)
@@ -693,8 +700,9 @@ class SimVehicle:
         cmd[2] = 0.0
         return cmd
 
-    def clearance(self) -> tuple[float, float]:
-        """Distance from the UAV centre to the nearest pillar and moving obstacle surfaces."""
+    def clearance(self) -> tuple[float, float, float]:
+        """Distance from the UAV centre to the nearest pillar and moving obstacle surfaces and
+        (horizontally) to the arena's border wall."""
         pos = torch.tensor(self.pos, dtype=torch.float32)[None]
         static = float(
             pillar_clearance(pos, self.pillar_xy, self.pillar_half, self.pillar_height)[0]
@@ -705,23 +713,26 @@ class SimVehicle:
             rel = self.obstacles.pos[:, :nd] - pos[:, None]
             dyn = float(moving_obstacle_clearance(rel, self.obstacles.width[None, :nd], self.obstacles.is_cuboid[None, :nd],
                                                   pos[:, 2], CUBOID_HEIGHT, CYLINDER_HEIGHT).amin())  # fmt: skip
-        return static, dyn
+        return static, dyn, float(border_clearance(pos[0], self.env_cfg.half))
 
     def _check_collision(self) -> None:
         if self.landed:
             self._in_contact = False
             return
-        static, dyn = self.clearance()
-        clear = min(static, dyn) - self.env_cfg.uav_radius
+        static, dyn, border = self.clearance()
+        clear = min(static, dyn, border) - self.env_cfg.uav_radius
         self.stats.min_clearance = min(self.stats.min_clearance, clear)
         contact = clear <= 0.0
         if contact and not self._in_contact:
             self.stats.collisions += 1
-            if static <= dyn:
+            what = min((static, "pillar"), (dyn, "moving obstacle"), (border, "border wall"))[1]
+            if what == "pillar":
                 self.stats.collisions_static += 1
-            else:
+            elif what == "moving obstacle":
                 self.stats.collisions_dynamic += 1
-            self._event(f"COLLISION with a {'pillar' if static <= dyn else 'moving obstacle'}")
+            else:
+                self.stats.collisions_border += 1
+            self._event(f"COLLISION with the {what}")
         self._in_contact = contact
 
     # ------------------------------------------------------------------ perception
@@ -766,6 +777,7 @@ class SimVehicle:
         ]  # fmt: skip
         truth = {"pos": pos.tolist(), "collisions": stats.collisions,
                  "collisions_static": stats.collisions_static, "collisions_dynamic": stats.collisions_dynamic,
+                 "collisions_border": stats.collisions_border,
                  "min_clearance": stats.min_clearance,
                  "flight_time": stats.flight_time, "in_contact": in_contact, "mode": mode, "armed": armed,
                  "dyn_pos": opos[:, :2].numpy().round(3).tolist(), "world_seed": self.config.world_seed,

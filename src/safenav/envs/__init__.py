@@ -1,4 +1,4 @@
-"""``SafeNav-v0``: the batched CMDP simulator (world, sensors, dynamics, the env itself)."""
+"""``SafeNav-v1``: the batched CMDP simulator (world, sensors, dynamics, the env itself)."""
 
 from safenav.envs.config import PRESETS, EnvConfig, make_config
 from safenav.envs.nav import SafeNavEnv, SafeNavVectorEnv, fixed_scenario, sample_episodes

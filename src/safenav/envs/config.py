@@ -1,4 +1,4 @@
-"""Typed configuration of ``SafeNav-v0`` and its named presets.
+"""Typed configuration of ``SafeNav-v1`` and its named presets.
 
 Values marked (paper) come from the seed paper, (NavRL) from NavRL's open-source environment.
 """
@@ -14,7 +14,7 @@ from typing import Any
 
 @dataclass(frozen=True)
 class EnvConfig:
-    """SafeNav-v0 configuration. The defaults are the paper scenario (``preset="paper"``)."""
+    """SafeNav-v1 configuration. The defaults are the paper scenario (``preset="paper"``)."""
 
     map_size: float = 50.0
     """Side of the square flight area in metres; x, y in [-map_size/2, map_size/2] (paper)."""
@@ -27,7 +27,14 @@ class EnvConfig:
     pillar_sides: tuple[float, ...] = (0.4, 0.8)
     """Footprint sides of the square pillars in metres (NavRL)."""
     edge_margin: float = 2.0
-    """Obstacle-free band along the map border where starts and goals lie (kept free)."""
+    """Starts and goals lie ``edge_margin / 2`` from the border. (SafeNav-v0 kept this band free of
+    obstacles, a ring that joined every start to every goal; v1 fills it like the interior.)"""
+    start_sites: int = 6
+    """Start/goal sites per side of the arena, drawn with the map; episodes start and end at them
+    (at random altitudes), each the centre of an obstacle-free disc (v1)."""
+    start_clearance: float = 2.0
+    """Radius of the obstacle-free disc around each site in metres: no pillar footprint or moving
+    obstacle origin lies closer; an episode starts at a site no moving obstacle is inside (v1)."""
 
     z_min: float = 0.2
     """Lowest allowed altitude; below it is a ground collision (NavRL)."""
@@ -97,6 +104,11 @@ class EnvConfig:
         return self.map_size / 2.0
 
     @property
+    def mover_limit(self) -> float:
+        """Largest |x| or |y| of a moving obstacle's centre (its surface stays inside the map)."""
+        return self.half - 0.5
+
+    @property
     def dt(self) -> float:
         """Control period in seconds."""
         return 1.0 / self.control_hz
@@ -134,7 +146,7 @@ class EnvConfig:
                 bad(name, "must be finite")
 
         for name in (
-            "map_size", "density", "edge_margin", "z_min", "z_max", "uav_radius", "v_max",
+            "map_size", "density", "edge_margin", "start_clearance", "z_min", "z_max", "uav_radius", "v_max",
             "control_hz", "velocity_time_constant", "max_acceleration", "lidar_range",
             "grid_resolution", "dyn_speed_period", "dyn_local_range", "goal_tolerance",
             "min_goal_distance", "max_episode_seconds", "reward_goal", "w_velocity", "w_static",
@@ -142,7 +154,7 @@ class EnvConfig:
         ):  # fmt: skip
             finite(name)
         for name in ("num_static", "num_dynamic", "physics_substeps", "lidar_h_beams",
-                     "num_tracked", "num_worlds"):  # fmt: skip
+                     "num_tracked", "num_worlds", "start_sites"):  # fmt: skip
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int):
                 bad(name, "must be an integer")
@@ -153,7 +165,7 @@ class EnvConfig:
                      "dyn_speed_period", "goal_tolerance", "max_episode_seconds"):  # fmt: skip
             if getattr(self, name) <= 0:
                 bad(name, "must be > 0")
-        for name in ("physics_substeps", "lidar_h_beams", "num_tracked"):
+        for name in ("physics_substeps", "lidar_h_beams", "num_tracked", "start_sites"):
             if getattr(self, name) < 1:
                 bad(name, "must be >= 1")
         if not 0.0 <= self.density <= 1.0:
@@ -162,6 +174,12 @@ class EnvConfig:
             bad("z_max", "must exceed z_min >= 0")
         if self.edge_margin < 1.0 or 2 * self.edge_margin >= self.map_size - 2.0:
             bad("edge_margin", "must be >= 1 m and leave at least 2 m of interior")
+        if not 0.0 <= self.start_clearance <= self.map_size / 4:
+            bad("start_clearance", "must lie in [0, map_size / 4]")
+        if self.edge_margin / 2 <= self.uav_radius:
+            bad(
+                "edge_margin", "must put starts (edge_margin / 2 from the border) clear of the wall"
+            )
         if not self.pillar_sides or any(
             (not math.isfinite(s)) or s <= 0 for s in self.pillar_sides
         ):
@@ -176,14 +194,15 @@ class EnvConfig:
             bad("start_height_range", "must lie strictly inside (z_min, z_max)")
         if self.grid_resolution > self.lidar_range / 4:
             bad("grid_resolution", "must be at most lidar_range / 4")
-        # Pillars may cover at most 30 % of the interior so that placement (and flight) is possible.
-        interior = (self.map_size - 2 * self.edge_margin) ** 2
+        # Pillars may cover at most 30 % of the map (less the sites' clear discs) so that placement
+        # (and flight) is possible.
         mean_area = sum(s * s for s in self.pillar_sides) / len(self.pillar_sides)
-        if self.num_static * mean_area > 0.3 * interior:
+        free = self.map_size**2 - 4 * self.start_sites * math.pi * self.start_clearance**2
+        if self.num_static * mean_area > 0.3 * free:
             bad(
                 "num_static",
-                f"{self.num_static} pillars do not fit in the "
-                f"{self.map_size - 2 * self.edge_margin:.1f} m interior (at most 30 % cover)",
+                f"{self.num_static} pillars do not fit in the {self.map_size:.1f} m map "
+                "(at most 30 % cover)",
             )
         if self.min_goal_distance > self.map_size:
             bad("min_goal_distance", "must not exceed map_size")
@@ -202,7 +221,7 @@ PRESETS: dict[str, dict] = {
 
 
 def observation_shapes(cfg: EnvConfig | Mapping[str, Any]) -> dict[str, tuple[int, ...]]:
-    """SafeNav-v0's observation layout under ``cfg`` (an EnvConfig, or one as a dict, e.g. from
+    """SafeNav's observation layout under ``cfg`` (an EnvConfig, or one as a dict, e.g. from
     a checkpoint): ``state`` (8,), ``lidar`` (elevations, beams), ``dynamic`` (tracked, 10)."""
     c = cfg if isinstance(cfg, Mapping) else dataclasses.asdict(cfg)
     return {"state": (8,), "lidar": (len(c["lidar_v_angles"]), int(c["lidar_h_beams"])),

@@ -1,4 +1,5 @@
-"""``SafeNav-v0``: quadrotor navigation among static pillars and moving obstacles, as a CMDP.
+"""``SafeNav-v1``: quadrotor navigation among static pillars and moving obstacles in a closed
+arena, as a CMDP.
 
 :class:`SafeNavVectorEnv` is the simulator: ``N`` UAVs stepped as one batch of tensors (no per-env
 Python loop), on CPU or CUDA. :class:`SafeNavEnv` is the single-env view of it (``N = 1``).
@@ -38,10 +39,14 @@ from safenav.envs.world import (
     CUBOID_HEIGHT,
     CUBOID_Z_RANGE,
     CYLINDER_HEIGHT,
+    WALL_HEIGHT,
     GridSpec,
     World,
+    border_clearance,
+    border_walls,
     generate_world,
     height_map,
+    side_points,
     world_from_obstacles,  # noqa: F401  (re-exported for custom maps)
 )
 
@@ -50,59 +55,117 @@ DIST_SCALE = 20.0  # m, horizontal distance to goal
 Z_SCALE = 4.0  # m, altitude difference to goal
 # Random streams of episode sampling (keys of the counter-based generator).
 _STREAMS = dict(s_side=1, s_along=2, s_z=3, g_side=4, g_along=5, g_z=6)
+BORDER_BAND = 2.0  # m: flight this close to the border counts in the border-time metric
+# Pillars (xy (N, P, 2), half side (N, P)) and moving obstacles (xy (N, D, 2), half width (N, D))
+# as each episode sees them at its start: what a start or goal must keep clear of.
+Obstacles = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
+START_CANDIDATES = 16  # draws of a site per start and per goal; some mover is inside ~1 site in 10
+_CHUNK = 1 << 22  # candidate-obstacle pairs per clearance batch (bounds memory at big resets)
 
 
-def sample_episodes(cfg: EnvConfig, env_seed: torch.Tensor, counter: torch.Tensor):
+def _clearance_xy(points: torch.Tensor, obstacles: Obstacles) -> torch.Tensor:
+    """Horizontal distance from candidate points ``(N, K, 2)`` to the nearest obstacle surface
+    (pillar footprints; moving obstacles as discs of their half width), ``(N, K)``."""
+    p_xy, p_half, m_xy, m_half = obstacles
+    d = ((points[:, :, None, :] - p_xy[:, None]).abs() - p_half[:, None, :, None]).clamp(min=0)
+    clear = (
+        d.norm(dim=-1).amin(-1) if p_xy.shape[1] else points.new_full(points.shape[:2], math.inf)
+    )
+    if m_xy.shape[1]:
+        m = (points[:, :, None, :] - m_xy[:, None]).norm(dim=-1) - m_half[:, None]
+        clear = torch.minimum(clear, m.amin(-1))
+    return clear
+
+
+def _pick(candidates: torch.Tensor, clear: torch.Tensor, radius: float) -> torch.Tensor:
+    """Per row, the first candidate whose clearance reaches ``radius`` (else the clearest)."""
+    ok = clear >= radius
+    k = torch.where(ok.any(-1), ok.to(torch.uint8).argmax(-1), clear.argmax(-1))
+    return candidates[torch.arange(len(k), device=k.device), k]
+
+
+def sample_episodes(
+    cfg: EnvConfig,
+    env_seed: torch.Tensor,
+    counter: torch.Tensor,
+    sites: torch.Tensor,
+    obstacles: Obstacles | None = None,
+):
     """Start and goal of episode ``counter`` of the env seeded ``env_seed`` (batched).
 
-    Starts and goals lie in the obstacle-free edge band, ``edge_margin / 2`` from the border, at
-    altitudes in ``start_height_range``; the goal is on another side than the start (NavRL draws
-    sides), moved to the opposite side if closer than ``min_goal_distance``.
+    Starts and goals are sites of the map (``sites``: ``(N, 4, S)`` positions along each side,
+    ``edge_margin / 2`` from the border) at altitudes in ``start_height_range``; the goal is on
+    another side than the start (NavRL draws sides), moved to the opposite side if closer than
+    ``min_goal_distance``. Each is the first of ``START_CANDIDATES`` counter-based draws whose
+    ``start_clearance`` disc holds none of ``obstacles`` (the clearest draw if none is clear), so
+    that no episode starts or ends inside a moving obstacle.
     """
-    u = {k: rng.uniform(env_seed, counter, v) for k, v in _STREAMS.items()}
-    edge = cfg.half - cfg.edge_margin / 2
-    along = cfg.half - cfg.edge_margin
+    n, k, ns = env_seed.shape[0], START_CANDIDATES, sites.shape[-1]
+    cand = torch.arange(k, device=env_seed.device)[None, :]
+    u = {key: rng.uniform(env_seed[:, None], counter[:, None], stream, cand)
+         for key, stream in _STREAMS.items()}  # fmt: skip
     zlo, zhi = cfg.start_height_range
+    rows = torch.arange(n, device=sites.device)[:, None]
+
+    def at(side: torch.Tensor, slot_u: torch.Tensor, z_u: torch.Tensor) -> torch.Tensor:
+        slot = torch.floor(slot_u * ns).long().clamp(max=ns - 1)
+        return side_points(cfg, side, sites[rows, side, slot], zlo + z_u * (zhi - zlo))
+
+    def first_clear(points: torch.Tensor) -> torch.Tensor:
+        """Index of the chosen candidate per row."""
+        if obstacles is None:
+            return torch.zeros(n, dtype=torch.int64, device=points.device)
+        size = max(1, _CHUNK // (k * max(1, obstacles[0].shape[1] + obstacles[2].shape[1])))
+        clear = torch.cat([_clearance_xy(points[i : i + size, :, :2],
+                                         tuple(t[i : i + size] for t in obstacles))  # type: ignore[arg-type]
+                           for i in range(0, n, size)]) if n else points.new_zeros(0, k)  # fmt: skip
+        ok = clear >= cfg.start_clearance - 1e-4
+        return torch.where(ok.any(-1), ok.to(torch.uint8).argmax(-1), clear.argmax(-1))
+
     s_side = torch.floor(u["s_side"] * 4).long().clamp(max=3)
-    g_side = (s_side + 1 + torch.floor(u["g_side"] * 3).long().clamp(max=2)) % 4
-    s_along = (2 * u["s_along"] - 1) * along
-    g_along = (2 * u["g_along"] - 1) * along
+    starts = at(s_side, u["s_along"], u["s_z"])
+    pick = first_clear(starts)
+    start, side = starts[rows[:, 0], pick], s_side[rows, pick[:, None]]  # side: (N, 1)
+    g_side = (side + 1 + torch.floor(u["g_side"] * 3).long().clamp(max=2)) % 4
+    goals = at(g_side, u["g_along"], u["g_z"])
+    near = (goals[..., :2] - start[:, None, :2]).norm(dim=-1) < cfg.min_goal_distance
+    goals = torch.where(near[..., None], at((side + 2) % 4, u["g_along"], u["g_z"]), goals)
+    return start, goals[rows[:, 0], first_clear(goals)]
 
-    def place(side, a, z):
-        # side 0: north (y = +edge), 1: east, 2: south, 3: west
-        x = torch.where(
-            side == 0, a, torch.where(side == 1, edge, torch.where(side == 2, a, -edge))
-        )
-        y = torch.where(
-            side == 0, edge, torch.where(side == 1, a, torch.where(side == 2, -edge, a))
-        )
-        return torch.stack([x, y, z], dim=-1)
 
-    start = place(s_side, s_along, zlo + u["s_z"] * (zhi - zlo))
-    goal = place(g_side, g_along, zlo + u["g_z"] * (zhi - zlo))
-    near = (goal[:, :2] - start[:, :2]).norm(dim=-1) < cfg.min_goal_distance
-    goal = torch.where(near[:, None], place((s_side + 2) % 4, g_along, goal[:, 2]), goal)
-    return start, goal
+def world_obstacles(world: World) -> Obstacles:
+    """A world's obstacles as the test scenario's episodes see them when they start: every
+    pillar, the moving obstacles at their origins."""
+    return (torch.as_tensor(world.pillar_xy)[None], torch.as_tensor(world.pillar_half)[None],
+            torch.as_tensor(world.dyn_origin[:, :2])[None],
+            torch.as_tensor(world.dyn_width / 2)[None])  # fmt: skip
 
 
 def fixed_scenario(cfg: EnvConfig, env_seed: int = 1, episodes: int = 200):
     """The fixed test scenario (paper IV-B): starts and goals of ``episodes`` episodes, from seed.
 
-    The map is the world of ``env_seed`` at full density; episode ``k`` is episode ``k`` of the
-    env seeded ``env_seed``. Bit-identical on every machine (counter-based integer hashing).
+    The map is the world of ``env_seed`` at full density; episode ``k`` draws as episode ``k`` of
+    the env seeded ``env_seed``, among the map's sites, clear of the moving obstacles at their
+    origins (all episodes fly at once from the world's reset). Bit-identical on every machine
+    (counter-based integer hashing; the clearance test compares float32 distances with 2 m).
     """
+    cfg = cfg.replace(density=1.0)
+    world = generate_world(cfg, env_seed)
     seeds = torch.full((episodes,), int(env_seed), dtype=torch.int64)
-    return sample_episodes(cfg, seeds, torch.arange(episodes, dtype=torch.int64))
+    sites = torch.as_tensor(world.site_along)[None].expand(episodes, -1, -1)
+    obstacles = tuple(t.expand(episodes, *t.shape[1:]) for t in world_obstacles(world))
+    return sample_episodes(cfg, seeds, torch.arange(episodes, dtype=torch.int64), sites, obstacles)
 
 
 class SafeNavVectorEnv(VectorEnv):
     """A batch of UAVs navigating to goals among pillars and moving obstacles (a CMDP).
 
     ## Description
-    The paper's scenario (Fig. 2): a 50 m x 50 m area with up to 350 static pillars and 100
-    moving obstacles of 8 classes; a quadrotor with a 0.3 m collision sphere flies from a start to
-    a goal at the border using velocity commands. Each env flies in map ``i % num_worlds``; a map
-    is drawn at ``reset(seed=...)`` and kept, each episode draws a new start and goal in it.
+    The paper's scenario (Fig. 2): a 50 m x 50 m arena with up to 350 static pillars and 100
+    moving obstacles of 8 classes, spread up to its border, which is a wall; a quadrotor with a
+    0.3 m collision sphere flies from a start near one side to a goal near another, across the
+    clutter, using velocity commands. Each env flies in map ``i % num_worlds``; a map is drawn at
+    ``reset(seed=...)`` and kept, each episode draws a new start and goal in it.
 
     ## Action Space
     ``Box(-1, 1, (3,))``: the velocity command in the goal frame (x from start to goal, z up,
@@ -112,8 +175,9 @@ class SafeNavVectorEnv(VectorEnv):
     ## Observation Space
     ``Dict``: ``state`` (8,): unit vector to goal in the goal frame (3), horizontal distance to
     goal / 20 m (1), z distance to goal / 4 m (1), velocity in the goal frame / v_max (3).
-    ``lidar`` (4, 36): ``(4 - d) / 4`` for beam distances ``d`` ray-cast from the occupancy grid,
-    rows at elevations -10, 0, 10, 20 degrees, columns every 10 degrees from the goal direction.
+    ``lidar`` (4, 36): ``(4 - d) / 4`` for beam distances ``d`` ray-cast from the occupancy grid
+    (pillars and the border wall), rows at elevations -10, 0, 10, 20 degrees, columns every 10
+    degrees from the goal direction.
     ``dynamic`` (5, 10): the 5 nearest moving obstacles within 4 m (zeros beyond), each: unit
     relative position in the goal frame (3), horizontal distance / 4 (1), z distance / 4 (1),
     velocity in the goal frame / v_max (3), width class / 3 (1), 1 for floating cuboids (1).
@@ -125,20 +189,27 @@ class SafeNavVectorEnv(VectorEnv):
     step is dropped: with success ending the episode it would pay loitering.
 
     ## Cost
-    ``info["cost"]`` (paper Eq. 3): 1 at a step with a collision (pillar, moving obstacle,
-    ground below ``z_min``, ceiling above ``z_max``), else 0. Never folded into the reward.
+    ``info["cost"]`` (paper Eq. 3): 1 at a step with a collision (pillar, moving obstacle, the
+    border wall, ground below ``z_min``, ceiling above ``z_max``), else 0. Never folded into the
+    reward.
 
     ## Starting State
-    Hovering (zero velocity) at a start in the obstacle-free band along the border, altitude in
-    [0.5, 2.5] m; the goal lies on another side, at least ``min_goal_distance`` away.
+    Hovering (zero velocity) at one of the map's start/goal sites (``start_sites`` per side, 1 m
+    from the border, each the centre of a 2 m disc free of pillars and of moving obstacles when
+    the episode starts), altitude in [0.5, 2.5] m; the goal is a site on another side, at least
+    ``min_goal_distance`` away. Between them the map is as cluttered as anywhere, up to the
+    border: no obstacle-free corridor joins them except by chance of the draw.
 
     ## Episode End
     Terminated on success (within 0.5 m of the goal) or collision; truncated at the time limit
     (60 s = 600 steps). Autoreset ``SAME_STEP``: the returned observation of a finished env is the
     first of its next episode; ``info["final_obs"]`` holds the last one (``info["_final_obs"]``
     marks which envs finished) and ``info["episode"]`` its statistics (return, cost, length,
-    success / collision / timeout, time, path length, minimum clearance, mean speed, and what a
-    collision was with: ``hit_static``, ``hit_dynamic``, ``out_of_bounds``).
+    success / collision / timeout, time, path length, minimum clearance, mean speed,
+    ``detour_ratio`` (path length / start-goal distance), ``border_time`` and ``outside_time``
+    (shares of its steps within 2 m of the border and outside the map), and what a collision was
+    with: ``hit_static``, ``hit_dynamic``, ``out_of_bounds`` (altitude band or border wall),
+    ``hit_border``).
 
     ## Arguments
     ``num_envs``; ``preset`` (``"easy"``, ``"medium"``, ``"paper"``) or ``config``
@@ -147,7 +218,7 @@ class SafeNavVectorEnv(VectorEnv):
     ``autoreset_mode``; ``raycaster`` (``"grid"``, or ``"bruteforce"`` for the reference).
 
     >>> import gymnasium as gym, safenav
-    >>> envs = gym.make_vec("SafeNav-v0", num_envs=4, preset="easy")
+    >>> envs = gym.make_vec("SafeNav-v1", num_envs=4, preset="easy")
     >>> obs, info = envs.reset(seed=0)
     >>> obs["state"].shape, obs["lidar"].shape, obs["dynamic"].shape
     ((4, 8), (4, 4, 36), (4, 5, 10))
@@ -156,7 +227,11 @@ class SafeNavVectorEnv(VectorEnv):
     ['clearance', 'collision', 'cost']
 
     ## Version History
-    * v0: initial release.
+    * v1: closed arena: the border is a wall (a collision, seen by the range sensor), obstacles
+      fill the map up to it, starts and goals are drawn clear of obstacles; episode statistics
+      ``detour_ratio``, ``border_time``, ``outside_time``, ``hit_border``.
+    * v0: initial release (removed: nothing bounded x and y, and an obstacle-free 2 m ring along
+      the border joined every start to every goal).
     """
 
     metadata = {
@@ -206,6 +281,7 @@ class SafeNavVectorEnv(VectorEnv):
         wanted = min(config.num_worlds or 16, num_envs)
         self.num_worlds = max(d for d in range(1, wanted + 1) if num_envs % d == 0)
         self.grid = GridSpec.for_config(config)
+        self._walls = border_walls(self.grid, config.half)
         self.spec_lidar = RangeImageSpec.for_config(config)
 
         shapes = observation_shapes(config)
@@ -230,8 +306,10 @@ class SafeNavVectorEnv(VectorEnv):
         self.episode_counter = torch.zeros(n, dtype=torch.int64, device=dev)
         self.env_seed = torch.zeros(n, dtype=torch.int64, device=dev)
         self.world_idx = torch.arange(n, device=dev) % self.num_worlds
+        self.straight = torch.zeros(n, device=dev)  # start-goal distance of the episode
         self._stats = {k: torch.zeros(n, device=dev) for k in
-                       ("return", "cost", "path_length", "speed_sum")}  # fmt: skip
+                       ("return", "cost", "path_length", "speed_sum", "border_steps",
+                        "outside_steps")}  # fmt: skip
         self._min_clear = torch.full((n,), math.inf, device=dev)
         self.worlds: list[World] = []
         self._fresh_worlds = False
@@ -262,13 +340,14 @@ class SafeNavVectorEnv(VectorEnv):
         self.dyn_width = as_t(lambda wd: wd.dyn_width)
         self.dyn_is_cuboid = as_t(lambda wd: wd.dyn_is_cuboid, torch.bool)
         self.world_seed = torch.tensor([wd.seed for wd in worlds], dtype=torch.int64, device=dev)
+        self.site_along = as_t(lambda wd: wd.site_along)
         self._obstacle_id = torch.arange(cfg.num_dynamic, device=dev)
         self._apply_density()
         self._reset_obstacles()
 
     def _apply_density(self) -> None:
         self.n_static, self.n_dynamic = self.cfg.active_static, self.cfg.active_dynamic
-        maps = torch.stack([height_map(w, self.n_static) for w in self.worlds])
+        maps = torch.stack([height_map(w, self.n_static, self._walls) for w in self.worlds])
         self.heights = quantize_heights(maps).to(self.device).reshape(-1)
 
     def set_density(self, density: float) -> None:
@@ -285,7 +364,7 @@ class SafeNavVectorEnv(VectorEnv):
         cfg = self.cfg
         return sample_obstacle_goals(
             self.world_seed[:, None], self._obstacle_id[None, :], counter, self.dyn_origin,
-            self.dyn_is_cuboid, cfg.dyn_local_range, cfg.half - cfg.edge_margin - 0.5,
+            self.dyn_is_cuboid, cfg.dyn_local_range, cfg.mover_limit,
             CUBOID_Z_RANGE, CYLINDER_HEIGHT / 2,
         )  # fmt: skip
 
@@ -321,9 +400,19 @@ class SafeNavVectorEnv(VectorEnv):
         )
 
     # ------------------------------------------------------------------ episodes
+    def _start_obstacles(self, ids: torch.Tensor) -> Obstacles:
+        """What the starts and goals of envs ``ids`` keep clear of: every pillar of their map (at
+        full density, so episodes do not depend on the curriculum) and the active moving
+        obstacles where they are now."""
+        w, nd = self.world_idx[ids], self.n_dynamic
+        return (self.pillar_xy[w], self.pillar_half[w], self.dyn_pos[w, :nd, :2],
+                self.dyn_width[w, :nd] / 2)  # fmt: skip
+
     def _start_episodes(self, ids: torch.Tensor, starts=None, goals=None) -> None:
         if starts is None:
-            starts, goals = sample_episodes(self.cfg, self.env_seed[ids], self.episode_counter[ids])
+            starts, goals = sample_episodes(self.cfg, self.env_seed[ids], self.episode_counter[ids],
+                                            self.site_along[self.world_idx[ids]],
+                                            self._start_obstacles(ids))  # fmt: skip
         starts, goals = starts.to(self.device), goals.to(self.device)
         self.start[ids], self.goal[ids], self.pos[ids] = starts, goals, starts
         self.vel[ids] = 0.0
@@ -334,6 +423,7 @@ class SafeNavVectorEnv(VectorEnv):
         self.band[ids] = torch.stack([torch.minimum(starts[:, 2], goals[:, 2]) - 0.2,
                                       torch.maximum(starts[:, 2], goals[:, 2]) + 0.2], -1)  # fmt: skip
         self.steps[ids] = 0
+        self.straight[ids] = (goals - starts).norm(dim=-1)
         for v in self._stats.values():
             v[ids] = 0.0
         self._min_clear[ids] = math.inf
@@ -421,6 +511,9 @@ class SafeNavVectorEnv(VectorEnv):
         else:
             lo = torch.cat([p_xy - p_half[..., None], torch.zeros_like(p_half)[..., None]], -1)
             hi = torch.cat([p_xy + p_half[..., None], p_h[..., None]], -1)
+            walls_lo, walls_hi = self._wall_boxes()
+            lo = torch.cat([lo, walls_lo.expand(*lo.shape[:-2], -1, -1)], -2)
+            hi = torch.cat([hi, walls_hi.expand(*hi.shape[:-2], -1, -1)], -2)
             ranges = raycast_boxes_bruteforce(flat(lo.expand(*pos.shape[:-1], -1, -1)),
                                               flat(hi.expand(*pos.shape[:-1], -1, -1)),
                                               pos_f, yaw_f, self.spec_lidar)  # fmt: skip
@@ -462,6 +555,16 @@ class SafeNavVectorEnv(VectorEnv):
                "tracked_clear": tracked_clear, "dist": dist, "unit_goal": unit_goal}  # fmt: skip
         return obs, aux
 
+    def _wall_boxes(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The border wall as four boxes (lower and upper corners, ``(4, 3)`` each) for the
+        brute-force reference ray caster: slabs a beam's length thick outside each side."""
+        h, t = self.cfg.half, self.cfg.lidar_range + 1.0
+        lo = [(-h - t, h, 0.0), (h, -h - t, 0.0), (-h - t, -h - t, 0.0), (-h - t, -h - t, 0.0)]
+        hi = [(h + t, h + t, WALL_HEIGHT), (h + t, h + t, WALL_HEIGHT), (h + t, -h, WALL_HEIGHT),
+              (-h, h + t, WALL_HEIGHT)]  # fmt: skip
+        as_t = lambda v: torch.tensor(v, dtype=torch.float32, device=self.device)  # noqa: E731
+        return as_t(lo), as_t(hi)
+
     # ------------------------------------------------------------------ stepping
     def _check_actions(self, actions) -> torch.Tensor:
         a = torch.as_tensor(actions, dtype=torch.float32, device=self.device)
@@ -485,10 +588,15 @@ class SafeNavVectorEnv(VectorEnv):
         obs, aux = self._sense()
 
         z = self.pos[:, 2]
-        clearance = torch.minimum(aux["static_clear"], aux["dyn_clear"])
+        border_clear = border_clearance(self.pos, cfg.half)
+        clearance = torch.minimum(
+            torch.minimum(aux["static_clear"], aux["dyn_clear"]), border_clear
+        )
         hit_static = aux["static_clear"] <= cfg.uav_radius
         hit_dynamic = aux["dyn_clear"] <= cfg.uav_radius
-        out_of_bounds = (z < cfg.z_min) | (z > cfg.z_max)
+        # The arena is closed: touching the border wall is a collision like leaving the altitude band.
+        hit_border = border_clear <= cfg.uav_radius
+        out_of_bounds = (z < cfg.z_min) | (z > cfg.z_max) | hit_border
         collision = hit_static | hit_dynamic | out_of_bounds
         success = (aux["dist"] < cfg.goal_tolerance) & ~collision
         # Reward (NavRL's terms; see class docstring).
@@ -512,6 +620,8 @@ class SafeNavVectorEnv(VectorEnv):
         st["cost"] += cost
         st["path_length"] += (self.pos - old).norm(dim=-1)
         st["speed_sum"] += self.vel.norm(dim=-1)
+        st["border_steps"] += (border_clear <= BORDER_BAND).float()
+        st["outside_steps"] += (border_clear < 0).float()
         self._min_clear = torch.minimum(self._min_clear, clearance - cfg.uav_radius)
         self._last_ranges = aux["ranges"]
         if self.render_mode is not None:
@@ -526,10 +636,14 @@ class SafeNavVectorEnv(VectorEnv):
                 "success": success.clone(), "collision": collision.clone(), "timeout": truncated.clone(),
                 "time": steps_f * cfg.dt, "path_length": st["path_length"].clone(),
                 "min_clearance": self._min_clear.clone(), "mean_speed": st["speed_sum"] / steps_f,
+                # How it flew: path length over the straight start-goal line, and the shares of
+                # its time within BORDER_BAND of the border and outside the map (0: closed arena).
+                "detour_ratio": st["path_length"] / self.straight.clamp(min=1e-6),
+                "border_time": st["border_steps"] / steps_f, "outside_time": st["outside_steps"] / steps_f,
                 # What the collision was with (an episode ends at its first one; both obstacle
                 # kinds can be touched in the same step).
                 "hit_static": hit_static.clone(), "hit_dynamic": hit_dynamic.clone(),
-                "out_of_bounds": out_of_bounds.clone(),
+                "out_of_bounds": out_of_bounds.clone(), "hit_border": hit_border.clone(),
             }  # fmt: skip
             info["_episode"] = done.clone()
             if self.autoreset_mode == AutoresetMode.SAME_STEP:
@@ -577,7 +691,7 @@ class SafeNavEnv(Env):
     """Single-env view of :class:`SafeNavVectorEnv` (see it for the full description).
 
     >>> import gymnasium as gym, safenav
-    >>> env = gym.make("SafeNav-v0", preset="easy")
+    >>> env = gym.make("SafeNav-v1", preset="easy")
     >>> obs, info = env.reset(seed=1)
     >>> {k: v.shape for k, v in obs.items()}
     {'state': (8,), 'lidar': (4, 36), 'dynamic': (5, 10)}

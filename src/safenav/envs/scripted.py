@@ -2,7 +2,9 @@
 
 :func:`go_to_goal` flies straight at the goal; :func:`potential_field` adds repulsion from the
 range-image beams and the tracked moving obstacles (a classic artificial-potential-field
-controller, the kind of hand-written planner learned policies are compared against).
+controller, the kind of hand-written planner learned policies are compared against);
+:class:`BorderFollower` flies around the field along the border (the probe that shows no path
+around the obstacle field exists).
 """
 
 from __future__ import annotations
@@ -57,4 +59,74 @@ def potential_field(
     return cmd.clamp(-1.0, 1.0)
 
 
-__all__ = ["go_to_goal", "potential_field"]
+class BorderFollower:
+    """The loophole probe: fly to the nearest border, then along it toward the goal (the shorter
+    way round), at ``edge_margin / 2`` from the wall, then straight to the goal once within
+    ``final_approach`` m. It reads the env's state (positions), not observations alone, so it is
+    called as ``policy(obs, env)`` (``needs_env``).
+
+    In SafeNav-v0's open arena an obstacle-free ring along the border made this a winning
+    strategy; in v1 the band is as cluttered as the interior and the border is a wall, so it must
+    fail: it never avoids anything.
+    """
+
+    needs_env = True
+
+    def __init__(self, speed: float = 1.0, final_approach: float = 2.5) -> None:
+        self.speed = speed
+        self.final_approach = final_approach
+
+    @staticmethod
+    def _perimeter(xy: torch.Tensor, ring: float) -> torch.Tensor:
+        """Counter-clockwise arc length along the square ring ``|x|, |y| = ring`` of the ring
+        point nearest ``xy`` (0 at the south-east corner; east side first)."""
+        x, y = xy[..., 0].clamp(-ring, ring), xy[..., 1].clamp(-ring, ring)
+        east, north, west = x >= y.abs(), y > x.abs(), -x >= y.abs()
+        return torch.where(east, y + ring, torch.where(north, 3 * ring - x,
+                           torch.where(west, 5 * ring - y, 7 * ring + x)))  # fmt: skip
+
+    def __call__(self, obs: dict[str, torch.Tensor], env) -> torch.Tensor:
+        from safenav.envs.dynamics import world_to_goal_frame
+
+        cfg = env.cfg
+        ring = cfg.half - cfg.edge_margin / 2
+        pos, goal = env.pos, env.goal
+        xy = pos[:, :2]
+        # Nearest ring point (the border line at ring distance), and the tangent there.
+        inward = xy.abs().amax(-1) < ring
+        ax = xy[:, 0].abs() >= xy[:, 1].abs()  # nearest to an east/west side
+        target = torch.where(ax[:, None], torch.stack([torch.sign(xy[:, 0]) * ring, xy[:, 1].clamp(-ring, ring)], -1),
+                             torch.stack([xy[:, 0].clamp(-ring, ring), torch.sign(xy[:, 1]) * ring], -1))  # fmt: skip
+        perim = 8 * ring
+        gap = (self._perimeter(goal[:, :2], ring) - self._perimeter(xy, ring)) % perim
+        sense = torch.where(gap < perim / 2, 1.0, -1.0)  # +1: counter-clockwise
+        # Counter-clockwise tangent of the side the UAV is on (east: +y, north: -x, ...).
+        east, north, west = (
+            xy[:, 0] >= xy[:, 1].abs(),
+            xy[:, 1] > xy[:, 0].abs(),
+            -xy[:, 0] >= xy[:, 1].abs(),
+        )
+        zero = torch.zeros_like(xy[:, 0])
+        tangent = torch.where(east[:, None], torch.stack([zero, zero + 1], -1),
+                  torch.where(north[:, None], torch.stack([zero - 1, zero], -1),
+                  torch.where(west[:, None], torch.stack([zero, zero - 1], -1),
+                              torch.stack([zero + 1, zero], -1))))  # fmt: skip
+        along = tangent * sense[:, None] * (1.0 - 0.5 * inward.float())[:, None]
+        # Slow down near corners: the velocity tracker's lag would carry it into the wall.
+        corner = (xy.abs() > ring - 2.5).all(-1)
+        along = along * torch.where(corner, 0.35, 1.0)[:, None]
+        v_xy = along + (target - xy) * 1.5  # follow the side, pulled onto the ring
+        to_goal = goal - pos
+        v = torch.cat([v_xy, to_goal[:, 2:3].clamp(-1, 1)], -1)
+        close = to_goal[:, :2].norm(dim=-1) < self.final_approach
+        v = torch.where(close[:, None], to_goal, v)
+        v = (
+            v
+            / v.norm(dim=-1, keepdim=True).clamp(min=1e-6)
+            * torch.minimum(v.norm(dim=-1, keepdim=True), torch.tensor(1.0))
+        )
+        cmd = world_to_goal_frame(v * cfg.v_max * self.speed, env.cos_yaw, env.sin_yaw) / cfg.v_max
+        return cmd.clamp(-1.0, 1.0)
+
+
+__all__ = ["BorderFollower", "go_to_goal", "potential_field"]

@@ -3,6 +3,8 @@
 A world is drawn from one integer seed with NumPy, once per ``reset(seed=...)``; stepping never
 touches it. Obstacles are generated at full count in random order, so the density curriculum
 activates a prefix (``k`` first pillars) and a lower density is always a subset of a higher one.
+Obstacles fill the whole map up to its border, which is a wall (:func:`border_walls`): the arena
+is closed, and no obstacle-free ring joins starts to goals (SafeNav-v1).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ DYN_WIDTHS = (0.25, 0.5, 0.75, 1.0)
 CUBOID_HEIGHT = 1.0
 CYLINDER_HEIGHT = 5.0
 CUBOID_Z_RANGE = (0.5, 4.5)  # centre altitude of a floating cuboid (spans [0, 5] m)
+WALL_HEIGHT = 6.0  # the border wall in the height map: above every beam the UAV can cast
 
 
 @dataclass
@@ -52,6 +55,7 @@ class World:
     dyn_width: np.ndarray  # (D,)
     dyn_is_cuboid: np.ndarray  # (D,) bool
     pillar_rank_grid: np.ndarray  # (G, G) int32: index of the pillar covering a cell, -1 free
+    site_along: np.ndarray  # (4, S) start/goal sites: position along sides N, E, S, W (m)
 
 
 def _sample_pillar_heights(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -62,11 +66,38 @@ def _sample_pillar_heights(rng: np.random.Generator, n: int) -> np.ndarray:
     return rng.uniform(lows, highs)
 
 
-def _place_pillars(rng: np.random.Generator, cfg: EnvConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Non-overlapping square pillars inside the interior, by batched rejection sampling."""
+def side_points(cfg: EnvConfig, side, along, z=None) -> np.ndarray:
+    """Points ``edge_margin / 2`` from side ``side`` (0: north, 1: east, 2: south, 3: west) at
+    ``along`` (x on north/south, y on east/west); NumPy or torch, broadcast; ``z`` appended."""
+    lib = np if isinstance(along, np.ndarray) else torch
+    edge = cfg.half - cfg.edge_margin / 2
+    sign = lib.where((side == 0) | (side == 1), edge, -edge)
+    horizontal = (side == 0) | (side == 2)  # north / south: along is x
+    x, y = lib.where(horizontal, along, sign), lib.where(horizontal, sign, along)
+    return lib.stack([x, y] if z is None else [x, y, z], -1)
+
+
+def _draw_sites(rng: np.random.Generator, cfg: EnvConfig) -> np.ndarray:
+    """``start_sites`` positions per side, one in each equal stretch (away from its ends), so
+    that sites spread along the side and keep their clear discs apart."""
+    s, span = cfg.start_sites, 2 * (cfg.half - cfg.edge_margin)
+    offsets = rng.uniform(0.15, 0.85, size=(4, s))
+    return -span / 2 + (np.arange(s) + offsets) * (span / s)
+
+
+def _site_xy(cfg: EnvConfig, site_along: np.ndarray) -> np.ndarray:
+    sides = np.repeat(np.arange(4), site_along.shape[1])
+    return side_points(cfg, sides, site_along.reshape(-1))
+
+
+def _place_pillars(
+    rng: np.random.Generator, cfg: EnvConfig, sites: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Non-overlapping square pillars anywhere inside the map but the sites' clear discs, by
+    rejection sampling."""
     n = cfg.num_static
     half_sides = rng.choice(np.asarray(cfg.pillar_sides, dtype=np.float64), size=n) / 2.0
-    limit = cfg.half - cfg.edge_margin
+    limit = cfg.half
     xy = np.zeros((n, 2))
     placed = 0
     tries = 0
@@ -75,7 +106,7 @@ def _place_pillars(rng: np.random.Generator, cfg: EnvConfig) -> tuple[np.ndarray
         if tries > 200 * n + 1000:
             raise ValueError(
                 f"EnvConfig.num_static={n} is invalid: could place only {placed} non-overlapping "
-                f"pillars in the {2 * limit:.1f} m interior"
+                f"pillars in the {2 * limit:.1f} m map"
             )
         hs = half_sides[placed]
         cand = rng.uniform(-limit + hs, limit - hs, size=2)
@@ -83,6 +114,9 @@ def _place_pillars(rng: np.random.Generator, cfg: EnvConfig) -> tuple[np.ndarray
             gap = np.abs(xy[:placed] - cand) - (half_sides[:placed, None] + hs)
             if np.any(np.all(gap < 0.0, axis=1)):  # boxes overlap iff they overlap on both axes
                 continue
+        near = (np.abs(sites - cand) - hs).clip(min=0)
+        if np.any((near * near).sum(-1) < cfg.start_clearance**2):
+            continue
         xy[placed] = cand
         placed += 1
     return xy, half_sides
@@ -105,16 +139,24 @@ def _rasterize(grid: GridSpec, xy: np.ndarray, half: np.ndarray) -> np.ndarray:
 def generate_world(cfg: EnvConfig, seed: int) -> World:
     """Draw a full-density world from ``seed`` (deterministic on every machine)."""
     rng = np.random.default_rng(np.random.SeedSequence([int(seed) & 0xFFFFFFFF, 0x5AFE]))
-    xy, half = _place_pillars(rng, cfg)
+    site_along = _draw_sites(rng, cfg)
+    sites = _site_xy(cfg, site_along)
+    xy, half = _place_pillars(rng, cfg, sites)
     heights = _sample_pillar_heights(rng, cfg.num_static)
 
     d = cfg.num_dynamic
     classes = rng.permutation(np.arange(d) % (2 * len(DYN_WIDTHS)))
     widths = np.asarray(DYN_WIDTHS)[classes % len(DYN_WIDTHS)]
     is_cuboid = classes < len(DYN_WIDTHS)
-    limit = cfg.half - cfg.edge_margin - 0.5  # obstacle surfaces stay out of the edge band
+    limit = cfg.mover_limit
     origin = np.zeros((d, 3))
     origin[:, :2] = rng.uniform(-limit, limit, size=(d, 2))
+    for _ in range(1000):  # redraw origins inside a site's clear disc
+        gap = np.linalg.norm(origin[:, None, :2] - sites[None], axis=-1) - widths[:, None] / 2
+        inside = (gap < cfg.start_clearance).any(-1)
+        if not inside.any():
+            break
+        origin[inside, :2] = rng.uniform(-limit, limit, size=(int(inside.sum()), 2))
     origin[:, 2] = np.where(is_cuboid, rng.uniform(*CUBOID_Z_RANGE, size=d), CYLINDER_HEIGHT / 2.0)
     grid = GridSpec.for_config(cfg)
     return World(
@@ -126,6 +168,7 @@ def generate_world(cfg: EnvConfig, seed: int) -> World:
         dyn_width=widths.astype(np.float32),
         dyn_is_cuboid=is_cuboid,
         pillar_rank_grid=_rasterize(grid, xy, half),
+        site_along=site_along.astype(np.float32),
     )
 
 
@@ -137,7 +180,8 @@ def world_from_obstacles(
 ) -> World:
     """A hand-made world: ``pillars`` as ``(x, y, side, height)``, moving obstacles as
     ``(x, y, z, width, is_cuboid)`` (their origins). For tests and custom maps; obstacles beyond
-    ``cfg.num_static`` / ``cfg.num_dynamic`` are an error."""
+    ``cfg.num_static`` / ``cfg.num_dynamic`` are an error. Start/goal sites are evenly spaced
+    along each side (obstacles placed on them are the caller's choice)."""
     if len(pillars) > cfg.num_static or len(movers) > cfg.num_dynamic:
         raise ValueError(f"world_from_obstacles: {len(pillars)} pillars / {len(movers)} movers exceed "
                          f"num_static={cfg.num_static} / num_dynamic={cfg.num_dynamic}")  # fmt: skip
@@ -151,21 +195,44 @@ def world_from_obstacles(
     origin = np.concatenate([m[:, :3], np.full((cfg.num_dynamic - len(m), 3), far)])
     width = np.concatenate([m[:, 3], np.full(cfg.num_dynamic - len(m), 0.25)])
     cuboid = np.concatenate([m[:, 4] > 0.5, np.ones(cfg.num_dynamic - len(m), dtype=bool)])
+    span = 2 * (cfg.half - cfg.edge_margin)
+    even = -span / 2 + (np.arange(cfg.start_sites) + 0.5) * (span / cfg.start_sites)
     grid = GridSpec.for_config(cfg)
     return World(
         seed=seed, pillar_xy=xy.astype(np.float32), pillar_half=half.astype(np.float32),
         pillar_height=heights.astype(np.float32), dyn_origin=origin.astype(np.float32),
         dyn_width=width.astype(np.float32), dyn_is_cuboid=cuboid,
         pillar_rank_grid=_rasterize(grid, p[:, :2], p[:, 2] / 2),
+        site_along=np.tile(even, (4, 1)).astype(np.float32),
     )  # fmt: skip
 
 
-def height_map(world: World, active_pillars: int) -> torch.Tensor:
-    """The 2.5-D occupancy grid: top of the occupied column per cell (0 = free), float32."""
+def border_walls(grid: GridSpec, half: float) -> torch.Tensor:
+    """``(G, G)`` bool: the cells outside the ``[-half, half]^2`` map (by their centres, the
+    rasterisation rule of pillars), i.e. the border wall that the range sensor sees."""
+    centres = grid.origin + (torch.arange(grid.size, dtype=torch.float64) + 0.5) * grid.resolution
+    outside = centres.abs() > half
+    return outside[:, None] | outside[None, :]
+
+
+def height_map(
+    world: World, active_pillars: int, walls: torch.Tensor | None = None
+) -> torch.Tensor:
+    """The 2.5-D occupancy grid: top of the occupied column per cell (0 = free), float32;
+    ``walls`` (from :func:`border_walls`) are ``WALL_HEIGHT`` tall."""
     rank = torch.from_numpy(world.pillar_rank_grid).long()
     heights = torch.cat([torch.from_numpy(world.pillar_height), torch.zeros(1)])
     active = (rank >= 0) & (rank < active_pillars)
-    return torch.where(active, heights[rank.clamp(min=0)], torch.zeros(()))
+    out = torch.where(active, heights[rank.clamp(min=0)], torch.zeros(()))
+    if walls is not None:
+        out = torch.where(walls, torch.tensor(WALL_HEIGHT), out)
+    return out
 
 
-__all__ = ["GridSpec", "World", "generate_world", "height_map", "world_from_obstacles"]
+def border_clearance(pos: torch.Tensor, half: float) -> torch.Tensor:
+    """Horizontal distance from each point ``(..., >=2)`` to the border wall (negative outside)."""
+    return half - pos[..., :2].abs().amax(-1)
+
+
+__all__ = ["WALL_HEIGHT", "GridSpec", "World", "border_clearance", "border_walls",
+           "generate_world", "height_map", "side_points", "world_from_obstacles"]  # fmt: skip

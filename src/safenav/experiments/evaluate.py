@@ -20,6 +20,8 @@ from safenav.envs.config import EnvConfig, make_config
 from safenav.envs.nav import SafeNavVectorEnv, fixed_scenario
 
 Policy = Callable[[dict[str, torch.Tensor]], torch.Tensor]
+"""Observations -> actions; a policy with ``needs_env = True`` (a privileged scripted probe) is
+called as ``policy(obs, env)``."""
 Shield = Callable[[SafeNavVectorEnv, dict[str, torch.Tensor], torch.Tensor], torch.Tensor]
 
 
@@ -53,8 +55,12 @@ def evaluate(
     (m, the closest any episode came to an obstacle surface, negative inside one);
     ``mean_min_clearance`` (m, per-episode minimum averaged); ``mean_speed`` (m/s);
     ``mean_return``, ``mean_cost``; ``collision_static_rate``, ``collision_dynamic_rate``,
-    ``collision_bounds_rate`` (what the collisions were with); ``episodes``; and ``per_episode``
-    lists.
+    ``collision_bounds_rate`` (what the collisions were with; bounds = the altitude band or the
+    border wall), ``collision_border_rate`` (the wall alone); how the policy flies:
+    ``detour_ratio`` (path length / straight start-goal distance, mean over successful episodes),
+    ``border_time_fraction`` (share of all flight time within 2 m of the border),
+    ``outside_time_fraction`` (share outside the map: 0 in the closed arena, kept as a guard);
+    ``episodes``; and ``per_episode`` lists.
     """
     cfg, starts, goals = fixed_test_scenario(config, env_seed, episodes)
     env = SafeNavVectorEnv(episodes, config=cfg, device=device, output="torch",
@@ -62,12 +68,14 @@ def evaluate(
     obs, _ = env.reset(seed=env_seed, options={"starts": starts, "goals": goals})
     done = torch.zeros(episodes, dtype=torch.bool, device=env.device)
     keys = ("success", "collision", "timeout", "time", "path_length", "min_clearance",
-            "mean_speed", "return", "cost", "hit_static", "hit_dynamic", "out_of_bounds")  # fmt: skip
+            "mean_speed", "return", "cost", "hit_static", "hit_dynamic", "out_of_bounds",
+            "hit_border", "detour_ratio", "border_time", "outside_time")  # fmt: skip
+    act = (lambda o: policy(o, env)) if getattr(policy, "needs_env", False) else policy
     record = {k: torch.zeros(episodes, device=env.device) for k in keys}
     with Progress(disable=not progress, transient=True) as bar:
         task = bar.add_task(f"eval {episodes} episodes", total=cfg.max_episode_steps)
         for _ in range(cfg.max_episode_steps):
-            action = policy(obs).to(env.device).clamp(-1, 1)
+            action = act(obs).to(env.device).clamp(-1, 1)
             if shield is not None:
                 action = shield(env, obs, action)
             action = torch.where(done[:, None], torch.zeros_like(action), action)
@@ -82,6 +90,7 @@ def evaluate(
                 break
     rec = {k: v.cpu().numpy() for k, v in record.items()}
     success = rec["success"] > 0.5
+    steps = rec["time"]  # flight time per episode: weights of the time fractions
     return {
         "success_rate": float(success.mean()),
         "collision_rate": float((rec["collision"] > 0.5).mean()),
@@ -98,6 +107,10 @@ def evaluate(
         "collision_static_rate": float((rec["hit_static"] > 0.5).mean()),
         "collision_dynamic_rate": float((rec["hit_dynamic"] > 0.5).mean()),
         "collision_bounds_rate": float((rec["out_of_bounds"] > 0.5).mean()),
+        "collision_border_rate": float((rec["hit_border"] > 0.5).mean()),
+        "detour_ratio": float(rec["detour_ratio"][success].mean()) if success.any() else math.nan,
+        "border_time_fraction": float((rec["border_time"] * steps).sum() / steps.sum()),
+        "outside_time_fraction": float((rec["outside_time"] * steps).sum() / steps.sum()),
         "episodes": int(episodes),
         "env_seed": int(env_seed),
         "per_episode": {k: np.round(v, 4).tolist() for k, v in rec.items()},

@@ -105,7 +105,7 @@ class Trial:
     def train_command(self, resume: bool, overwrite: bool = False) -> list[str]:
         """``python -m safenav train ...`` for this trial."""
         cmd = [self.python or sys.executable, "-m", "safenav", "train", "--algo", self.algo,
-               "--env", "SafeNav-v0", "--seed", str(self.seed), "--total-steps",
+               "--env", "SafeNav-v1", "--seed", str(self.seed), "--total-steps",
                str(self.total_steps), "--run-dir", str(self.run_dir),
                "--device", self.device]  # fmt: skip
         if self.preset is not None:
