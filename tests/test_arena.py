@@ -180,3 +180,18 @@ def test_render_draws_the_wall_and_the_outcome():
     assert tuple(img[HEADER + 300, 300]) != WALL
     plain = render_topdown(env, 0)
     assert not np.array_equal(img[:HEADER], plain[:HEADER])  # the outcome label
+
+
+def test_the_flight_demos_gif_draws_the_wall(tmp_path):
+    import imageio.v3 as iio
+
+    from safenav.deploy.demo import render_flight_gif
+    from safenav.envs.render import HEADER
+
+    cfg = make_config("paper")
+    snaps = [{"t": 0.2 * i, "pos": [-24.0 + 0.3 * i, -9.2, 1.3], "dyn_pos": [], "collisions": 0}
+             for i in range(3)]  # fmt: skip
+    render_flight_gif(tmp_path / "f.gif", cfg, 1, snaps, [-24.0, -9.2, 1.3], [19.0, 24.0, 1.2])
+    frames = iio.imread(tmp_path / "f.gif", index=None)
+    assert frames.shape[0] == 3
+    assert tuple(frames[-1][HEADER + 1, 280]) == WALL

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from PIL import Image, ImageDraw
+from PIL import ImageDraw
 
 from safenav.envs.config import EnvConfig, make_config
 from safenav.envs.nav import fixed_scenario
@@ -143,6 +143,7 @@ def run_demo(
         "collisions": int(truth.get("collisions", -1)),
         "collisions_static": int(truth.get("collisions_static", -1)),
         "collisions_dynamic": int(truth.get("collisions_dynamic", -1)),
+        "collisions_border": int(truth.get("collisions_border", -1)),
         "flight_time_s": round(flight.flight_time_s, 2),
         "min_clearance_m": round(float(truth.get("min_clearance", math.nan)), 3),
         "scenario": {"preset": preset, "world_seed": world_seed, "episode": episode,
@@ -159,32 +160,27 @@ def run_demo(
 
 def render_flight_gif(path: Path, cfg: EnvConfig, world_seed: int, snapshots: list[dict], start, goal,
                       size: int = 560, fps: int = 5) -> None:  # fmt: skip
-    """Top-down GIF of a flight from the simulator's truth snapshots (pillars, moving obstacles,
-    the UAV's trail, start and goal), in the style of the env's renderer."""
+    """Top-down GIF of a flight from the simulator's truth snapshots (the arena's wall, pillars,
+    moving obstacles, the UAV's trail, start and goal), in the style of the env's renderer, with
+    its legend and scale bar."""
     import imageio.v3 as iio
 
     from safenav.envs.render import (
-        BG,
-        CUBOID,
-        CYLINDER,
-        GOAL,
         PILLAR,
         PILLAR_LOW,
         START,
         TRAIL,
         UAV,
+        decorate,
+        draw_goal,
+        draw_mover,
+        map_canvas,
     )
 
     world = generate_world(cfg, world_seed)
     ns, nd = cfg.active_static, cfg.active_dynamic
-    half = cfg.half
-    scale = size / cfg.map_size
-
-    def px(x: float, y: float) -> tuple[float, float]:
-        return ((x + half) * scale, (half - y) * scale)
-
+    base, px, scale = map_canvas(cfg.map_size, size)
     alt = float(np.median([s["pos"][2] for s in snapshots]))
-    base = Image.new("RGB", (size, size), BG)
     draw = ImageDraw.Draw(base)
     for (x, y), h, top in zip(
         world.pillar_xy[:ns], world.pillar_half[:ns], world.pillar_height[:ns], strict=True
@@ -194,21 +190,14 @@ def render_flight_gif(path: Path, cfg: EnvConfig, world_seed: int, snapshots: li
         draw.rectangle([x0, y0, x1, y1], fill=PILLAR if top > alt else PILLAR_LOW)
     sx, sy = px(start[0], start[1])
     draw.rectangle([sx - 4, sy - 4, sx + 4, sy + 4], outline=START, width=2)
-    gx, gy = px(goal[0], goal[1])
-    gr = max(cfg.goal_tolerance * scale, 4)
-    draw.ellipse([gx - gr, gy - gr, gx + gr, gy + gr], outline=GOAL, width=3)
+    draw_goal(draw, *px(goal[0], goal[1]), max(cfg.goal_tolerance * scale, 4))
     frames, trail = [], []
     for snap in snapshots:
         img = base.copy()
         d = ImageDraw.Draw(img)
         for (x, y), wd, cub in zip(snap.get("dyn_pos", [])[:nd], world.dyn_width[:nd], world.dyn_is_cuboid[:nd],
                                    strict=False):  # fmt: skip
-            r = wd / 2 * scale
-            cx, cy = px(x, y)
-            if cub:
-                d.rectangle([cx - r, cy - r, cx + r, cy + r], outline=CUBOID, fill=(170, 200, 245))
-            else:
-                d.ellipse([cx - r, cy - r, cx + r, cy + r], fill=CYLINDER)
+            draw_mover(d, *px(x, y), wd / 2 * scale, bool(cub))
         p = snap["pos"]
         trail.append(px(p[0], p[1]))
         if len(trail) > 1:
@@ -216,10 +205,9 @@ def render_flight_gif(path: Path, cfg: EnvConfig, world_seed: int, snapshots: li
         ux, uy = px(p[0], p[1])
         ur = max(cfg.uav_radius * scale, 3)
         d.ellipse([ux - ur, uy - ur, ux + ur, uy + ur], fill=UAV)
-        d.rectangle([0, 0, size, 18], fill=(255, 255, 255))
-        d.text((6, 3), f"t={snap['t'] - snapshots[0]['t']:5.1f}s  z={p[2]:.2f}m  {snap.get('mode', '')}  "
-                       f"collisions={snap.get('collisions', 0)}", fill=(0, 0, 0))  # fmt: skip
-        frames.append(np.asarray(img))
+        status = (f"t={snap['t'] - snapshots[0]['t']:5.1f}s  z={p[2]:.2f}m  {snap.get('mode', '')}  "
+                  f"collisions={snap.get('collisions', 0)}")  # fmt: skip
+        frames.append(decorate(img, status, scale))
     path.parent.mkdir(parents=True, exist_ok=True)
     iio.imwrite(path, np.stack(frames), duration=1000 / fps, loop=0)
 
