@@ -115,9 +115,11 @@ def test_test_scenario_starts_and_goals_are_clear_on_different_sides():
         )
         edge = border_clearance(points, cfg.half)
         assert torch.allclose(edge, torch.full_like(edge, cfg.edge_margin / 2))
-    side = lambda p: torch.where(
-        p[:, 0].abs() > p[:, 1].abs(), 1 + 2 * (p[:, 0] < 0), 2 * (p[:, 1] < 0)
-    )  # noqa: E731
+
+    def side(p):  # 0 north, 1 east, 2 south, 3 west
+        horizontal = p[:, 0].abs() > p[:, 1].abs()
+        return torch.where(horizontal, 1 + 2 * (p[:, 0] < 0), 2 * (p[:, 1] < 0))
+
     assert bool((side(starts) != side(goals)).all())
     assert float((goals - starts)[:, :2].norm(dim=-1).min()) >= cfg.min_goal_distance
 
