@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import difflib
 import os
+import re
 import sys
 from typing import Annotated
 
@@ -90,7 +91,7 @@ def _run(args: list[str]) -> None:
     from safenav import commands  # noqa: F401  (registers the verbs on ``app``)
     from safenav.common.checks import registry
 
-    with _parse_errors_as_safenav_errors():
+    with _parse_errors_as_safenav_errors(args[0] if args[0] in VERBS else None):
         app.cli(args=args, prog="safenav", description="Safe UAV navigation with constrained RL.",
                 registry=registry())  # fmt: skip
 
@@ -147,7 +148,7 @@ def short_help() -> str:
     return "\n".join(lines)
 
 
-def _parse_errors_as_safenav_errors() -> contextlib.AbstractContextManager:
+def _parse_errors_as_safenav_errors(verb: str | None = None) -> contextlib.AbstractContextManager:
     """Make every tyro parse error (unknown option, missing or malformed value, bad choice, a
     nested config's ``ValueError``) a one-line :class:`SafenavError`, not a boxed message. Uses
     tyro's parse-error hook, which tyro marks private; with a tyro that lacks it the boxed
@@ -157,7 +158,7 @@ def _parse_errors_as_safenav_errors() -> contextlib.AbstractContextManager:
         return contextlib.nullcontext()
 
     def hook(event: object) -> None:
-        raise SafenavError(parse_error_message(event))
+        raise SafenavError(parse_error_message(event, verb))
 
     return on_parse_error(hook)
 
@@ -175,12 +176,17 @@ def _help_of(prog: str) -> str:
     return f"see {prog} --help"
 
 
-def parse_error_message(event: object) -> str:
+def parse_error_message(event: object, verb: str | None = None) -> str:
     """One line for a tyro ``ParseErrorEvent`` (matched by class name: the module is private)."""
     kind = type(event).__name__
-    prog = str(getattr(event, "prog", "safenav"))
+    prog = f"safenav {verb}" if verb else str(getattr(event, "prog", "safenav"))
     if kind == "InstantiationFailure":
-        message = str(getattr(event, "message", event)).replace("[bold]", "").replace("[/bold]", "")
+        message = re.sub(r"\[/?bold\]", "", str(getattr(event, "message", event)))
+        if "Got errors:" in message:  # an optional value ({None}|X): keep X's complaint
+            reasons = [r.strip() for r in message.split("Got errors:", 1)[1].split("\n- ")]
+            reasons = [re.sub(r"^(<class '[^']*'>|[\w.]+\[.*?\]): ", "", r) for r in reasons
+                       if r and "NoneType" not in r]  # fmt: skip
+            message = "; ".join(reasons) or message
         return f"invalid {_flag(getattr(event, 'argument', None))} value: {message}"
     if kind == "UnrecognizedArgs":
         tokens = [str(t) for t in getattr(event, "tokens", [])]
@@ -193,7 +199,9 @@ def parse_error_message(event: object) -> str:
         nargs = getattr(getattr(getattr(event, "argument", None), "lowered", None), "nargs", 1)
         if getattr(event, "reason", "") == "too_few_values":
             return f"{flag} needs {nargs} value{'s' if nargs != 1 else ''}: {_help_of(prog)}"
-        return f"{flag} takes no value ({getattr(event, 'offending_value', '')!r}): {_help_of(prog)}"
+        return (
+            f"{flag} takes no value ({getattr(event, 'offending_value', '')!r}): {_help_of(prog)}"
+        )
     if kind == "InvalidChoice":
         flag = _flag(getattr(event, "argument", None))
         choices = ", ".join(map(str, getattr(event, "choices", ())))

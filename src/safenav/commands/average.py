@@ -39,8 +39,15 @@ def average(
 
     from safenav.algos.averaging import average_policies, load_policy_states
     from safenav.common.checkpoint import save_checkpoint
+    from safenav.common.checks import at_least, check_output_file
     from safenav.errors import SafenavError
 
+    check_output_file(out, "--out", "average.pt")
+    if any(out.exists() and out.resolve() == Path(p).resolve() for p in policies):
+        raise SafenavError(f"--out {out} is one of the policies it averages: name another file")
+    if steps is not None:
+        at_least("--steps LO", steps[0], 0)
+    at_least("--val-episodes", val_episodes, 1)
     console = Console()
     if greedy:
         from safenav.experiments.soup import greedy_soup, validation_score
@@ -59,7 +66,6 @@ def average(
         )
     else:
         state = average_policies(policies, steps)
-    out.parent.mkdir(parents=True, exist_ok=True)
     save_checkpoint(out, state)
     averaged = state["averaged_steps"]
     console.print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB): the {state['algo']} policy averaged "

@@ -29,6 +29,24 @@ def bench(
     ``--updates`` CSAC updates, resident memory at the start and the end (no growth beyond the
     replay buffer).
     """
+    from safenav.common.checks import at_least, check_memory, check_output_file
+    from safenav.common.memory import env_bytes
+    from safenav.envs.config import make_config
+
+    cfg = make_config(preset)  # ValueError for an unknown preset: exit 2
+    at_least("--repeats", repeats, 1)
+    at_least("--env-steps", env_steps, 1)
+    at_least("--updates", updates, 1)
+    if not num_envs:
+        from safenav.errors import SafenavError
+
+        raise SafenavError("--num-envs: give at least one count, e.g. --num-envs 1 64 256")
+    for n in num_envs:
+        at_least("--num-envs", n, 1)
+    check_memory(env_bytes(max(num_envs), cfg), f"--num-envs {max(num_envs):,}",
+                 "benchmark fewer envs")  # fmt: skip
+    if json_out is not None:
+        check_output_file(json_out, "--json", f"{which}.json")
     if which == "env":
         from safenav.bench.env import bench_env
 

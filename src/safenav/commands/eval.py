@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -39,6 +38,7 @@ def eval_(
     from safenav.experiments.evaluate import evaluate
     from safenav.experiments.flight import resolve_policy
 
+    check_eval_args(env_seed, episodes, json_out, device, preset)
     fn, cfg = resolve_policy(checkpoint, policy, device)
     if preset is not None or cfg is None:
         cfg = make_config(preset or "paper")
@@ -73,5 +73,24 @@ def eval_(
         table.add_row(key, f"{result[key]:.3f}")
     Console().print(table)
     if json_out is not None:
-        json_out.parent.mkdir(parents=True, exist_ok=True)
-        json_out.write_text(json.dumps(result, indent=2))
+        from safenav.common.jsonout import write_json
+
+        write_json(json_out, result)  # NaN (no value) as null: valid JSON
+
+
+def check_eval_args(env_seed: int, episodes: int, json_out: Path | None, device: str,
+                    preset: str | None) -> None:  # fmt: skip
+    """Refuse bad values before the policy flies a single episode."""
+    from safenav.common.checks import at_least, check_device, check_memory, check_output_file
+    from safenav.common.memory import env_bytes
+    from safenav.envs.config import make_config
+
+    at_least("--env-seed", env_seed, 0)
+    at_least("--episodes", episodes, 1)
+    check_device(device)
+    cfg = make_config(preset or "paper")  # ValueError for an unknown preset: exit 2
+    if json_out is not None:
+        check_output_file(json_out, "--json", "eval.json")
+    # every episode is one env of a single vector env
+    check_memory(env_bytes(episodes, cfg), f"--episodes {episodes:,} (one env each)",
+                 "evaluate fewer episodes")  # fmt: skip

@@ -29,26 +29,39 @@ def export(
     Args:
         checkpoint: Training checkpoint (read with ``safenav.algos.policy.load_policy``).
         onnx: Output ONNX file; the sidecar is written next to it as ``<onnx>.json``.
-        opset: ONNX opset of the export.
+        opset: ONNX opset of the export: written exactly, or refused (9 or higher for a
+            safenav policy).
         scripted: Export the scripted go-to-goal actor instead of a checkpoint.
         preset: With ``--scripted``: the env preset the sidecar describes.
         policy_only: Instead of ONNX, write a small checkpoint holding the policy alone (what
             ``checkpoints/*.pt`` are): ``safenav eval`` reads it, ``--resume`` cannot.
     """
+    from safenav.common.checks import check_output_file
+    from safenav.errors import SafenavError
+
+    if checkpoint is not None and scripted:
+        raise SafenavError("--scripted exports the scripted actor: give no CHECKPOINT with it")
     if policy_only is not None:
         from safenav.algos.policy import save_policy_only
-        from safenav.errors import SafenavError
 
         if checkpoint is None:
             raise SafenavError("--policy-only needs a CHECKPOINT")
+        check_output_file(policy_only, "--policy-only", "policy.pt")
+        if policy_only.exists() and policy_only.resolve() == Path(checkpoint).resolve():
+            raise SafenavError(f"--policy-only {policy_only} is the CHECKPOINT it reads: name "
+                               "another file")  # fmt: skip
         out = save_policy_only(checkpoint, policy_only)
         print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB)")
         return
-    from safenav.deploy.export import export_onnx, load_actor
+    from safenav.deploy.export import export_onnx, is_torch_file, load_actor
     from safenav.deploy.scripted import GoToGoalActor
     from safenav.envs.config import make_config
-    from safenav.errors import SafenavError
 
+    # --onnx must never land on a checkpoint (or any non-ONNX file): refused before exporting.
+    check_output_file(onnx, "--onnx", "policy.onnx")
+    if onnx.suffix.lower() != ".onnx" or is_torch_file(onnx):
+        raise SafenavError(f"--onnx {onnx}: name the ONNX file *.onnx, e.g. --onnx "
+                           f"{onnx.with_suffix('.onnx')} (the sidecar goes next to it)")  # fmt: skip
     if scripted:
         cfg = make_config(preset)
         actor, source = GoToGoalActor(cfg), "scripted:GoToGoalActor"

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json as jsonlib
 import logging
 import sys
 from pathlib import Path
@@ -13,6 +12,7 @@ import tyro
 from safenav.cli import app
 
 EXIT_ABORTED = 3
+EXIT_COLLIDED = 4  # the flight completed but hit something (README, exit codes)
 
 
 @app.command(name="fly")
@@ -84,6 +84,8 @@ def fly(
         raise SafenavError(
             f"--rate {rate} Hz is too low: PX4 offboard needs a steady setpoint stream, use >= 10 Hz"
         )
+    check_fly_args(policy, connect, perception, rate, takeoff_altitude, link_timeout,
+                   max_flight_time, json_out, demo, preset, episode, gif)  # fmt: skip
     try:
         if demo:
             from safenav.deploy.demo import run_demo
@@ -99,33 +101,109 @@ def fly(
     except FlightAborted as err:
         summary = getattr(err, "summary", None)
         if json_out is not None and summary is not None:
-            json_out.parent.mkdir(parents=True, exist_ok=True)
-            json_out.write_text(jsonlib.dumps(summary, indent=2) + "\n")
+            from safenav.common.jsonout import write_json
+
+            write_json(json_out, {**summary, "outcome": "aborted"})
         print(f"safenav fly: aborted: {err}", file=sys.stderr, flush=True)
         raise SystemExit(EXIT_ABORTED) from None
-    print(jsonlib.dumps(summary, indent=2))
+    from safenav.common.jsonout import dumps, write_json
+
+    summary = {**summary, "outcome": outcome(summary)}
+    print(dumps(summary), end="")
     if json_out is not None:
-        json_out.parent.mkdir(parents=True, exist_ok=True)
-        json_out.write_text(jsonlib.dumps(summary, indent=2) + "\n")
+        write_json(json_out, summary)
+    print(f"safenav fly: {describe_flight(summary)}", file=sys.stderr, flush=True)
+    if summary["outcome"] == "collided":
+        raise SystemExit(EXIT_COLLIDED)
+
+
+def outcome(summary: dict) -> str:
+    """``collided`` (any collision, goal reached or not: the env ends an episode at its first
+    one), ``reached_goal``, or ``not_reached``."""
+    if (summary.get("collisions") or 0) > 0:
+        return "collided"
+    return "reached_goal" if summary.get("reached_goal") else "not_reached"
+
+
+def describe_flight(summary: dict) -> str:
+    """One line: the outcome with the collisions and the minimum clearance (when known)."""
+    reached = "reached the goal" if summary.get("reached_goal") else "did not reach the goal"
+    text = f"{reached} after {summary.get('flight_time_s', 0.0):.1f} s"
+    collisions, clearance = summary.get("collisions"), summary.get("min_clearance_m")
+    if collisions is None:
+        text += "; collisions unknown (the perception stream reports no ground truth)"
+    else:
+        text += f"; {collisions} collision{'s' if collisions != 1 else ''}"
+    if clearance is not None:
+        text += f", min clearance {clearance:.2f} m"
+    return text + (
+        f" (exit {EXIT_COLLIDED}: the flight collided)" if outcome(summary) == "collided" else ""
+    )
+
+
+def check_fly_args(policy: Path | None, connect: str, perception: str, rate: float,
+                   takeoff_altitude: float, link_timeout: float, max_flight_time: float,
+                   json_out: Path | None, demo: bool, preset: str, episode: int,
+                   gif: Path | None) -> None:  # fmt: skip
+    """Refuse bad values before connecting to anything."""
+    from safenav.common.checks import (
+        at_least,
+        check_output_file,
+        in_range,
+        parse_hostport,
+    )
+    from safenav.errors import SafenavError
+
+    in_range("--rate", rate, 10.0, 200.0, "Hz")
+    in_range("--takeoff-altitude", takeoff_altitude, 0.1, 100.0, "metres above home")
+    in_range("--link-timeout", link_timeout, 0.05, 60.0, "seconds")
+    at_least("--max-flight-time", max_flight_time, 1.0, "seconds")
+    check_connect_url(connect)
+    if perception:
+        parse_hostport(perception, "--perception")
+    if json_out is not None:
+        check_output_file(json_out, "--json", "flight.json")
+    if policy is not None and not policy.exists():
+        onnx = policy if policy.suffix.lower() == ".onnx" else policy.with_suffix(".onnx")
+        raise SafenavError(
+            f"--policy {policy} not found: export one with `safenav export CHECKPOINT --onnx {onnx}`"
+        )
+    if demo:
+        from safenav.envs.config import make_config
+
+        make_config(preset)  # ValueError for an unknown preset: exit 2
+        in_range("--episode", episode, 0, 999_999)
+        gif = gif or Path("flight.gif")
+        check_output_file(gif, "--gif", "flight.gif")
+        if gif.suffix.lower() != ".gif":
+            raise SafenavError(f"--gif {gif}: name the GIF *.gif")
+
+
+def check_connect_url(url: str) -> None:
+    """A MAVSDK connection URL: ``udpin://HOST:PORT``, ``udpout://``, ``tcpin://``, ``tcpout://``
+    (also the older ``udp://``, ``tcp://``) or ``serial://DEVICE[:BAUD]``."""
+    from safenav.common.checks import parse_hostport
+    from safenav.errors import SafenavError
+
+    scheme, sep, _ = url.partition("://")
+    if not sep or scheme not in ("udp", "udpin", "udpout", "tcp", "tcpin", "tcpout", "serial"):
+        raise SafenavError(f"--connect {url!r}: expected a MAVSDK URL such as "
+                           "udpin://127.0.0.1:14540 or serial:///dev/ttyTHS1:921600")  # fmt: skip
+    if scheme != "serial":
+        parse_hostport(url, "--connect")
 
 
 def fly_policy(policy: Path, connect: str, goal, perception: str, rate: float, shield: bool,
                takeoff_altitude: float, origin, link_timeout: float, max_flight_time: float, land: bool) -> dict:  # fmt: skip
     import torch
 
+    from safenav.common.checks import parse_hostport
     from safenav.deploy.export import OnnxPolicy, load_sidecar
     from safenav.deploy.fly import FlightAborted, FlightController, FlyConfig, MavsdkLink
     from safenav.deploy.runtime import OnboardRuntime, RuntimeConfig
     from safenav.deploy.shield import ShieldConfig
-    from safenav.deploy.sim_vehicle import parse_hostport
 
-    if not policy.exists():
-        from safenav.errors import SafenavError
-
-        raise SafenavError(
-            f"{policy} not found: export one with `safenav export CHECKPOINT --onnx {policy}`"
-        )
-    _, cfg = load_sidecar(policy)
+    _, cfg = load_sidecar(policy)  # refuses a checkpoint given as --policy, with the fix
     torch.set_num_threads(1)  # the runtime is single-threaded by design; leave the other cores
     runtime = OnboardRuntime(OnnxPolicy(policy), cfg,
                              RuntimeConfig(shield=ShieldConfig.for_env(cfg) if shield else None))  # fmt: skip
@@ -133,7 +211,7 @@ def fly_policy(policy: Path, connect: str, goal, perception: str, rate: float, s
     ctl = FlightController(runtime, link, FlyConfig(
         goal=tuple(goal), rate_hz=rate, takeoff_altitude=takeoff_altitude, origin=tuple(origin),
         goal_tolerance=cfg.goal_tolerance, link_timeout_s=link_timeout, max_flight_s=max_flight_time, land=land,
-    ), perception=parse_hostport(perception) if perception else None)  # fmt: skip
+    ), perception=parse_hostport(perception, "--perception") if perception else None)  # fmt: skip
     try:
         return ctl.fly().summary()
     except FlightAborted as err:

@@ -37,6 +37,9 @@ def plot(
     out_dir = (
         out if out is not None else (dirs[0] / "figures" if len(dirs) == 1 else Path("figures"))
     )
+    from safenav.common.checks import check_output_dir
+
+    check_output_dir(out_dir, "--out")
     console = Console()
     runs = find_runs(dirs)
     algos = sorted({r.algo for r in runs})

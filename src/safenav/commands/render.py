@@ -9,6 +9,8 @@ import tyro
 
 from safenav.cli import app
 
+MAX_EPISODE = 999_999  # the scenario draws episode + 1 start/goal pairs
+
 
 @app.command(name="render")
 def render(
@@ -26,8 +28,20 @@ def render(
     with the checkpoint's deterministic policy, or a scripted potential-field controller
     (``--policy scripted``, the default without a checkpoint) or uniform random actions.
     """
+    from safenav.common.checks import at_least, check_output_file, in_range
+    from safenav.envs.config import make_config
+    from safenav.errors import SafenavError
     from safenav.experiments.flight import render_episode
 
+    # Before the flight, so that a typo costs a second, not the episode.
+    in_range("--fps", fps, 1, 100, "GIF frame times are whole 1/100 s")
+    in_range("--episode", episode, 0, MAX_EPISODE, "the fixed scenario's episodes count from 0")
+    at_least("--env-seed", env_seed, 0)
+    if preset is not None:
+        make_config(preset)  # ValueError for an unknown preset: exit 2
+    check_output_file(out, "--out", "episode.gif")
+    if out.suffix.lower() != ".gif":
+        raise SafenavError(f"--out {out}: a GIF is written; name it *.gif, e.g. --out episode.gif")
     if checkpoint is None and policy == "checkpoint":
         policy = "scripted"
     stats = render_episode(out, checkpoint=checkpoint, policy=policy, preset=preset,

@@ -34,7 +34,12 @@ def reproduce(
     Rerunning the same command resumes: finished trials are skipped, interrupted ones resume from
     their checkpoint. Without --address a local Ray instance starts with all cores (or the
     --num-cpus given) and runs cores / --cpus-per-trial trials at once; --address joins an
-    existing Ray cluster (OUT must then be on a file system every node sees).
+    existing Ray cluster (OUT must then be on a file system every node sees). Every option,
+    including each trial's train options, is checked before Ray starts.
+
+    Example: safenav reproduce --out runs/repro-easy --algos csac ppo --seeds 2 --total-steps 300k
+    ppo=2M --preset easy --cpus-per-trial 1 --train-args="--num-envs 64 --csac.batch-size 512"
+    --variants "csac_nocurr=csac --csac.curriculum.no-enabled"
 
     Args:
         out: Output directory (runs/, logs/, results.json, results.md, figures/).
@@ -49,8 +54,8 @@ def reproduce(
         num_cpus: CPUs of the local Ray instance (default: all cores); ignored with --address.
         eval_episodes: Episodes of the fixed test scenario per final policy (paper protocol: 200).
         device: Torch device of training and evaluation (cpu or cuda).
-        train_args: Extra options for every safenav train, one string, e.g. --train-args="--batch-size 512".
-        variants: Extra labelled configurations, LABEL=ALGO [train options], e.g. 'csac_nocurr=csac --no-curriculum'.
+        train_args: Extra options for every safenav train, one string, e.g. --train-args="--num-envs 64 --csac.batch-size 512".
+        variants: Extra labelled configurations, LABEL=ALGO [train options], e.g. 'csac_nocurr=csac --csac.curriculum.no-enabled'.
         plots: Write the figures (safenav plot OUT) at the end.
     """
     from safenav.experiments.reproduce import SweepConfig, TrialFailed, run_sweep
@@ -63,8 +68,37 @@ def reproduce(
         command=shlex.join(["safenav", *sys.argv[1:]]) if sys.argv[1:2] == ["reproduce"]
         else shlex.join(["safenav", "reproduce", "--out", str(out)]),
     )  # fmt: skip
+    check_sweep(cfg)
     try:
         run_sweep(cfg)
     except TrialFailed as err:
         print(f"safenav: {err}", file=sys.stderr)
         raise SystemExit(1) from None
+
+
+def check_sweep(cfg) -> None:
+    """Everything a sweep's trials would refuse, refused before Ray starts: the counts, the device,
+    the preset, the output directory and every trial's ``safenav train`` options (its
+    --train-args and --variants, parsed as train parses them)."""
+    from safenav.commands.train import parse_train_args
+    from safenav.common.checks import at_least, check_device, check_output_dir
+    from safenav.envs.config import make_config
+    from safenav.errors import SafenavError
+    from safenav.experiments.reproduce import parse_variants, plan
+
+    at_least("--first-seed", cfg.first_seed, 0)
+    at_least("--gpus-per-trial", cfg.gpus_per_trial, 0)
+    if cfg.num_cpus is not None:
+        at_least("--num-cpus", cfg.num_cpus, 1)
+    check_device(cfg.device)
+    if cfg.preset is not None:
+        make_config(cfg.preset)  # ValueError for an unknown preset: exit 2
+    trials = plan(cfg)  # seeds, algorithms, --variants, --total-steps
+    check_output_dir(cfg.out, "--out")
+    variants = parse_variants(cfg.variants)
+    for trial in {t.label: t for t in trials}.values():
+        try:
+            parse_train_args(["--algo", trial.algo, *trial.train_args])
+        except SafenavError as err:
+            where = f"--variants {trial.label}" if trial.label in variants else "--train-args"
+            raise SafenavError(f"{where}: {err}") from None

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import signal
 import sys
 
@@ -50,8 +51,21 @@ def sim_vehicle(
     from safenav.deploy.sim_vehicle import SimVehicle, SimVehicleConfig
 
     torch.set_num_threads(1)  # one core for the autopilot loop, the rest for the others
+    from safenav.common.checks import at_least, in_range, parse_hostport, parse_port
+    from safenav.deploy.px4 import DEFAULT_PARAMS
+    from safenav.envs.config import make_config
     from safenav.errors import SafenavError
 
+    # Before the world is built and any port is bound.
+    make_config(preset)  # ValueError for an unknown preset: exit 2
+    at_least("--world-seed", world_seed, 0)
+    in_range("--density", density, 0.0, 1.0, "fraction of the obstacles")
+    in_range("--episode", episode, 0, 999_999)
+    parse_hostport(connect, "--connect")
+    parse_hostport(bind, "--bind")
+    parse_port("--perception-port", perception_port, allow=(-1,))
+    if duration is not None:
+        at_least("--duration", duration, 0.0, "seconds")
     params = {}
     for item in param:
         name, sep, value = item.partition("=")
@@ -59,8 +73,11 @@ def sim_vehicle(
             params[name.strip()] = float(value)
         except ValueError:
             sep = ""
-        if not sep:
-            raise SafenavError(f"--param {item!r}: expected NAME=VALUE with a number")
+        if not sep or not math.isfinite(params.get(name.strip(), 0.0)):
+            raise SafenavError(f"--param {item!r}: expected NAME=VALUE with a finite number")
+        if name.strip() not in DEFAULT_PARAMS:
+            raise SafenavError(f"--param {item!r}: the simulated vehicle has no parameter "
+                               f"{name.strip()!r}; it knows {', '.join(DEFAULT_PARAMS)}")  # fmt: skip
     if not quiet:
         logging.basicConfig(
             level=logging.INFO, format="sim-vehicle: %(message)s", stream=sys.stderr

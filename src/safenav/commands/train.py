@@ -40,14 +40,39 @@ def train(
     The run directory gets config.json, progress.csv, tb/ (TensorBoard), events.jsonl and
     checkpoint.pt (written atomically). --csac.* options set csac, sac (the same minus the cost
     side) and sac_lag (the same with OmniSafe's Lagrangian switches); --ppo.* set ppo and ppo_lag
-    (PPO wants many envs: e.g. --num-envs 256). A directory that holds a run is refused unless --resume DIR (continue it:
-    its config.json is used; --total-steps, --device and the logging options may change) or
-    --overwrite (replace it). Default run dir: runs/<algo>-<env>-s<seed>-<time>.
+    (PPO wants many envs: e.g. --num-envs 256). A directory that holds a run that trained is
+    refused unless --resume DIR (continue it: its config.json is used; --total-steps, --device
+    and the logging options may change) or --overwrite (replace it); one whose run failed before
+    training is reused. Default run dir: runs/<algo>-<env>-s<seed>-<time>.
+
+    Step counts take 1000000, 1e6, 1_000_000 or 1M. Everything is checked before the run
+    directory is written, including the memory the run needs (refused with the estimate).
     """
     from safenav.algos import csac as csac_module
-    from safenav.common.config import from_dict
-    from safenav.common.envs import check_env
     from safenav.common.logger import prepare_run_dir
+
+    run, cfg, run_dir = plan(algo, run, csac, ppo, run_dir, resume, overwrite)
+    prepare_run_dir(run_dir, resume=resume is not None, overwrite=overwrite)
+    if algo in ("ppo", "ppo_lag"):
+        from safenav.algos import ppo as module
+    else:
+        module = csac_module
+    if resume is None:
+        module.write_config(run_dir, algo, run, cfg)
+    result = module.train(algo, run, cfg, run_dir, resume=resume is not None, progress=progress)
+    print(f"safenav train: {algo} finished at step {result['global_step']} ({result['updates']} updates); "
+          f"last 100 episodes: success {result['success_rate']:.3f}, collision {result['collision_rate']:.3f}, "
+          f"return {result['return']:.2f}; run dir {run_dir}")  # fmt: skip
+
+
+def plan(algo: str, run: RunConfig, csac: CSACConfig, ppo: PPOConfig, run_dir: Path | None,
+         resume: Path | None, overwrite: bool) -> tuple[RunConfig, CSACConfig | PPOConfig, Path]:  # fmt: skip
+    """``(run config, algorithm config, run dir)`` of a ``safenav train`` command line, every
+    check done before anything is written: algorithm, resume config, device, env and its
+    spaces, memory. ``SafenavError`` (exit 2) or ``SafenavRuntimeError`` (exit 1) otherwise."""
+    from safenav.common.checks import check_device
+    from safenav.common.config import from_dict
+    from safenav.common.envs import env_spaces
     from safenav.errors import SafenavError
 
     if algo not in ALGOS:
@@ -55,13 +80,15 @@ def train(
     family = "ppo" if algo in ("ppo", "ppo_lag") else "csac"
     cfg = ppo if family == "ppo" else csac
     if resume is not None:
+        if overwrite:
+            raise SafenavError("--resume continues a run and --overwrite replaces it: pass one")
         if run_dir is not None and Path(run_dir).resolve() != Path(resume).resolve():
             raise SafenavError(
                 f"--resume {resume} and --run-dir {run_dir} name different directories"
             )
         run_dir = Path(resume)
         config_path = run_dir / "config.json"
-        if not config_path.exists():
+        if not config_path.is_file():
             raise SafenavError(f"--resume {run_dir}: no config.json there")
         try:
             saved = json.loads(config_path.read_text())
@@ -79,15 +106,9 @@ def train(
         default = RunConfig()
         changes = {k: getattr(run, k) for k in RESUMABLE if getattr(run, k) != getattr(default, k)}
         run = dataclasses.replace(saved_run, **changes)
-        prepare_run_dir(run_dir, resume=True, overwrite=False)
-    else:
-        check_env(run.env, run.preset)  # before a run directory exists, so a retry is not refused
-        if run_dir is None:
-            env_name = run.env.split(":")[-1]
-            run_dir = (
-                Path("runs") / f"{algo}-{env_name}-s{run.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
-            )
-        prepare_run_dir(run_dir, resume=False, overwrite=overwrite)
+    elif run_dir is None:
+        env_name = run.env.split(":")[-1]
+        run_dir = Path("runs") / f"{algo}-{env_name}-s{run.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
     if algo == "sac":
         from safenav.algos.sac import sac_config
 
@@ -97,13 +118,48 @@ def train(
 
         cfg = sac_lag_config(cfg)
     elif family == "ppo":
-        from safenav.algos import ppo as ppo_module
-
         cfg = dataclasses.replace(cfg, constrained=algo == "ppo_lag")
-    module = ppo_module if family == "ppo" else csac_module
-    if resume is None:
-        module.write_config(run_dir, algo, run, cfg)
-    result = module.train(algo, run, cfg, run_dir, resume=resume is not None, progress=progress)
-    print(f"safenav train: {algo} finished at step {result['global_step']} ({result['updates']} updates); "
-          f"last 100 episodes: success {result['success_rate']:.3f}, collision {result['collision_rate']:.3f}, "
-          f"return {result['return']:.2f}; run dir {run_dir}")  # fmt: skip
+    check_device(run.device)
+    obs_shapes, action_dim, env_cfg = env_spaces(run.env, run.preset)
+    check_training_memory(algo, run, cfg, obs_shapes, action_dim, env_cfg)
+    return run, cfg, Path(run_dir)
+
+
+def check_training_memory(algo: str, run: RunConfig, cfg, obs_shapes, action_dim: int, env_cfg,
+                          available: int | None = None) -> None:  # fmt: skip
+    """``SafenavRuntimeError`` with the estimate when the run cannot fit in this machine's
+    (or GPU's) memory (:mod:`safenav.common.memory`)."""
+    from safenav.common.checks import check_memory, fmt_bytes
+    from safenav.common.memory import training_memory
+
+    parts = training_memory(algo, run.num_envs, run.total_steps, cfg, obs_shapes, action_dim,
+                            env_cfg)  # fmt: skip
+    if available is None and run.device.startswith("cuda"):
+        import torch
+
+        available = torch.cuda.mem_get_info(torch.device(run.device))[0]
+    big = sorted(parts.items(), key=lambda kv: -kv[1])[:3]
+    detail = ", ".join(f"{k} {fmt_bytes(v)}" for k, v in big)
+    knob = "--csac.buffer-size" if "replay buffer" in parts else "--ppo.rollout-steps"
+    check_memory(sum(parts.values()),
+                 f"training {run.num_envs:,} envs ({detail})",
+                 f"lower --num-envs or {knob}", available)  # fmt: skip
+
+
+def parse_train_args(args: list[str]) -> dict:
+    """``safenav train``'s options parsed and their configs validated, without training (what
+    ``safenav reproduce`` checks its --train-args and --variants with before starting Ray)."""
+    import functools
+
+    from safenav.cli import _parse_errors_as_safenav_errors
+    from safenav.common.checks import registry
+
+    options = functools.wraps(train)(lambda **kwargs: kwargs)
+    with _parse_errors_as_safenav_errors("train"):
+        parsed = tyro.cli(options, args=args, prog="safenav train", registry=registry())
+    if parsed["algo"] not in ALGOS:
+        from safenav.errors import SafenavError
+
+        raise SafenavError(f"unknown algorithm {parsed['algo']!r} (--algo): choose one of "
+                           f"{', '.join(ALGOS)}")  # fmt: skip
+    return parsed

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from safenav.errors import SafenavError, one_line
+from safenav.errors import SafenavError, SafenavRuntimeError, one_line
 
 FORMAT = "safenav-checkpoint"
 FORMAT_VERSION = 1
@@ -63,18 +63,20 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         raise SafenavError(f"checkpoint {path} not found")
     try:
         state = torch.load(path, map_location=map_location, weights_only=False)
+    except RuntimeError as err:
+        if "CUDA" not in str(err) or not str(map_location).startswith("cuda"):
+            raise _unreadable(path, err) from None
+        # a CUDA device asked for on a machine without one: not the file's fault
+        raise SafenavRuntimeError(f"cannot load {path} onto {map_location}: CUDA is not "
+                                  "available on this machine; use --device cpu") from None  # fmt: skip
     except (
-        RuntimeError,
         EOFError,
         pickle.UnpicklingError,
         zipfile.BadZipFile,
         ValueError,
         OSError,
     ) as err:
-        # torch's own text goes on for lines ("This is an internal miniz error..."): keep its start
-        reason = one_line(str(err).split(". ")[0], 160)
-        raise SafenavError(f"checkpoint {path} is corrupt or truncated, or not a torch file "
-                           f"({type(err).__name__}: {reason})") from None  # fmt: skip
+        raise _unreadable(path, err) from None
     if not isinstance(state, dict) or state.get("format") != FORMAT:
         raise SafenavError(f"{path} is not a safenav training checkpoint (no '{FORMAT}' tag)")
     version = state.get("format_version")
@@ -85,6 +87,13 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         raise SafenavError(f"{path} has checkpoint format version {version}; this safenav reads "
                            f"version {FORMAT_VERSION}: {fix}")  # fmt: skip
     return state
+
+
+def _unreadable(path: Path, err: BaseException) -> SafenavError:
+    # torch's own text goes on for lines ("This is an internal miniz error..."): keep its start
+    reason = one_line(str(err).split(". ")[0], 160)
+    return SafenavError(f"checkpoint {path} is corrupt or truncated, or not a torch file "
+                        f"({type(err).__name__}: {reason})")  # fmt: skip
 
 
 # What ``--resume`` needs besides the agent's weights; a policy-only file has none of it.

@@ -205,7 +205,9 @@ def parse_hostport(text: str, flag: str, default_host: str = "127.0.0.1") -> tup
         number = int(port)
     except ValueError:
         raise SafenavError(f"{flag} {text!r}: expected HOST:PORT, e.g. 127.0.0.1:14540") from None
-    return host or default_host, parse_port(flag, number)
+    if not 0 <= number <= 65535:
+        raise SafenavError(f"{flag} {text}: port {number} is outside 0-65535")
+    return host or default_host, number
 
 
 def available_memory() -> int | None:

@@ -29,7 +29,8 @@ class RunConfig:
     seed: int = 1
     """Seed of networks, replay sampling, exploration and the training env's maps/episodes."""
     total_steps: int = 1_000_000
-    """Env steps (transitions, summed over the parallel envs) to train for."""
+    """Env steps (transitions, summed over the parallel envs) to train for: 1000000, 1e6,
+    1_000_000 or 1M."""
     device: str = "cpu"
     """Torch device of the env, replay buffer and networks: cpu or cuda."""
     torch_threads: int = 0

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from gymnasium.vector import AutoresetMode
 
-from safenav.errors import SafenavError
+from safenav.errors import SafenavError, SafenavRuntimeError
 from safenav.nn.networks import obs_layout
 
 
@@ -46,6 +46,42 @@ def check_env(env_id: str, preset: str | None = None) -> None:
 
     if preset not in PRESETS:
         raise SafenavError(f"unknown preset {preset!r}: choose one of {sorted(PRESETS)}")
+
+
+def env_spaces(
+    env_id: str, preset: str | None = None
+) -> tuple[dict[str, tuple[int, ...]], int, Any]:
+    """``(observation shapes, action dimension, SafeNav EnvConfig or None)`` of ``env_id``, checked
+    before a run directory exists: ``SafenavError`` for an env that cannot be made (missing
+    dependency) or whose spaces no safenav algorithm supports (every one of them squashes a
+    continuous action: a bounded 1-D ``Box``)."""
+    check_env(env_id, preset)
+    if is_safenav(env_id):
+        from safenav.envs.config import make_config, observation_shapes
+
+        cfg = make_config(preset or "paper")
+        return observation_shapes(cfg), 3, cfg
+    try:
+        env = gym.make(env_id)
+    except Exception as err:  # noqa: BLE001 -- a missing extra (box2d, mujoco), a bad kwarg, ...
+        missing = isinstance(err, ImportError) or type(err).__name__ == "DependencyNotInstalled"
+        kind = SafenavRuntimeError if missing else SafenavError  # install it vs. fix the command
+        raise kind(f"cannot make env {env_id!r}: {type(err).__name__}: {err}") from None
+    try:
+        check_action_space(env.action_space)
+        return obs_layout(env.observation_space), int(env.action_space.shape[0]), None
+    finally:
+        env.close()
+
+
+def check_action_space(act: gym.Space) -> None:
+    """``SafenavError`` unless ``act`` is a bounded 1-D ``Box`` (continuous actions)."""
+    if not isinstance(act, gym.spaces.Box) or len(act.shape) != 1:
+        raise SafenavError(f"action space {act} is not supported: safenav's algorithms (CSAC, SAC, "
+                           "PPO and their Lagrangian versions) need continuous actions, a 1-D Box")  # fmt: skip
+    if not (np.all(np.isfinite(act.low)) and np.all(np.isfinite(act.high))):
+        raise SafenavError(f"action space {act} is unbounded: the policies squash their actions "
+                           "into finite bounds")  # fmt: skip
 
 
 def make_vec_env(env_id: str, num_envs: int, device: str = "cpu", preset: str | None = None,
@@ -97,14 +133,7 @@ class TorchVecEnv:
         self.obs_shapes = obs_layout(space)
         self._box_obs = isinstance(space, gym.spaces.Box)
         act = envs.single_action_space
-        if not isinstance(act, gym.spaces.Box) or len(act.shape) != 1:
-            raise SafenavError(
-                f"action space {act} is not supported: SAC-family algorithms need a 1-D Box"
-            )
-        if not (np.all(np.isfinite(act.low)) and np.all(np.isfinite(act.high))):
-            raise SafenavError(
-                f"action space {act} is unbounded: a squashed policy needs finite bounds"
-            )
+        check_action_space(act)
         self.action_dim = int(act.shape[0])
         self._low = torch.as_tensor(act.low, dtype=torch.float32, device=self.device)
         self._high = torch.as_tensor(act.high, dtype=torch.float32, device=self.device)
@@ -254,5 +283,5 @@ def env_horizon(envs: gym.vector.VectorEnv, default: int = 1000) -> int:
     return int(steps) if steps else default
 
 
-__all__ = ["Step", "TorchVecEnv", "check_env", "env_horizon", "is_safenav", "is_safenav_vector",
-           "make_vec_env"]  # fmt: skip
+__all__ = ["Step", "TorchVecEnv", "check_action_space", "check_env", "env_horizon", "env_spaces",
+           "is_safenav", "is_safenav_vector", "make_vec_env"]  # fmt: skip

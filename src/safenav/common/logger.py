@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 import csv
+import errno
 import json
 import math
 import os
@@ -19,7 +20,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from safenav.errors import SafenavError
+from safenav.errors import SafenavError, SafenavRuntimeError
 
 RUN_FILES = ("config.json", "progress.csv", "checkpoint.pt", "events.jsonl")
 
@@ -39,9 +40,15 @@ def prepare_run_dir(run_dir: Path, resume: bool, overwrite: bool) -> None:
                                "--overwrite")  # fmt: skip
         _check_writable(run_dir)
         return
-    if held and not overwrite:
-        raise SafenavError(f"run directory {run_dir} already holds a run ({', '.join(held)}): "
-                           "pass --resume to continue it or --overwrite to replace it")  # fmt: skip
+    if held and not overwrite and has_trained(run_dir):
+        fix = ("pass --resume to continue it or --overwrite to replace it"
+               if (run_dir / "checkpoint.pt").exists() else
+               "it stopped before its first checkpoint: pass --overwrite to replace it")  # fmt: skip
+        raise SafenavError(
+            f"run directory {run_dir} already holds a run ({', '.join(held)}): {fix}"
+        )
+    # A run that never trained (it failed before its first progress row, e.g. on a bad env) left
+    # only its config: replace it, so that the retry with the same --run-dir is not refused.
     if held:
         import shutil
 
@@ -50,11 +57,26 @@ def prepare_run_dir(run_dir: Path, resume: bool, overwrite: bool) -> None:
         shutil.rmtree(run_dir / "tb", ignore_errors=True)
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as err:  # a file in the way, a read-only file system, no permission
-        raise SafenavError(
-            f"cannot create run directory {run_dir}: {err.strerror or err}"
-        ) from None
+    except OSError as err:  # a file in the way (usage), a read-only file system, no permission
+        kind = (
+            SafenavRuntimeError
+            if err.errno in (errno.EACCES, errno.EPERM, errno.EROFS)
+            else SafenavError
+        )
+        raise kind(f"cannot create run directory {run_dir}: {err.strerror or err}") from None
     _check_writable(run_dir)
+
+
+def has_trained(run_dir: Path) -> bool:
+    """True if ``run_dir`` holds a checkpoint or a ``progress.csv`` with at least one row."""
+    run_dir = Path(run_dir)
+    if (run_dir / "checkpoint.pt").exists():
+        return True
+    try:
+        with (run_dir / "progress.csv").open() as f:
+            return len(f.readlines(1 << 16)) > 1  # a header and a row
+    except OSError:
+        return False
 
 
 def _check_writable(run_dir: Path) -> None:
@@ -65,7 +87,7 @@ def _check_writable(run_dir: Path) -> None:
         probe.touch()
         probe.unlink()
     except OSError as err:
-        raise SafenavError(
+        raise SafenavRuntimeError(
             f"run directory {run_dir} is not writable: {err.strerror or err}"
         ) from None
 

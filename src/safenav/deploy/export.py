@@ -13,9 +13,12 @@ exporter is the fallback.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
+import os
+import sys
 import warnings
 from pathlib import Path
 from typing import Any
@@ -26,7 +29,7 @@ from torch import nn
 
 from safenav.envs.config import EnvConfig, observation_shapes
 from safenav.envs.nav import DIST_SCALE, Z_SCALE
-from safenav.errors import SafenavError
+from safenav.errors import SafenavError, one_line
 
 SIDECAR_FORMAT = "safenav-policy/1"
 INPUT_NAMES = ("state", "lidar", "dynamic")
@@ -134,10 +137,60 @@ def export_onnx(
     """Write ``onnx_path`` and its sidecar; check ONNX Runtime against torch within ``atol`` on
     random observations (and ``check_observations``, e.g. real ones from the env).
 
+    The model is written at exactly ``opset`` or not at all (``SafenavError`` naming the reason):
+    the exporters write into a temporary file that replaces ``onnx_path`` only after its opset and
+    the ONNX Runtime check passed, so a failed export leaves an existing file as it was.
+
     Returns the sidecar dict (with ``"check"``: the largest absolute difference found).
     """
+    import onnx
+
     onnx_path = Path(onnx_path)
+    newest = onnx.defs.onnx_opset_version()
+    if not 1 <= opset <= newest:
+        raise SafenavError(f"--opset {opset}: ONNX opsets run from 1 to {newest} (this onnx); "
+                           "the default is 17")  # fmt: skip
     onnx_path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = onnx_path.with_name(f".{onnx_path.name}.{os.getpid()}.tmp")
+    try:
+        exporter = _export(actor, cfg, tmp, opset)
+        written = next((o.version for o in onnx.load(str(tmp)).opset_import if o.domain in ("", "ai.onnx")),
+                       None)  # fmt: skip
+        if written != opset:
+            raise SafenavError(f"--opset {opset}: the {exporter} exporter wrote opset {written} for "
+                               f"this policy, not {opset}: ask for opset {written} or higher")  # fmt: skip
+        worst = _check_onnx_runtime(actor, cfg, tmp, check_observations)
+        if not worst <= atol:
+            raise SafenavError(
+                f"ONNX export of {onnx_path} differs from torch by {worst:.2e} > {atol:.0e}"
+            )
+        sidecar = {
+            "format": SIDECAR_FORMAT,
+            "onnx": onnx_path.name,
+            "sha256": hashlib.sha256(tmp.read_bytes()).hexdigest(),
+            "inputs": list(INPUT_NAMES),
+            "output": OUTPUT_NAME,
+            "opset": written,
+            "exporter": exporter,
+            "checkpoint": checkpoint,
+            **policy_conventions(cfg),
+            "env_config": dataclasses.asdict(cfg),
+            "check": {"max_abs_diff": worst, "atol": atol},
+        }
+        os.replace(tmp, onnx_path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    side = sidecar_path(onnx_path)
+    side_tmp = side.with_name(f".{side.name}.{os.getpid()}.tmp")
+    side_tmp.write_text(json.dumps(sidecar, indent=2) + "\n")
+    os.replace(side_tmp, side)
+    return sidecar
+
+
+def _export(actor: nn.Module, cfg: EnvConfig, path: Path, opset: int) -> str:
+    """Export ``actor`` to ``path`` at ``opset``; returns the exporter used. The TorchScript
+    exporter first; the dynamo exporter only when that one is gone, never as a silent way around
+    an opset the TorchScript exporter refused."""
     model = NamedInputActor(actor).eval().to("cpu")
     example = random_observations(cfg, 2)
     args = tuple(example[k] for k in INPUT_NAMES)
@@ -145,62 +198,90 @@ def export_onnx(
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:
-            torch.onnx.export(model, args, str(onnx_path), input_names=list(INPUT_NAMES),
-                              output_names=[OUTPUT_NAME], dynamic_axes=axes, opset_version=opset,
-                              dynamo=False)  # fmt: skip
-            exporter = "torchscript"
-        except Exception:  # noqa: BLE001 -- the legacy exporter may be gone: use dynamo
-            batch = torch.export.Dim("batch", min=1)
-            torch.onnx.export(model, args, str(onnx_path), input_names=list(INPUT_NAMES),
-                              output_names=[OUTPUT_NAME], opset_version=max(opset, 18), dynamo=True,
-                              dynamic_shapes={k: {0: batch} for k in INPUT_NAMES}, external_data=False)  # fmt: skip
-            exporter = "dynamo"
-    worst = 0.0
-    runner = OnnxPolicy(onnx_path)
+            with _stdout_silenced():  # a failing TorchScript export prints its graph (C++)
+                torch.onnx.export(model, args, str(path), input_names=list(INPUT_NAMES),
+                                  output_names=[OUTPUT_NAME], dynamic_axes=axes,
+                                  opset_version=opset, dynamo=False)  # fmt: skip
+            return "torchscript"
+        except Exception as err:  # noqa: BLE001 -- the legacy exporter may be gone: use dynamo
+            if "opset" in str(err).lower():  # the opset is the problem, not the exporter
+                reason = one_line(str(err).split(". ")[0], 160)
+                raise SafenavError(f"--opset {opset}: this policy cannot be exported at opset "
+                                   f"{opset} ({reason}); the default is 17") from None  # fmt: skip
+        batch = torch.export.Dim("batch", min=1)
+        try:
+            torch.onnx.export(model, args, str(path), input_names=list(INPUT_NAMES),
+                              output_names=[OUTPUT_NAME], opset_version=opset, dynamo=True,
+                              dynamic_shapes={k: {0: batch} for k in INPUT_NAMES},
+                              external_data=False)  # fmt: skip
+        except Exception as err:  # noqa: BLE001 -- one line, naming the opset
+            raise SafenavError(f"--opset {opset}: the ONNX export failed "
+                               f"({type(err).__name__}: {one_line(err, 160)})") from None  # fmt: skip
+        return "dynamo"
+
+
+@contextlib.contextmanager
+def _stdout_silenced():
+    """File descriptor 1 to /dev/null for the block (output printed by C++ too)."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 1)
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+def _check_onnx_runtime(actor: nn.Module, cfg: EnvConfig, path: Path,
+                        check_observations: dict[str, Any] | None) -> float:  # fmt: skip
+    """Largest |ONNX Runtime - torch| over random (and the given) observations."""
+    model = NamedInputActor(actor).eval().to("cpu")
+    try:
+        runner = OnnxPolicy(path)
+    except Exception as err:  # noqa: BLE001 -- e.g. an opset this onnxruntime does not run
+        raise SafenavError(f"ONNX Runtime cannot load the exported model "
+                           f"({type(err).__name__}: {one_line(err, 200)})") from None  # fmt: skip
     sets = [random_observations(cfg, 64, seed=1)]
     if check_observations is not None:
         sets.append(
             {k: torch.as_tensor(v, dtype=torch.float32) for k, v in check_observations.items()}
         )
+    worst = 0.0
     for obs in sets:
         with torch.no_grad():
             ref = model(*(obs[k] for k in INPUT_NAMES)).numpy()
         got = runner(*(obs[k].numpy() for k in INPUT_NAMES))
         worst = max(worst, float(np.abs(got - ref).max()))
-    if not worst <= atol:
-        raise SafenavError(
-            f"ONNX export of {onnx_path} differs from torch by {worst:.2e} > {atol:.0e}"
-        )
-    sidecar = {
-        "format": SIDECAR_FORMAT,
-        "onnx": onnx_path.name,
-        "sha256": hashlib.sha256(onnx_path.read_bytes()).hexdigest(),
-        "inputs": list(INPUT_NAMES),
-        "output": OUTPUT_NAME,
-        "opset": opset if exporter == "torchscript" else max(opset, 18),
-        "exporter": exporter,
-        "checkpoint": checkpoint,
-        **policy_conventions(cfg),
-        "env_config": dataclasses.asdict(cfg),
-        "check": {"max_abs_diff": worst, "atol": atol},
-    }
-    sidecar_path(onnx_path).write_text(json.dumps(sidecar, indent=2) + "\n")
-    return sidecar
+    return worst
 
 
 def load_sidecar(onnx_path: str | Path) -> tuple[dict[str, Any], EnvConfig]:
     """The sidecar of ``onnx_path`` and its env configuration."""
     path = sidecar_path(onnx_path)
+    if Path(onnx_path).suffix.lower() != ".onnx" or is_torch_file(onnx_path):
+        onnx = Path(onnx_path).with_suffix(".onnx")
+        raise SafenavError(f"{onnx_path} is not an exported ONNX policy: export it first with "
+                           f"`safenav export {onnx_path} --onnx {onnx}` and fly that")  # fmt: skip
     if not path.exists():
-        raise SafenavError(
-            f"{path} not found: export the policy with `safenav export CHECKPOINT --onnx {onnx_path}`"
-        )
+        raise SafenavError(f"{path} (the sidecar of {onnx_path}) not found: export the policy "
+                           f"again with `safenav export CHECKPOINT --onnx {onnx_path}`")  # fmt: skip
     meta = json.loads(path.read_text())
     if meta.get("format") != SIDECAR_FORMAT:
         raise SafenavError(
             f"{path} is not a {SIDECAR_FORMAT} sidecar (format={meta.get('format')!r})"
         )
     return meta, env_config_from_dict(meta["env_config"])
+
+
+def is_torch_file(path: str | Path) -> bool:
+    """True for a file torch.save wrote (a zip archive), e.g. a training checkpoint."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(4) == b"PK\x03\x04"
+    except OSError:
+        return False
 
 
 def env_config_from_dict(d: dict[str, Any]) -> EnvConfig:
@@ -299,6 +380,7 @@ __all__ = [
     "TorchPolicy",
     "env_config_from_dict",
     "export_onnx",
+    "is_torch_file",
     "load_actor",
     "load_sidecar",
     "observation_shapes",

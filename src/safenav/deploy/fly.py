@@ -238,7 +238,18 @@ class FlightLog:
             "setpoint_p50_ms": round(float(np.percentile(ms, 50)), 3),
             "setpoint_p99_ms": round(float(np.percentile(ms, 99)), 3),
             "hover_reasons": self.reasons,
+            # the simulator's ground truth, when the perception stream carries it (sim-vehicle);
+            # None with real sensors
+            "collisions": int(self.truth["collisions"]) if "collisions" in self.truth else None,
+            "min_clearance_m": _rounded(self.truth.get("min_clearance")),
         }  # fmt: skip
+
+
+def _rounded(x: Any, digits: int = 3) -> float | None:
+    try:
+        return round(float(x), digits) if math.isfinite(float(x)) else None
+    except (TypeError, ValueError):
+        return None
 
 
 class FlightController:

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import logging
 import math
 import selectors
@@ -64,6 +65,7 @@ from safenav.envs.world import (
     border_clearance,
     generate_world,
 )
+from safenav.errors import SafenavError, SafenavRuntimeError
 
 log = logging.getLogger("safenav.deploy.sim_vehicle")
 
@@ -72,11 +74,38 @@ HOME_LAT, HOME_LON, HOME_ALT = 47.397742, 8.545594, 488.0
 EARTH_RADIUS = 6371000.0
 
 
-def parse_hostport(text: str, default_host: str = "127.0.0.1") -> tuple[str, int]:
-    """``"host:port"``, ``":port"``, ``"port"`` or ``"udp://host:port"`` -> ``(host, port)``."""
-    text = text.split("://", 1)[-1]
-    host, _, port = text.rpartition(":")
-    return (host or default_host), int(port)
+def parse_hostport(
+    text: str, default_host: str = "127.0.0.1", flag: str = "address"
+) -> tuple[str, int]:
+    """``"host:port"``, ``":port"``, ``"port"`` or ``"udp://host:port"`` -> ``(host, port)``;
+    ``SafenavError`` for anything else (a port outside 0-65535 too)."""
+    from safenav.common.checks import parse_hostport as checked
+
+    return checked(text, flag, default_host)
+
+
+def _bound(kind: int, address: tuple[str, int], flag: str, what: str) -> socket.socket:
+    """A socket bound to ``address``; a port in use (or not ours to take) is a
+    ``SafenavRuntimeError`` naming ``flag``, a host that is not an address a ``SafenavError``."""
+    sock = socket.socket(socket.AF_INET, kind)
+    try:
+        if kind == socket.SOCK_STREAM:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(address)
+    except OSError as err:
+        sock.close()
+        host, port = address
+        if err.errno in (errno.EADDRINUSE, errno.EACCES):
+            why = "is already in use" if err.errno == errno.EADDRINUSE else "needs privileges"
+            raise SafenavRuntimeError(f"{flag}: the {what} port {host}:{port} {why} (another "
+                                      f"sim-vehicle or PX4 SITL?): pick another port, or 0 for "
+                                      "any free one") from None  # fmt: skip
+        raise SafenavError(f"{flag} {host}:{port}: cannot bind the {what} socket there "
+                           f"({err.strerror or err})") from None  # fmt: skip
+    except (OverflowError, TypeError) as err:  # a port outside 0-65535
+        sock.close()
+        raise SafenavError(f"{flag} {address}: {err}") from None
+    return sock
 
 
 class MovingObstacles:
@@ -236,19 +265,22 @@ class SimVehicle:
 
         self.mav = mavlink.MAVLink(None, srcSystem=self.SYSID, srcComponent=self.COMPID)
         self.target = parse_hostport(c.connect)
-        self.udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.udp.bind(parse_hostport(c.bind))
-        self.udp.setblocking(False)
-        self.mavlink_address = self.udp.getsockname()
+        self.udp: socket.socket | None = None
         self.tcp: socket.socket | None = None
         self.perception_address: tuple[str, int] | None = None
-        if c.perception_port >= 0:
-            self.tcp = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-            self.tcp.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            self.tcp.bind(("127.0.0.1", c.perception_port))
-            self.tcp.listen(4)
-            self.tcp.setblocking(False)
-            self.perception_address = self.tcp.getsockname()
+        try:
+            self.udp = _bound(socket.SOCK_DGRAM, parse_hostport(c.bind), "--bind", "MAVLink (UDP)")
+            self.udp.setblocking(False)
+            self.mavlink_address = self.udp.getsockname()
+            if c.perception_port >= 0:
+                self.tcp = _bound(socket.SOCK_STREAM, ("127.0.0.1", c.perception_port),
+                                  "--perception-port", "perception (TCP)")  # fmt: skip
+                self.tcp.listen(4)
+                self.tcp.setblocking(False)
+                self.perception_address = self.tcp.getsockname()
+        except BaseException:
+            self.close()  # the socket bound before the one that failed
+            raise
 
     # ------------------------------------------------------------------ life cycle
     def start(self) -> SimVehicle:

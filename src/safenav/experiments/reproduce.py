@@ -242,16 +242,18 @@ def run_trial(trial: Trial) -> dict[str, Any]:
 
 
 def parse_steps(text: str) -> int:
-    """``"300000"``, ``"300_000"``, ``"300k"``, ``"2M"``, ``"1e6"`` -> an int of env steps."""
-    t = text.strip().lower().replace("_", "")
-    scale = {"k": 1_000, "m": 1_000_000}.get(t[-1:], 1)
+    """``"300000"``, ``"300_000"``, ``"300k"``, ``"2M"``, ``"1e6"`` -> an int of env steps (the
+    forms ``safenav train --total-steps`` takes: :func:`safenav.common.checks.parse_count`)."""
+    from safenav.common.checks import parse_count
+
     try:
-        value = float(t[:-1] if scale > 1 else t) * scale
+        value = parse_count(text)
     except ValueError:
-        raise SafenavError(f"--total-steps: {text!r} is not a number of env steps") from None
-    if value < 1 or value != int(value):
+        raise SafenavError(f"--total-steps: {text!r} is not a number of env steps (1000000, 1e6, "
+                           "1_000_000 or 1M)") from None  # fmt: skip
+    if value < 1:
         raise SafenavError(f"--total-steps: {text!r} must be a positive whole number")
-    return int(value)
+    return value
 
 
 def resolve_total_steps(specs: Sequence[str], labels: Sequence[str],
@@ -288,7 +290,7 @@ def parse_variants(specs: Sequence[str]) -> dict[str, tuple[str, tuple[str, ...]
         if not sep or not label.strip() or not words:
             raise SafenavError(
                 f"--variants {spec!r}: write LABEL=ALGO [train options], "
-                "e.g. 'csac_nocurr=csac --no-curriculum'"
+                "e.g. 'csac_nocurr=csac --csac.curriculum.no-enabled'"
             )
         if words[0] not in KNOWN_ALGOS:
             raise SafenavError(f"--variants {spec!r}: unknown algorithm {words[0]!r}; "

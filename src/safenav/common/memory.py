@@ -1,0 +1,69 @@
+"""Memory a training run or an evaluation will need, estimated from its config before anything is
+allocated, so that ``--num-envs 10000000`` is refused with the figure instead of dying out of
+memory minutes later (:func:`safenav.common.checks.check_memory` compares it with the machine).
+
+The estimates are rough upper bounds (within a factor of about 2), not accounting:
+
+- SafeNav env: ~64 KB per env (state, obstacles, sensing buffers; measured 29 KB/env on the easy
+  and 55 KB/env on the paper preset at 2048 envs) plus 16 bytes per occupancy-grid cell of each
+  of its ``num_worlds`` maps; another Gymnasium env: ~16 KB per copy;
+- replay buffer: ``capacity x (2 observations + action + 4 scalars)`` float32 (its storage is one
+  tensor), plus the n-step columns when used; PPO rollout: ``rollout_steps x num_envs``
+  transitions, twice (minibatch copies);
+- networks: the MLPs' weights with gradients and Adam moments (4 copies), targets (1 copy);
+- per-step activations: ``num_envs`` observations through the networks, x8.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+FLOAT = 4
+SAFENAV_ENV_BYTES = 64 * 1024
+GYM_ENV_BYTES = 16 * 1024
+
+
+def env_bytes(num_envs: int, env_config: Any | None) -> float:
+    """The vector env's memory (``env_config`` None: a non-SafeNav Gymnasium env)."""
+    if env_config is None:
+        return num_envs * GYM_ENV_BYTES
+    worlds = getattr(env_config, "num_worlds", 0) or min(num_envs, 16)
+    cells = (env_config.map_size / env_config.grid_resolution) ** 2
+    return num_envs * SAFENAV_ENV_BYTES + min(worlds, num_envs) * cells * 16
+
+
+def _mlp_params(sizes: list[int]) -> int:
+    return sum(a * b + b for a, b in zip(sizes[:-1], sizes[1:], strict=False))
+
+
+def network_bytes(net: Any, obs_floats: int, action_dim: int, critics: int) -> float:
+    """The actor and ``critics`` critics (each with a target copy) with Adam state."""
+    features = net.lidar_embed + net.dynamic_embed + obs_floats
+    actor = _mlp_params([features, *net.hidden, 2 * action_dim])
+    critic = _mlp_params([features + action_dim, *net.hidden, 1])
+    return (4 * (actor + critics * critic) + critics * critic) * FLOAT
+
+
+def training_memory(algo: str, num_envs: int, total_steps: int, cfg: Any,
+                    obs_shapes: dict[str, tuple[int, ...]], action_dim: int,
+                    env_config: Any | None) -> dict[str, float]:  # fmt: skip
+    """Bytes per part of a training run of ``algo`` with algorithm config ``cfg``."""
+    obs = sum(math.prod(s) for s in obs_shapes.values())
+    parts = {"envs": env_bytes(num_envs, env_config)}
+    if algo in ("ppo", "ppo_lag"):
+        per = obs + action_dim + 1 + 3 * 2 + 1
+        parts["rollout"] = 2 * cfg.rollout_steps * num_envs * per * FLOAT
+        critics = 2
+    else:
+        capacity = min(cfg.buffer_size, max(total_steps, cfg.batch_size))
+        width = 2 * obs + action_dim + 4 + (obs + 2 if getattr(cfg, "cost_n_step", 1) > 1 else 0)
+        parts["replay buffer"] = capacity * width * FLOAT
+        critics = cfg.num_critics + (cfg.num_cost_critics or cfg.num_critics)
+        parts["minibatches"] = 4 * cfg.batch_size * width * FLOAT
+    parts["networks"] = network_bytes(cfg.net, obs, action_dim, critics)
+    parts["activations"] = 8 * num_envs * (obs + max(cfg.net.hidden, default=0)) * FLOAT
+    return parts
+
+
+__all__ = ["env_bytes", "network_bytes", "training_memory"]
