@@ -184,8 +184,27 @@ def test_render_draws_the_wall_and_the_outcome():
     assert not np.array_equal(img[:HEADER], plain[:HEADER])  # the outcome label
 
 
+def test_write_gif_is_a_looping_animation_pillow_reads_back(tmp_path):
+    from PIL import Image, ImageSequence
+
+    from safenav.envs.render import write_gif
+
+    red, blue = np.zeros((8, 10, 3), np.uint8), np.zeros((8, 10, 3), np.uint8)
+    red[..., 0], blue[..., 2] = 255, 255
+    write_gif(tmp_path / "a.gif", [red, blue, blue], fps=5)
+    with Image.open(tmp_path / "a.gif") as gif:
+        assert gif.info["loop"] == 0
+        frames = [(np.asarray(f.convert("RGB")), f.info["duration"])
+                  for f in ImageSequence.Iterator(gif)]  # fmt: skip
+    # Pillow merges the two identical blue frames into one of twice the duration.
+    assert [d for _, d in frames] == [200, 400]
+    assert tuple(frames[0][0][4, 5]) == (255, 0, 0) and tuple(frames[1][0][4, 5]) == (0, 0, 255)
+    with pytest.raises(ValueError, match="at least one frame"):
+        write_gif(tmp_path / "b.gif", [], fps=5)
+
+
 def test_the_flight_demos_gif_draws_the_wall(tmp_path):
-    import imageio.v3 as iio
+    from PIL import Image, ImageSequence
 
     from safenav.deploy.demo import render_flight_gif
     from safenav.envs.render import HEADER
@@ -194,6 +213,7 @@ def test_the_flight_demos_gif_draws_the_wall(tmp_path):
     snaps = [{"t": 0.2 * i, "pos": [-24.0 + 0.3 * i, -9.2, 1.3], "dyn_pos": [], "collisions": 0}
              for i in range(3)]  # fmt: skip
     render_flight_gif(tmp_path / "f.gif", cfg, 1, snaps, [-24.0, -9.2, 1.3], [19.0, 24.0, 1.2])
-    frames = iio.imread(tmp_path / "f.gif", index=None)
-    assert frames.shape[0] == 3
+    with Image.open(tmp_path / "f.gif") as gif:
+        frames = [np.asarray(f.convert("RGB")) for f in ImageSequence.Iterator(gif)]
+    assert len(frames) == 3
     assert tuple(frames[-1][HEADER + 1, 280]) == WALL

@@ -163,8 +163,6 @@ def render_flight_gif(path: Path, cfg: EnvConfig, world_seed: int, snapshots: li
     """Top-down GIF of a flight from the simulator's truth snapshots (the arena's wall, pillars,
     moving obstacles, the UAV's trail, start and goal), in the style of the env's renderer, with
     its legend and scale bar."""
-    import imageio.v3 as iio
-
     from safenav.envs.render import (
         PILLAR,
         PILLAR_LOW,
@@ -175,6 +173,7 @@ def render_flight_gif(path: Path, cfg: EnvConfig, world_seed: int, snapshots: li
         draw_goal,
         draw_mover,
         map_canvas,
+        write_gif,
     )
 
     world = generate_world(cfg, world_seed)
@@ -209,7 +208,7 @@ def render_flight_gif(path: Path, cfg: EnvConfig, world_seed: int, snapshots: li
                   f"collisions={snap.get('collisions', 0)}")  # fmt: skip
         frames.append(decorate(img, status, scale))
     path.parent.mkdir(parents=True, exist_ok=True)
-    iio.imwrite(path, np.stack(frames), duration=1000 / fps, loop=0)
+    write_gif(path, frames, fps)
 
 
 __all__ = [

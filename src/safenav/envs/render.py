@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 from PIL import Image, ImageDraw
@@ -163,4 +164,16 @@ def render_topdown(
     return decorate(img, status, scale, outcome)
 
 
-__all__ = ["decorate", "draw_goal", "draw_mover", "map_canvas", "render_topdown"]
+def write_gif(path: str | Path, frames: Sequence[np.ndarray], fps: float) -> None:
+    """Write RGB ``frames`` (``(H, W, 3)`` uint8 arrays) as a looping GIF at ``fps``.
+
+    Pillow alone (it was imageio's GIF writer too: this is the call imageio made, so the files
+    are byte-identical). Pillow merges consecutive identical frames into one longer frame.
+    """
+    if not len(frames):
+        raise ValueError("write_gif needs at least one frame")
+    first, *rest = (Image.fromarray(np.asarray(f)) for f in frames)
+    first.save(path, format="GIF", save_all=True, append_images=rest, duration=1000 / fps, loop=0)
+
+
+__all__ = ["decorate", "draw_goal", "draw_mover", "map_canvas", "render_topdown", "write_gif"]

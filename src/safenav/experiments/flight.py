@@ -4,13 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import imageio.v3 as iio
-import numpy as np
 import torch
 
 from safenav.envs.config import make_config
 from safenav.envs.nav import SafeNavVectorEnv
-from safenav.envs.render import render_topdown
+from safenav.envs.render import render_topdown, write_gif
 from safenav.envs.scripted import BorderFollower, go_to_goal, potential_field
 from safenav.errors import SafenavError
 from safenav.experiments.evaluate import fixed_test_scenario
@@ -81,7 +79,7 @@ def render_episode(
     Path(out).parent.mkdir(parents=True, exist_ok=True)
     # Hold the last frame for a second so the outcome is visible.
     frames += [frames[-1]] * fps
-    iio.imwrite(out, np.stack(frames), duration=1000 / fps, loop=0)
+    write_gif(out, frames, fps)
     return stats
 
 
