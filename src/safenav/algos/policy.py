@@ -139,7 +139,15 @@ def _check_layout(meta: dict[str, Any], path: Path) -> None:
 def load_policy(path: str | Path, device: str | torch.device = "cpu") -> Policy:
     """The deterministic policy of a training checkpoint (a ``checkpoint.pt`` or its run dir)."""
     path = Path(path)
-    state = load_checkpoint(path, map_location=device)
+    return policy_from_state(load_checkpoint(path, map_location=device), path, device)
+
+
+def policy_from_state(
+    state: dict[str, Any], where: str | Path = "policy", device: str | torch.device = "cpu"
+) -> Policy:
+    """The deterministic policy of a checkpoint dict already in memory (e.g. a weight average);
+    ``where`` names it in errors."""
+    path = where
     policy = state.get("policy")
     if not isinstance(policy, dict) or "meta" not in policy or "state_dict" not in policy:
         raise SafenavError(f"{path}: the checkpoint holds no policy (algorithm {state.get('algo')!r} "
@@ -174,4 +182,4 @@ def save_policy_only(src: str | Path, dst: str | Path) -> Path:
 
 
 __all__ = ["POLICY_FORMAT_VERSION", "Policy", "build_actor", "check_fits_safenav", "load_policy",
-           "save_policy_only"]  # fmt: skip
+           "policy_from_state", "save_policy_only"]  # fmt: skip

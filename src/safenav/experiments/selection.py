@@ -1,0 +1,128 @@
+"""A run's final policy, chosen without the test scenario, and its report.
+
+The env seeds of SafeNav's fixed scenarios fall in three disjoint sets (``docs/reproduce.md``,
+"Seeds"):
+
+- :data:`TEST_SEED` (1): the paper's fixed test scenario (IV-B). Final reports only.
+- :data:`HELDOUT_SEEDS` (2-6): five more maps of the same kind, reported beside the test, never
+  used for a choice.
+- :data:`VALIDATION_SEEDS` (12345-12348): every choice (a run's policy, soups, hyperparameters).
+  The periodic evaluation during training flies maps 12345 + w too (``EVAL_SEED``).
+
+Training maps are drawn from seeds >= 100000 (``RunConfig.train_env_seed``).
+
+:func:`select_final_policy` is what a run does when it ends (``safenav train --select``): the
+greedy soup (:func:`~safenav.experiments.soup.greedy_soup`) of the policies it kept in the last
+half of training, ranked by their periodic evaluations and compared on validation episodes,
+written to ``RUN_DIR/policy.pt``. :func:`report_policy` then flies it on the test and held-out
+scenarios.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from safenav.common.evaluation import EVAL_SEED
+from safenav.common.jsonout import write_json
+from safenav.errors import SafenavError
+
+TEST_SEED = 1
+HELDOUT_SEEDS = (2, 3, 4, 5, 6)
+VALIDATION_SEEDS = (EVAL_SEED, EVAL_SEED + 1, EVAL_SEED + 2, EVAL_SEED + 3)
+RESERVED_SEEDS = frozenset((TEST_SEED, *HELDOUT_SEEDS))
+"""Seeds no training or selection code may fly (tests/test_selection.py checks it)."""
+
+
+def validation_score(episodes: int = 256, device: str = "cpu") -> Callable[[dict[str, Any]], float]:
+    """Success rate of a policy state on ``episodes`` validation episodes, spread evenly over
+    the :data:`VALIDATION_SEEDS` maps (deterministic actions, the protocol of ``safenav eval``)."""
+    from safenav.experiments.soup import policy_from_state
+
+    per_map = max(1, math.ceil(episodes / len(VALIDATION_SEEDS)))
+
+    def score(state: dict[str, Any]) -> float:
+        from safenav.experiments.evaluate import evaluate
+
+        fn, cfg = policy_from_state(state, device)
+        rates = [evaluate(fn, cfg, env_seed=s, episodes=per_map, device=device)["success_rate"]
+                 for s in VALIDATION_SEEDS]  # fmt: skip
+        return float(sum(rates) / len(rates))
+
+    return score
+
+
+def select_final_policy(
+    run_dir: str | Path,
+    episodes: int = 256,
+    last_fraction: float = 0.5,
+    device: str = "cpu",
+    on_step: Callable[[dict[str, Any]], None] | None = None,
+) -> dict[str, Any]:
+    """Choose ``run_dir/policy.pt`` on validation alone: the greedy soup of the policies kept
+    (``--keep-policies``) in the last ``last_fraction`` of the run, ranked by their periodic
+    evaluation (validation maps) and each candidate soup compared on ``episodes`` validation
+    episodes. Returns the record written to ``run_dir/selection.json``."""
+    from safenav.algos.averaging import load_policy_states
+    from safenav.common.checkpoint import save_checkpoint
+    from safenav.experiments.soup import greedy_soup
+
+    run_dir = Path(run_dir)
+    t0 = time.perf_counter()
+    states = load_policy_states([run_dir / "policies"])
+    last = max(int(s["global_step"]) for s in states)
+    late = [s for s in states if int(s["global_step"]) >= (1.0 - last_fraction) * last]
+    ranks = {int(s["global_step"]): _periodic_success(s) for s in late}
+    state, log = greedy_soup(late, validation_score(episodes, device), on_step, rank_scores=ranks)
+    save_checkpoint(run_dir / "policy.pt", state)
+    record = {"selection": "validation", "method": "greedy soup", "validation_seeds": list(VALIDATION_SEEDS),
+              "validation_episodes": episodes, "candidates": sorted(ranks), "chosen_steps": state["averaged_steps"],
+              "log": log, "wall_clock_s": round(time.perf_counter() - t0, 1)}  # fmt: skip
+    write_json(run_dir / "selection.json", record)
+    return record
+
+
+def _periodic_success(state: dict[str, Any]) -> float:
+    ev = state.get("evaluation") or {}
+    value = float(ev.get("eval/success_rate", math.nan))
+    return -1.0 if math.isnan(value) else value
+
+
+def report_policy(
+    policy: str | Path,
+    episodes: int = 200,
+    device: str = "cpu",
+    heldout: Sequence[int] = HELDOUT_SEEDS,
+) -> dict[str, Any]:
+    """The final report of a chosen policy: the test scenario (:data:`TEST_SEED`) and each
+    held-out map, ``episodes`` episodes each (success / collision / timeout and the arena
+    metrics), plus the held-out episodes pooled."""
+    from safenav.experiments.evaluate import evaluate
+    from safenav.experiments.flight import resolve_policy
+
+    fn, cfg = resolve_policy(Path(policy), "checkpoint", device)
+    if cfg is None:
+        raise SafenavError(f"{policy}: not a SafeNav policy, no test scenario to report on")
+    keys = ("success_rate", "collision_rate", "timeout_rate", "detour_ratio",
+            "border_time_fraction", "collision_static_rate", "collision_dynamic_rate",
+            "collision_border_rate")  # fmt: skip
+
+    def summary(seed: int) -> dict[str, Any]:
+        res = evaluate(fn, cfg, env_seed=seed, episodes=episodes, device=device)
+        return {k: res[k] for k in keys} | {"env_seed": seed, "episodes": episodes,
+                                            "per_episode": {k: res["per_episode"][k]
+                                                            for k in ("success", "collision")}}  # fmt: skip
+
+    test = summary(TEST_SEED)
+    held = [summary(s) for s in heldout]
+    pooled = {k: float(sum(h[k] for h in held) / len(held)) for k in ("success_rate", "collision_rate",
+                                                                     "timeout_rate")}  # fmt: skip
+    return {"test": test, "heldout": {"seeds": list(heldout), "episodes_per_seed": episodes,
+                                      **pooled, "per_seed": held}}  # fmt: skip
+
+
+__all__ = ["HELDOUT_SEEDS", "RESERVED_SEEDS", "TEST_SEED", "VALIDATION_SEEDS", "report_policy",
+           "select_final_policy", "validation_score"]  # fmt: skip

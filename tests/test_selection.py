@@ -1,0 +1,115 @@
+"""A run's final policy is chosen on validation alone, then reported on the test and held-out
+scenarios; no training or selection code path flies the test or held-out maps."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+import safenav.envs.nav as nav
+import safenav.envs.world as world
+from safenav.cli import main
+from safenav.common.checkpoint import load_checkpoint
+from safenav.experiments import selection
+from safenav.experiments.selection import (
+    HELDOUT_SEEDS,
+    RESERVED_SEEDS,
+    TEST_SEED,
+    VALIDATION_SEEDS,
+    report_policy,
+    select_final_policy,
+)
+from safenav.experiments.soup import greedy_soup
+
+
+@pytest.fixture
+def world_seeds(monkeypatch) -> list[int]:
+    """Every world seed drawn while the fixture is active (generate_world is the one door)."""
+    seen: list[int] = []
+    original = world.generate_world
+
+    def recording(cfg, seed):
+        seen.append(int(seed))
+        return original(cfg, seed)
+
+    monkeypatch.setattr(world, "generate_world", recording)
+    monkeypatch.setattr(nav, "generate_world", recording)
+    return seen
+
+
+def test_the_seed_sets_are_disjoint():
+    assert TEST_SEED == 1 and set(HELDOUT_SEEDS) == {2, 3, 4, 5, 6}
+    assert not RESERVED_SEEDS & set(VALIDATION_SEEDS)
+
+
+def test_training_and_selection_never_fly_the_test_or_heldout_maps(tmp_path, world_seeds):
+    from tests.test_train_cli import FAST
+
+    run_dir = tmp_path / "run"
+    main(["train", "--algo", "csac", "--preset", "easy", "--seed", "2", "--total-steps", "600",
+          "--keep-policies", "--run-dir", str(run_dir), *FAST])  # fmt: skip
+    assert world_seeds, "the recorder saw no world: the check would pass vacuously"
+    trained = len(world_seeds)
+    record = select_final_policy(run_dir, episodes=8)
+    assert set(VALIDATION_SEEDS) <= set(world_seeds[trained:])
+    assert not set(world_seeds) & RESERVED_SEEDS, sorted(set(world_seeds) & RESERVED_SEEDS)
+    # the record and the policy it describes
+    assert record["selection"] == "validation"
+    written = json.loads((run_dir / "selection.json").read_text())
+    assert written["chosen_steps"] == record["chosen_steps"]
+    policy = load_checkpoint(run_dir / "policy.pt")
+    assert policy["averaged_steps"] == record["chosen_steps"]
+    assert set(record["chosen_steps"]) <= set(record["candidates"])
+    # only the late half of the run is a candidate
+    assert min(record["candidates"]) >= 300
+    # then the report flies exactly the test and held-out maps
+    world_seeds.clear()
+    report = report_policy(run_dir / "policy.pt", episodes=4, heldout=(2, 3))
+    assert set(world_seeds) == {TEST_SEED, 2, 3}
+    assert report["test"]["env_seed"] == TEST_SEED and report["test"]["episodes"] == 4
+    assert [h["env_seed"] for h in report["heldout"]["per_seed"]] == [2, 3]
+    for key in ("success_rate", "collision_rate", "timeout_rate"):
+        assert 0.0 <= report["heldout"][key] <= 1.0
+
+
+def test_ranking_scores_spare_the_single_flights():
+    """With periodic-evaluation scores given, only the top-ranked policy alone and the candidate
+    soups are scored; the ranking follows the given scores."""
+    states = [_fake_state(step, value) for step, value in ((100, 0.0), (200, 1.0), (300, 2.0))]
+    calls = []
+
+    def score(state):
+        calls.append(tuple(state.get("averaged_steps", [state["global_step"]])))
+        return float(state["policy"]["state_dict"]["w"].mean())
+
+    soup, log = greedy_soup(states, score, rank_scores={100: 0.9, 200: 0.1, 300: 0.5})
+    assert calls[0] == (100,)  # the best-ranked alone, scored once
+    assert len(calls) == 3  # + two candidate soups, no single flight of 200 or 300
+    assert [r["kind"] for r in log] == ["rank", "rank", "rank", "single", "soup", "soup"]
+    # 100 (w = 0) first, then 300 (the soup's mean rises to 1: kept), then 200 (mean 1: kept)
+    assert soup["averaged_steps"] == [100, 200, 300]
+
+
+def _fake_state(step: int, value: float) -> dict:
+    import torch
+
+    meta = {"algo": "csac", "format_version": 1, "net": {}, "global_step": step}
+    return {"algo": "csac", "global_step": step, "config": {"run": {"seed": 0}},
+            "policy": {"meta": meta, "state_dict": {"w": torch.full((2,), value)}}}  # fmt: skip
+
+
+def test_selection_refuses_a_run_without_kept_policies(tmp_path):
+    from safenav.errors import SafenavError
+
+    (tmp_path / "policies").mkdir()
+    with pytest.raises(SafenavError, match="no policy files"):
+        select_final_policy(tmp_path)
+
+
+def test_report_needs_a_safenav_policy(tmp_path):
+    path = Path(tmp_path / "missing.pt")
+    with pytest.raises(Exception, match="missing.pt"):
+        report_policy(path, episodes=1)
+    assert selection.TEST_SEED == 1
