@@ -12,6 +12,7 @@ out of memory), 130/143 for Ctrl-C/SIGTERM.
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import difflib
 import os
 import re
@@ -23,6 +24,9 @@ import tyro
 from safenav.errors import EXIT_RUNTIME, EXIT_USAGE, SafenavError, one_line
 
 app = tyro.extras.SubcommandApp()
+ARGS: contextvars.ContextVar[tuple[str, ...]] = contextvars.ContextVar("safenav_args", default=())
+"""The command line being run: which options were given, even when given their default value
+(``train --resume RUN --device cpu`` of a run trained on cuda)."""
 
 # The verbs in the order ``safenav --help`` lists them, with their one-line summaries (the detail
 # is each verb's own --help).
@@ -60,6 +64,7 @@ def main(argv: list[str] | None = None) -> None:
         close = difflib.get_close_matches(args[0], list(VERBS), n=1)
         hint = f"did you mean {close[0]!r}? " if close else ""
         _fail(f"unknown verb {args[0]!r}: {hint}safenav --help lists the verbs", EXIT_USAGE)
+    token = ARGS.set(tuple(args))
     try:
         _run(args)
     except KeyboardInterrupt as err:
@@ -85,6 +90,8 @@ def main(argv: list[str] | None = None) -> None:
             _fail("this is a bug in safenav: please report it (SAFENAV_TRACEBACK=1 shows where)",
                   EXIT_RUNTIME)  # fmt: skip
         _fail(message, code)
+    finally:
+        ARGS.reset(token)
 
 
 def _run(args: list[str]) -> None:

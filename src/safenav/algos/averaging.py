@@ -139,7 +139,8 @@ def load_policy_states(
             raise SafenavError(f"--steps {lo} {hi}: the first step must not exceed the second")
         states = between_steps(states, lo, hi)
         if not states:
-            raise SafenavError(f"no policy with {lo} <= step <= {hi} in {[str(p) for p in paths]}")
+            raise SafenavError(f"--steps {lo} {hi}: no policy with {lo} <= step <= {hi} in "
+                               f"{[str(p) for p in paths]}")  # fmt: skip
     return states
 
 

@@ -93,6 +93,12 @@ class CSACConfig:
             raise ValueError("num-cost-critics >= 0, lambda-every >= 1, episode-lambda-lr > 0")
         if self.init_alpha <= 0 or self.init_lambda < 0:
             raise ValueError("init-alpha must be > 0 and init-lambda >= 0")
+        if self.lambda_max is not None and self.lambda_max < 0:
+            raise ValueError(f"lambda-max={self.lambda_max} must be >= 0 (or None: no cap)")
+        if self.updates_per_step > 1000:
+            raise ValueError(f"updates-per-step={self.updates_per_step} must be <= 1000")
+        if self.cost_horizon < 0:
+            raise ValueError(f"cost-horizon={self.cost_horizon} must be >= 0 (0 = the env's limit)")
         # 0 is allowed: it freezes that part (tests freeze the critics that way)
         for name in ("actor_lr", "reward_critic_lr", "cost_critic_lr", "alpha_lr", "lambda_lr"):
             lr = getattr(self, name)

@@ -78,6 +78,14 @@ class PPOConfig:
             raise ValueError(f"value-norm-beta={self.value_norm_beta} must lie in (0, 1)")
         if self.init_lambda < 0 or self.lambda_lr <= 0:
             raise ValueError("init-lambda must be >= 0 and lambda-lr > 0")
+        if self.epochs > 1000:
+            raise ValueError(f"epochs={self.epochs} must be <= 1000")
+        if self.entropy_coef < 0:
+            raise ValueError(f"entropy-coef={self.entropy_coef} must be >= 0")
+        if self.target_kl is not None and self.target_kl <= 0:
+            raise ValueError(f"target-kl={self.target_kl} must be > 0 (or None: never stop early)")
+        if self.lambda_max is not None and self.lambda_max < 0:
+            raise ValueError(f"lambda-max={self.lambda_max} must be >= 0 (or None: no cap)")
 
 
 __all__ = ["PPOConfig"]

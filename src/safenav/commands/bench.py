@@ -28,13 +28,22 @@ def bench(
     sensor-to-setpoint latency on one CPU thread. soak: ``--env-steps`` env steps and
     ``--updates`` CSAC updates, resident memory at the start and the end (no growth beyond the
     replay buffer).
+
+    Args:
+        which: The benchmark.
+        json_out: Also write the figures here as JSON; the directory must exist.
+        repeats: Repeats per measurement (1-1000; the median is reported).
+        preset: Env preset of env and soak.
+        num_envs: env: the env counts to measure.
+        env_steps: soak: env steps.
+        updates: soak: CSAC updates.
     """
-    from safenav.common.checks import at_least, check_memory, check_output_file
+    from safenav.common.checks import at_least, check_memory, check_output_file, in_range
     from safenav.common.memory import env_bytes
     from safenav.envs.config import make_config
 
     cfg = make_config(preset)  # ValueError for an unknown preset: exit 2
-    at_least("--repeats", repeats, 1)
+    in_range("--repeats", repeats, 1, 1000)
     at_least("--env-steps", env_steps, 1)
     at_least("--updates", updates, 1)
     if not num_envs:

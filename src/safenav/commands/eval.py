@@ -29,6 +29,16 @@ def eval_(
     the checkpoint's env preset. ``--policy scripted`` evaluates the potential-field baseline,
     ``straight`` flies straight at the goal, ``border`` around the field along the border (the
     loophole probe: it must fail in the closed arena).
+
+    Args:
+        checkpoint: Policy or training checkpoint, or a run directory (its checkpoint.pt).
+        env_seed: Env seed of the test scenario's map (1 = the paper protocol's).
+        episodes: Episodes to fly, all at once (one env each); the protocol flies 200.
+        shield: Correct the actions with the velocity-obstacle safety shield.
+        json_out: Also write the metrics here as JSON (no value: null); the directory must exist.
+        policy: What flies: the checkpoint, or a baseline without one.
+        preset: Env preset (easy, medium, paper); default: the checkpoint's, else paper.
+        device: Torch device of the env and the policy (cpu or cuda).
     """
     from rich.console import Console
     from rich.table import Table
@@ -81,11 +91,18 @@ def eval_(
 def check_eval_args(env_seed: int, episodes: int, json_out: Path | None, device: str,
                     preset: str | None) -> None:  # fmt: skip
     """Refuse bad values before the policy flies a single episode."""
-    from safenav.common.checks import at_least, check_device, check_memory, check_output_file
+    from safenav.common.checks import (
+        at_least,
+        check_device,
+        check_memory,
+        check_output_file,
+        in_range,
+    )
+    from safenav.common.config import MAX_SEED
     from safenav.common.memory import env_bytes
     from safenav.envs.config import make_config
 
-    at_least("--env-seed", env_seed, 0)
+    in_range("--env-seed", env_seed, 0, MAX_SEED)
     at_least("--episodes", episodes, 1)
     check_device(device)
     cfg = make_config(preset or "paper")  # ValueError for an unknown preset: exit 2

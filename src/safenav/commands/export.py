@@ -53,10 +53,15 @@ def export(
         out = save_policy_only(checkpoint, policy_only)
         print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB)")
         return
+    import onnx as onnx_lib
+
+    from safenav.common.checks import in_range
     from safenav.deploy.export import export_onnx, is_torch_file, load_actor
     from safenav.deploy.scripted import GoToGoalActor
     from safenav.envs.config import make_config
 
+    in_range("--opset", opset, 1, onnx_lib.defs.onnx_opset_version(), "ONNX opsets; default 17")
+    make_config(preset)  # ValueError for an unknown preset: exit 2
     # --onnx must never land on a checkpoint (or any non-ONNX file): refused before exporting.
     check_output_file(onnx, "--onnx", "policy.onnx")
     if onnx.suffix.lower() != ".onnx" or is_torch_file(onnx):

@@ -12,6 +12,7 @@ import tyro
 from safenav.cli import app
 
 EXIT_ABORTED = 3
+MAX_DISTANCE = 10_000.0  # m: goals and origins beyond this are typos
 EXIT_COLLIDED = 4  # the flight completed but hit something (README, exit codes)
 
 
@@ -85,7 +86,8 @@ def fly(
             f"--rate {rate} Hz is too low: PX4 offboard needs a steady setpoint stream, use >= 10 Hz"
         )
     check_fly_args(policy, connect, perception, rate, takeoff_altitude, link_timeout,
-                   max_flight_time, json_out, demo, preset, episode, gif)  # fmt: skip
+                   max_flight_time, json_out, demo, preset, episode, gif, goal, origin,
+                   checkpoint if demo and not scripted and policy is None else None)  # fmt: skip
     try:
         if demo:
             from safenav.deploy.demo import run_demo
@@ -144,7 +146,8 @@ def describe_flight(summary: dict) -> str:
 def check_fly_args(policy: Path | None, connect: str, perception: str, rate: float,
                    takeoff_altitude: float, link_timeout: float, max_flight_time: float,
                    json_out: Path | None, demo: bool, preset: str, episode: int,
-                   gif: Path | None) -> None:  # fmt: skip
+                   gif: Path | None, goal=None, origin=(0.0, 0.0, 0.0),
+                   checkpoint: Path | None = None) -> None:  # fmt: skip
     """Refuse bad values before connecting to anything."""
     from safenav.common.checks import (
         at_least,
@@ -158,16 +161,37 @@ def check_fly_args(policy: Path | None, connect: str, perception: str, rate: flo
     in_range("--takeoff-altitude", takeoff_altitude, 0.1, 100.0, "metres above home")
     in_range("--link-timeout", link_timeout, 0.05, 60.0, "seconds")
     at_least("--max-flight-time", max_flight_time, 1.0, "seconds")
+    if goal is not None:
+        if not goal[2] > 0:
+            raise SafenavError(f"--goal {' '.join(map(str, goal))}: Z is the goal's altitude "
+                               "(ENU, metres): it must be > 0")  # fmt: skip
+        if max(map(abs, goal)) > MAX_DISTANCE:
+            raise SafenavError(f"--goal {' '.join(map(str, goal))}: more than {MAX_DISTANCE:g} m "
+                               "from the origin")  # fmt: skip
+    if max(map(abs, origin)) > MAX_DISTANCE:
+        raise SafenavError(f"--origin {' '.join(map(str, origin))}: more than {MAX_DISTANCE:g} m "
+                           "from the world origin")  # fmt: skip
     check_connect_url(connect)
     if perception:
         parse_hostport(perception, "--perception")
     if json_out is not None:
         check_output_file(json_out, "--json", "flight.json")
-    if policy is not None and not policy.exists():
+    if policy is not None:
+        from safenav.deploy.export import is_torch_file
+
         onnx = policy if policy.suffix.lower() == ".onnx" else policy.with_suffix(".onnx")
-        raise SafenavError(
-            f"--policy {policy} not found: export one with `safenav export CHECKPOINT --onnx {onnx}`"
-        )
+        if not policy.exists():
+            raise SafenavError(f"--policy {policy} not found: export one with `safenav export "
+                               f"CHECKPOINT --onnx {onnx}`")  # fmt: skip
+        if policy.is_dir():
+            raise SafenavError(f"--policy {policy} is a directory, not an exported policy.onnx")
+        if policy.suffix.lower() != ".onnx" or is_torch_file(policy):
+            # the fix names a new .onnx file: never one that would overwrite the checkpoint
+            raise SafenavError(f"--policy {policy} is not an exported ONNX policy: export it with "
+                               f"`safenav export {policy} --onnx {onnx}` and fly that")  # fmt: skip
+    if checkpoint is not None and not checkpoint.is_file():
+        raise SafenavError(f"--checkpoint {checkpoint} not found: train one (safenav train), pass "
+                           "--policy policy.onnx, or fly --scripted")  # fmt: skip
     if demo:
         from safenav.envs.config import make_config
 
@@ -189,8 +213,25 @@ def check_connect_url(url: str) -> None:
     if not sep or scheme not in ("udp", "udpin", "udpout", "tcp", "tcpin", "tcpout", "serial"):
         raise SafenavError(f"--connect {url!r}: expected a MAVSDK URL such as "
                            "udpin://127.0.0.1:14540 or serial:///dev/ttyTHS1:921600")  # fmt: skip
-    if scheme != "serial":
-        parse_hostport(url, "--connect")
+    if scheme == "serial":
+        return
+    host, port = parse_hostport(url, "--connect")
+    if scheme in ("udpin", "udp", "tcpin") and port != 0:  # we listen there: is it free?
+        import errno
+        import socket
+
+        from safenav.errors import SafenavRuntimeError
+
+        kind = socket.SOCK_STREAM if scheme == "tcpin" else socket.SOCK_DGRAM
+        with socket.socket(socket.AF_INET, kind) as probe:
+            try:
+                probe.bind((host if host not in ("", "0.0.0.0") else "0.0.0.0", port))
+            except OSError as err:
+                if err.errno == errno.EADDRINUSE:
+                    raise SafenavRuntimeError(f"--connect {url}: port {port} is already in use "
+                                              "(another fly, a ground station?)") from None  # fmt: skip
+                raise SafenavError(f"--connect {url}: cannot listen there "
+                                   f"({err.strerror or err})") from None  # fmt: skip
 
 
 def fly_policy(policy: Path, connect: str, goal, perception: str, rate: float, shield: bool,

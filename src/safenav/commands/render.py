@@ -27,8 +27,18 @@ def render(
     Flies episode ``episode`` of the fixed test scenario (env seed ``env_seed``, full density)
     with the checkpoint's deterministic policy, or a scripted potential-field controller
     (``--policy scripted``, the default without a checkpoint) or uniform random actions.
+
+    Args:
+        checkpoint: Policy or training checkpoint, or a run directory.
+        out: The GIF to write (*.gif; its directory must exist).
+        policy: What flies: the checkpoint, or a baseline without one.
+        preset: Env preset (easy, medium, paper); default: the checkpoint's, else paper.
+        env_seed: Env seed of the test scenario's map.
+        episode: Which episode of the fixed scenario (start and goal), from 0.
+        fps: Frames per second of the GIF (1-100).
     """
-    from safenav.common.checks import at_least, check_output_file, in_range
+    from safenav.common.checks import check_output_file, in_range
+    from safenav.common.config import MAX_SEED
     from safenav.envs.config import make_config
     from safenav.errors import SafenavError
     from safenav.experiments.flight import render_episode
@@ -36,7 +46,7 @@ def render(
     # Before the flight, so that a typo costs a second, not the episode.
     in_range("--fps", fps, 1, 100, "GIF frame times are whole 1/100 s")
     in_range("--episode", episode, 0, MAX_EPISODE, "the fixed scenario's episodes count from 0")
-    at_least("--env-seed", env_seed, 0)
+    in_range("--env-seed", env_seed, 0, MAX_SEED)
     if preset is not None:
         make_config(preset)  # ValueError for an unknown preset: exit 2
     check_output_file(out, "--out", "episode.gif")

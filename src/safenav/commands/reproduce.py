@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shlex
 import sys
 from pathlib import Path
@@ -81,16 +82,40 @@ def check_sweep(cfg) -> None:
     the preset, the output directory and every trial's ``safenav train`` options (its
     --train-args and --variants, parsed as train parses them)."""
     from safenav.commands.train import parse_train_args
-    from safenav.common.checks import at_least, check_device, check_output_dir
+    from safenav.common.checks import (
+        at_least,
+        check_device,
+        check_memory,
+        check_output_dir,
+        in_range,
+    )
+    from safenav.common.config import MAX_SEED
+    from safenav.common.memory import env_bytes
     from safenav.envs.config import make_config
-    from safenav.errors import SafenavError
+    from safenav.errors import SafenavError, SafenavRuntimeError
     from safenav.experiments.reproduce import parse_variants, plan
 
-    at_least("--first-seed", cfg.first_seed, 0)
+    in_range("--seeds", cfg.seeds, 1, 1000)
+    in_range("--first-seed", cfg.first_seed, 0, MAX_SEED - cfg.seeds + 1)
     at_least("--gpus-per-trial", cfg.gpus_per_trial, 0)
     if cfg.num_cpus is not None:
-        at_least("--num-cpus", cfg.num_cpus, 1)
+        in_range("--num-cpus", cfg.num_cpus, 1, 1024)
     check_device(cfg.device)
+    at_least("--eval-episodes", cfg.eval_episodes, 1)
+    check_memory(env_bytes(cfg.eval_episodes, make_config(cfg.preset or "paper")),
+                 f"--eval-episodes {cfg.eval_episodes:,} (one env each)", "evaluate fewer")  # fmt: skip
+    if not (cfg.address or os.environ.get("RAY_ADDRESS")):  # a local Ray: this machine's resources
+        cpus = cfg.num_cpus or os.cpu_count() or 1
+        if cfg.cpus_per_trial > cpus:
+            raise SafenavRuntimeError(f"--cpus-per-trial {cfg.cpus_per_trial} exceeds the {cpus} "
+                                      "CPUs of the local Ray instance: lower it or raise "
+                                      "--num-cpus")  # fmt: skip
+        if cfg.gpus_per_trial > 0:
+            import torch
+
+            if cfg.gpus_per_trial > torch.cuda.device_count():
+                raise SafenavRuntimeError(f"--gpus-per-trial {cfg.gpus_per_trial}: this machine "
+                                          f"has {torch.cuda.device_count()} CUDA GPU(s)")  # fmt: skip
     if cfg.preset is not None:
         make_config(cfg.preset)  # ValueError for an unknown preset: exit 2
     trials = plan(cfg)  # seeds, algorithms, --variants, --total-steps

@@ -51,21 +51,26 @@ def sim_vehicle(
     from safenav.deploy.sim_vehicle import SimVehicle, SimVehicleConfig
 
     torch.set_num_threads(1)  # one core for the autopilot loop, the rest for the others
-    from safenav.common.checks import at_least, in_range, parse_hostport, parse_port
+    from safenav.common.checks import in_range, parse_hostport, parse_port
+    from safenav.common.config import MAX_SEED
     from safenav.deploy.px4 import DEFAULT_PARAMS
     from safenav.envs.config import make_config
     from safenav.errors import SafenavError
 
     # Before the world is built and any port is bound.
-    make_config(preset)  # ValueError for an unknown preset: exit 2
-    at_least("--world-seed", world_seed, 0)
+    env_cfg = make_config(preset)  # ValueError for an unknown preset: exit 2
+    in_range("--world-seed", world_seed, 0, MAX_SEED)
+    if start is not None and not all(abs(x) < env_cfg.half for x in start):
+        raise SafenavError(f"--start {start[0]} {start[1]}: the takeoff point must lie inside the "
+                           f"{preset} map, |x|, |y| < {env_cfg.half:g} m")  # fmt: skip
     in_range("--density", density, 0.0, 1.0, "fraction of the obstacles")
     in_range("--episode", episode, 0, 999_999)
     parse_hostport(connect, "--connect")
     parse_hostport(bind, "--bind")
     parse_port("--perception-port", perception_port, allow=(-1,))
-    if duration is not None:
-        at_least("--duration", duration, 0.0, "seconds")
+    if duration is not None and not duration > 0:
+        raise SafenavError(f"--duration {duration}: must be > 0 seconds (omit it to run until "
+                           "interrupted)")  # fmt: skip
     params = {}
     for item in param:
         name, sep, value = item.partition("=")

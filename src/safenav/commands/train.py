@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import time
 from pathlib import Path
 from typing import Annotated
@@ -104,7 +105,8 @@ def plan(algo: str, run: RunConfig, csac: CSACConfig, ppo: PPOConfig, run_dir: P
                 f"--resume {run_dir}: config.json is not a {algo} run config ({err})"
             ) from None
         default = RunConfig()
-        changes = {k: getattr(run, k) for k in RESUMABLE if getattr(run, k) != getattr(default, k)}
+        changes = {k: getattr(run, k) for k in RESUMABLE
+                   if getattr(run, k) != getattr(default, k) or given(k)}  # fmt: skip
         run = dataclasses.replace(saved_run, **changes)
     elif run_dir is None:
         env_name = run.env.split(":")[-1]
@@ -121,8 +123,27 @@ def plan(algo: str, run: RunConfig, csac: CSACConfig, ppo: PPOConfig, run_dir: P
         cfg = dataclasses.replace(cfg, constrained=algo == "ppo_lag")
     check_device(run.device)
     obs_shapes, action_dim, env_cfg = env_spaces(run.env, run.preset)
+    if "lidar" in obs_shapes:  # each stride divides the range image's columns (36 -> 18 -> 9)
+        columns, prefix = obs_shapes["lidar"][-1], f"--{family}.net.lidar-strides"
+        if math.prod(cfg.net.lidar_strides) > columns:
+            raise SafenavError(f"{prefix} {' '.join(map(str, cfg.net.lidar_strides))}: their "
+                               f"product must not exceed the {columns} lidar columns")  # fmt: skip
+    if family == "ppo" and cfg.num_minibatches > cfg.rollout_steps * run.num_envs:
+        raise SafenavError(f"--ppo.num-minibatches {cfg.num_minibatches}: a rollout holds only "
+                           f"{cfg.rollout_steps * run.num_envs} transitions (--ppo.rollout-steps x "
+                           "--num-envs)")  # fmt: skip
     check_training_memory(algo, run, cfg, obs_shapes, action_dim, env_cfg)
     return run, cfg, Path(run_dir)
+
+
+def given(field: str) -> bool:
+    """Whether the command line names the option of RunConfig ``field`` (also when it gives
+    the default value: ``--device cpu`` to resume a run trained on cuda)."""
+    from safenav.cli import ARGS
+
+    flag = "--" + field.replace("_", "-")
+    negated = "--no-" + field.replace("_", "-")
+    return any(a in (flag, negated) or a.startswith(flag + "=") for a in ARGS.get())
 
 
 def check_training_memory(algo: str, run: RunConfig, cfg, obs_shapes, action_dim: int, env_cfg,
@@ -133,17 +154,23 @@ def check_training_memory(algo: str, run: RunConfig, cfg, obs_shapes, action_dim
     from safenav.common.memory import training_memory
 
     parts = training_memory(algo, run.num_envs, run.total_steps, cfg, obs_shapes, action_dim,
-                            env_cfg)  # fmt: skip
+                            env_cfg, run.eval_episodes if run.eval_every else 0)  # fmt: skip
     if available is None and run.device.startswith("cuda"):
         import torch
 
         available = torch.cuda.mem_get_info(torch.device(run.device))[0]
+    family = "ppo" if algo in ("ppo", "ppo_lag") else "csac"
+    knobs = {  # what sizes each part: the fix the message names
+        "envs": "--num-envs", "evaluation envs": "--eval-episodes",
+        "replay buffer": "--csac.buffer-size", "minibatches": "--csac.batch-size",
+        "rollout": "--num-envs or --ppo.rollout-steps", "n-step window": "--csac.cost-n-step",
+        "networks": f"the --{family}.net sizes or --csac.num-critics / --csac.num-cost-critics",
+        "activations": f"--num-envs or --{family}.net.hidden",
+    }  # fmt: skip
     big = sorted(parts.items(), key=lambda kv: -kv[1])[:3]
     detail = ", ".join(f"{k} {fmt_bytes(v)}" for k, v in big)
-    knob = "--csac.buffer-size" if "replay buffer" in parts else "--ppo.rollout-steps"
-    check_memory(sum(parts.values()),
-                 f"training {run.num_envs:,} envs ({detail})",
-                 f"lower --num-envs or {knob}", available)  # fmt: skip
+    check_memory(sum(parts.values()), f"training {run.num_envs:,} envs ({detail})",
+                 f"lower {knobs.get(big[0][0], '--num-envs')}", available)  # fmt: skip
 
 
 def parse_train_args(args: list[str]) -> dict:

@@ -15,6 +15,10 @@ from typing import Any, Literal
 
 from safenav.common.curriculum import DensityCurriculumConfig
 
+MAX_SEED = 2**31 - 1
+"""Seeds (training, env) lie in [0, MAX_SEED]: NumPy and torch take them, and the seeds derived
+from them (``train_env_seed``) stay within int64."""
+
 
 @dataclass(frozen=True)
 class RunConfig:
@@ -64,6 +68,10 @@ class RunConfig:
                 raise ValueError(f"{name.replace('_', '-')}={getattr(self, name)} must be >= 1")
         if self.eval_every < 0 or self.torch_threads < 0 or self.map_refresh_every < 0:
             raise ValueError("eval-every, torch-threads and map-refresh-every must be >= 0")
+        if not 0 <= self.seed <= MAX_SEED:
+            raise ValueError(f"seed={self.seed} must lie in [0, {MAX_SEED}]")
+        if self.torch_threads > 1024:
+            raise ValueError(f"torch-threads={self.torch_threads} must be <= 1024 (0 = one per core)")
 
     def train_env_seed(self, refresh: int) -> int:
         """Seed of the training maps after ``refresh`` redraws: >= 100000, so never the test

@@ -254,6 +254,9 @@ class DensityCurriculumConfig:
             raise ValueError(
                 "density curriculum: ramp_fraction, increment, quantum > 0 and epoch_steps >= 1"
             )
+        if not (0.0 <= self.success_threshold <= 1.0 and self.increment <= 1 and self.quantum <= 1):
+            raise ValueError("density curriculum: success_threshold in [0, 1], increment and "
+                             "quantum <= 1 (fractions of the obstacles)")  # fmt: skip
 
 
 class DensityCurriculum:

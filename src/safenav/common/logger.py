@@ -45,7 +45,7 @@ def prepare_run_dir(run_dir: Path, resume: bool, overwrite: bool) -> None:
                if (run_dir / "checkpoint.pt").exists() else
                "it stopped before its first checkpoint: pass --overwrite to replace it")  # fmt: skip
         raise SafenavError(
-            f"run directory {run_dir} already holds a run ({', '.join(held)}): {fix}"
+            f"--run-dir {run_dir} already holds a run ({', '.join(held)}): {fix}"
         )
     # A run that never trained (it failed before its first progress row, e.g. on a bad env) left
     # only its config: replace it, so that the retry with the same --run-dir is not refused.
@@ -63,7 +63,9 @@ def prepare_run_dir(run_dir: Path, resume: bool, overwrite: bool) -> None:
             if err.errno in (errno.EACCES, errno.EPERM, errno.EROFS)
             else SafenavError
         )
-        raise kind(f"cannot create run directory {run_dir}: {err.strerror or err}") from None
+        raise kind(
+            f"--run-dir {run_dir}: cannot create run directory: {err.strerror or err}"
+        ) from None
     _check_writable(run_dir)
 
 
@@ -88,7 +90,7 @@ def _check_writable(run_dir: Path) -> None:
         probe.unlink()
     except OSError as err:
         raise SafenavRuntimeError(
-            f"run directory {run_dir} is not writable: {err.strerror or err}"
+            f"--run-dir {run_dir}: the run directory is not writable: {err.strerror or err}"
         ) from None
 
 

@@ -37,17 +37,25 @@ def _mlp_params(sizes: list[int]) -> int:
     return sum(a * b + b for a, b in zip(sizes[:-1], sizes[1:], strict=False))
 
 
-def network_bytes(net: Any, obs_floats: int, action_dim: int, critics: int) -> float:
-    """The actor and ``critics`` critics (each with a target copy) with Adam state."""
-    features = net.lidar_embed + net.dynamic_embed + obs_floats
-    actor = _mlp_params([features, *net.hidden, 2 * action_dim])
-    critic = _mlp_params([features + action_dim, *net.hidden, 1])
+def network_bytes(net: Any, obs_floats: int, action_dim: int, critics: int,
+                  obs_shapes: dict[str, tuple[int, ...]] | None = None) -> float:  # fmt: skip
+    """The actor and ``critics`` critics (each with a target copy and its own extractor at
+    worst) with Adam state."""
+    lidar = (obs_shapes or {}).get("lidar", (4, 36))
+    channels = [lidar[0], *net.lidar_channels]
+    convs = sum(a * b * net.lidar_kernel + b for a, b in zip(channels[:-1], channels[1:], strict=False))
+    extractor = (convs + channels[-1] * lidar[-1] * net.lidar_embed
+                 + _mlp_params([10, net.dynamic_hidden, net.dynamic_embed])
+                 + _mlp_params([obs_floats, *net.flatten_hidden]))  # fmt: skip
+    features = net.lidar_embed + net.dynamic_embed + obs_floats + max(net.flatten_hidden, default=0)
+    actor = extractor + _mlp_params([features, *net.hidden, 2 * action_dim])
+    critic = extractor + _mlp_params([features + action_dim, *net.hidden, 1])
     return (4 * (actor + critics * critic) + critics * critic) * FLOAT
 
 
 def training_memory(algo: str, num_envs: int, total_steps: int, cfg: Any,
                     obs_shapes: dict[str, tuple[int, ...]], action_dim: int,
-                    env_config: Any | None) -> dict[str, float]:  # fmt: skip
+                    env_config: Any | None, eval_episodes: int = 0) -> dict[str, float]:  # fmt: skip
     """Bytes per part of a training run of ``algo`` with algorithm config ``cfg``."""
     obs = sum(math.prod(s) for s in obs_shapes.values())
     parts = {"envs": env_bytes(num_envs, env_config)}
@@ -61,7 +69,12 @@ def training_memory(algo: str, num_envs: int, total_steps: int, cfg: Any,
         parts["replay buffer"] = capacity * width * FLOAT
         critics = cfg.num_critics + (cfg.num_cost_critics or cfg.num_critics)
         parts["minibatches"] = 4 * cfg.batch_size * width * FLOAT
-    parts["networks"] = network_bytes(cfg.net, obs, action_dim, critics)
+    parts["networks"] = network_bytes(cfg.net, obs, action_dim, critics, obs_shapes)
+    n_step = getattr(cfg, "cost_n_step", 1)
+    if n_step > 1:  # the n-step window keeps n vector steps of transitions
+        parts["n-step window"] = n_step * num_envs * (2 * obs + action_dim + 4) * FLOAT
+    if eval_episodes:  # the periodic evaluation flies its episodes as one vector env
+        parts["evaluation envs"] = env_bytes(eval_episodes, env_config)
     parts["activations"] = 8 * num_envs * (obs + max(cfg.net.hidden, default=0)) * FLOAT
     return parts
 

@@ -1,0 +1,409 @@
+"""Issue 23, "A newcomer's first hour": each reported case, as the user meets it.
+
+The CLI fuzz test (test_cli_fuzz.py) covers every option with malformed values; these tests check
+what each case of the issue now *says and does*: the figures in the messages, the files left as
+they were, the JSON that parses, the exit codes.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import re
+import shlex
+import shutil
+import socket
+from collections import deque
+from pathlib import Path
+
+import pytest
+
+from safenav.cli import VERBS, app, main
+from safenav.common.checks import parse_count
+from safenav.errors import SafenavError
+
+ROOT = Path(__file__).resolve().parents[1]
+CKPT = ROOT / "checkpoints" / "csac-paper.pt"
+TINY = ["--num-envs", "2", "--log-every", "100", "--eval-every", "0", "--checkpoint-every", "100",
+        "--no-progress", "--no-tensorboard", "--torch-threads", "1", "--csac.learning-starts", "50",
+        "--csac.batch-size", "16", "--csac.buffer-size", "500", "--csac.net.hidden", "16", "16"]  # fmt: skip
+
+
+class Reached(SystemExit):
+    pass
+
+
+def run(capsys, argv: list[str]) -> tuple[int, str, str]:
+    capsys.readouterr()
+    try:
+        main(argv)
+        code = 0
+    except SystemExit as err:
+        code = err.code if isinstance(err.code, int) else 1
+    out, err = capsys.readouterr()
+    assert "Traceback" not in out + err
+    return code, out, err
+
+
+def one_error(err: str) -> str:
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("safenav: error: "), err
+    return lines[0]
+
+
+@pytest.fixture
+def ckpt(tmp_path) -> Path:
+    path = tmp_path / "policy.pt"
+    shutil.copy(CKPT, path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory) -> Path:
+    """A 200-step CSAC run on the easy preset (a few seconds)."""
+    run_dir = tmp_path_factory.mktemp("tiny") / "run"
+    main(["train", "--preset", "easy", "--total-steps", "200", "--run-dir", str(run_dir), *TINY])
+    return run_dir
+
+
+# ---------------------------------------------------------------------- tracebacks -> one line
+
+
+def test_eval_negative_episodes_and_a_directory_as_json(capsys, ckpt, tmp_path):
+    code, _, err = run(capsys, ["eval", str(ckpt), "--episodes", "-1"])
+    assert code == 2 and "--episodes -1" in one_error(err)
+    code, _, err = run(capsys, ["eval", str(ckpt), "--json", str(tmp_path)])
+    assert code == 2 and f"--json {tmp_path / 'eval.json'}" in one_error(err)  # the fix
+
+
+def test_render_fps_zero_and_unwritable_out(capsys, ckpt, tmp_path, monkeypatch):
+    flown = []
+    monkeypatch.setattr("safenav.experiments.flight.render_episode",
+                        lambda *a, **k: flown.append(1))  # fmt: skip
+    code, _, err = run(capsys, ["render", str(ckpt), "--fps", "0"])
+    assert code == 2 and "--fps 0" in one_error(err)
+    code, _, err = run(capsys, ["render", str(ckpt), "--out", "/no/such/dir/flight.gif"])
+    assert code == 2 and "/no/such/dir does not exist" in one_error(err)
+    assert not Path("/no/such/dir").exists()
+    # nothing lost: refused before the episode is flown, not when the GIF is written
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o555)
+    target = ro if not _writable(ro) else Path("/sys")  # root ignores file modes
+    if _writable(target):
+        pytest.skip("no unwritable directory here")
+    code, _, err = run(capsys, ["render", str(ckpt), "--out", str(target / "flight.gif")])
+    assert code == 1 and "cannot write" in one_error(err)
+    assert not flown
+
+
+def _writable(d: Path) -> bool:
+    try:
+        (d / ".probe").touch()
+        (d / ".probe").unlink()
+        return True
+    except OSError:
+        return False
+
+
+def test_sim_vehicle_port_in_use_and_fly_port_out_of_range(capsys):
+    with socket.socket() as tcp:
+        tcp.bind(("127.0.0.1", 0))
+        tcp.listen(1)
+        port = tcp.getsockname()[1]
+        code, _, err = run(
+            capsys, ["sim-vehicle", "--preset", "easy", "--perception-port", str(port)]
+        )
+    assert code == 1 and f"127.0.0.1:{port} is already in use" in one_error(err)
+    for argv in (["sim-vehicle", "--perception-port", "70000"],
+                 ["fly", "--perception", "127.0.0.1:70000", "--goal", "1", "2", "1.5",
+                  "--connect", "udpin://127.0.0.1:0"]):  # fmt: skip
+        code, _, err = run(capsys, argv)
+        assert code == 2 and "70000" in one_error(err) and "65535" in err
+
+
+def test_train_device_and_out_of_memory_refused_with_the_figure(capsys, tmp_path):
+    run_dir = tmp_path / "run"
+    code, _, err = run(capsys, ["train", "--device", "tpu", "--run-dir", str(run_dir)])
+    assert code == 2 and "--device 'tpu'" in one_error(err)
+    code, _, err = run(capsys, ["train", "--num-envs", "10000000", "--run-dir", str(run_dir)])
+    line = one_error(err)
+    assert code == 1 and "10,000,000 envs" in line and "lower --num-envs" in line
+    need, have = re.findall(r"([\d.]+) ([KMGTP]B)", line.split("needs about")[1])[:2]
+    scale = {"KB": 1e3, "MB": 1e6, "GB": 1e9, "TB": 1e12, "PB": 1e15}
+    assert float(need[0]) * scale[need[1]] > float(have[0]) * scale[have[1]]
+    assert not run_dir.exists()  # nothing written
+
+
+# ------------------------------------------------------------------ wrong or misleading answers
+
+
+def test_a_run_dir_that_never_trained_does_not_block_the_retry(
+    capsys, tmp_path, monkeypatch, tiny_run
+):
+    import safenav.algos.csac as csac
+
+    def crash(*args, **kwargs):
+        raise SafenavError("the env broke down before the first step")
+
+    def accepted(*args, **kwargs):
+        raise Reached(99)
+
+    run_dir = tmp_path / "run"
+    monkeypatch.setattr(csac, "train", crash)
+    code, _, err = run(capsys, ["train", "--preset", "easy", "--run-dir", str(run_dir), *TINY])
+    assert code == 2 and (run_dir / "config.json").exists()  # what the failed attempt left
+    monkeypatch.setattr(csac, "train", accepted)
+    code, _, err = run(capsys, ["train", "--preset", "easy", "--run-dir", str(run_dir), *TINY])
+    assert code == 99, err  # the retry is accepted
+    # a run dir that trained keeps refusing, unless --resume or --overwrite
+    trained = tmp_path / "trained"
+    shutil.copytree(tiny_run, trained)
+    code, _, err = run(capsys, ["train", "--preset", "easy", "--run-dir", str(trained), *TINY])
+    assert code == 2 and "already holds a run" in one_error(err) and "--resume" in err
+    assert (trained / "checkpoint.pt").exists()
+    assert run(capsys, ["train", "--resume", str(trained), "--no-progress"])[0] == 99
+    assert run(capsys, ["train", "--preset", "easy", "--run-dir", str(trained), "--overwrite",
+                        *TINY])[0] == 99  # fmt: skip
+
+
+def test_fly_never_suggests_overwriting_a_checkpoint(capsys, ckpt):
+    before = ckpt.read_bytes()
+    code, _, err = run(capsys, ["fly", "--policy", str(ckpt), "--goal", "1", "2", "1.5"])
+    line = one_error(err)
+    assert code == 2 and f"--onnx {ckpt.with_suffix('.onnx')}" in line
+    assert f"--onnx {ckpt} " not in line + " "
+    missing = ckpt.with_name("nope.pt")
+    code, _, err = run(capsys, ["fly", "--policy", str(missing), "--goal", "1", "2", "1.5"])
+    assert code == 2 and f"--onnx {missing.with_suffix('.onnx')}" in one_error(err)
+    # and export refuses to write ONNX over it, whatever the hint
+    code, _, err = run(capsys, ["export", str(ckpt), "--onnx", str(ckpt)])
+    assert code == 2 and ckpt.read_bytes() == before
+
+
+def test_a_cuda_saved_checkpoint_loads_on_a_cpu_machine(capsys, tmp_path, monkeypatch, tiny_run):
+    """``torch.save`` on a GPU tags every tensor ``cuda:0``; faked here by the tag alone."""
+    import torch.serialization
+
+    from safenav.algos.policy import load_policy
+    from safenav.common.checkpoint import load_checkpoint, save_checkpoint
+
+    run_dir = tmp_path / "cuda-run"
+    shutil.copytree(tiny_run, run_dir)
+    state = load_checkpoint(run_dir)
+    monkeypatch.setattr(torch.serialization, "location_tag", lambda storage: "cuda:0")
+    save_checkpoint(
+        run_dir / "checkpoint.pt", {k: v for k, v in state.items() if "format" not in k}
+    )
+    monkeypatch.undo()
+    if not torch.cuda.is_available():
+        with pytest.raises(RuntimeError, match="CUDA"):  # what torch does without map_location
+            torch.load(run_dir / "checkpoint.pt", weights_only=False)
+    assert load_policy(run_dir).meta["algo"] == "csac"  # loaded, not "corrupt"
+    config = json.loads((run_dir / "config.json").read_text())
+    config["run"]["device"] = "cuda"  # the run was trained on a GPU
+    (run_dir / "config.json").write_text(json.dumps(config))
+    if not torch.cuda.is_available():
+        code, _, err = run(capsys, ["train", "--resume", str(run_dir), "--no-progress"])
+        assert code == 1 and "use --device cpu" in one_error(err) and "corrupt" not in err
+    resumed = [
+        "train",
+        "--resume",
+        str(run_dir),
+        "--device",
+        "cpu",
+        "--total-steps",
+        "300",
+        "--no-progress",
+    ]
+    code, _, err = run(capsys, resumed)
+    assert code == 0, err
+    assert load_checkpoint(run_dir)["global_step"] == 300
+
+
+def test_ppo_errors_do_not_speak_of_the_sac_family(capsys, tmp_path):
+    code, _, err = run(capsys, ["train", "--algo", "ppo", "--env", "CartPole-v1", "--run-dir",
+                                str(tmp_path / "run")])  # fmt: skip
+    line = one_error(err)
+    assert code == 2 and "SAC-family" not in line and "PPO" in line and "Discrete(2)" in line
+    assert not (tmp_path / "run").exists()
+
+
+def test_export_writes_the_opset_asked_for_or_refuses(capsys, tmp_path):
+    import onnx
+
+    out = tmp_path / "policy.onnx"
+    out.write_bytes(b"an earlier export")
+    code, _, err = run(capsys, ["export", "--scripted", "--preset", "easy", "--onnx", str(out),
+                                "--opset", "3"])  # fmt: skip
+    assert code == 2 and "--opset 3" in one_error(err)
+    assert out.read_bytes() == b"an earlier export"  # nothing silently replaced
+    assert run(capsys, ["export", "--scripted", "--preset", "easy", "--onnx", str(out),
+                        "--opset", "11"])[0] == 0  # fmt: skip
+    opsets = {o.domain: o.version for o in onnx.load(str(out)).opset_import}
+    assert opsets.get("", opsets.get("ai.onnx")) == 11
+    assert json.loads(Path(f"{out}.json").read_text())["opset"] == 11
+
+
+def _reproduce_examples() -> list[str]:
+    """The ``safenav reproduce`` command lines of its --help and of docs/reproduce.md."""
+    from safenav.commands.reproduce import reproduce
+
+    doc = " ".join(reproduce.__doc__.split())
+    examples = [doc.split("Example: ")[1].split(" Args:")[0].strip()]
+    text = (ROOT / "docs" / "reproduce.md").read_text().replace("\\\n", " ")
+    examples += [
+        line.strip()
+        for line in text.splitlines()
+        if line.strip().startswith("safenav reproduce --")
+    ]
+    return examples
+
+
+@pytest.mark.parametrize("example", _reproduce_examples())
+def test_reproduce_examples_run_as_written(example, capsys, tmp_path, monkeypatch):
+    seen = []
+    monkeypatch.setattr("safenav.experiments.reproduce.run_sweep", seen.append)
+    monkeypatch.chdir(tmp_path)
+    argv = shlex.split(example, comments=True)
+    assert argv[:2] == ["safenav", "reproduce"]
+    code, _, err = run(capsys, argv[1:])
+    assert code == 0 and len(seen) == 1, err
+    code, _, err = run(capsys, ["reproduce", "--out", "x", "--variants", "a=csac --no-curriculum"])
+    assert code == 2 and "--variants a" in one_error(err)  # an option train lacks, before Ray
+
+
+@pytest.mark.parametrize("form", ["1000000", "1e6", "1_000_000", "1M", "1m", "1000k"])
+def test_step_counts_take_the_same_forms_everywhere(form, capsys, tmp_path, monkeypatch):
+    from safenav.experiments.reproduce import parse_steps
+
+    seen = {}
+
+    def stub(algo, run_cfg, *args, **kwargs):
+        seen["total_steps"] = run_cfg.total_steps
+        raise Reached(99)
+
+    monkeypatch.setattr("safenav.algos.csac.train", stub)
+    code, _, err = run(capsys, ["train", "--preset", "easy", "--total-steps", form, "--run-dir",
+                                str(tmp_path / "run"), "--no-progress"])  # fmt: skip
+    assert code == 99 and seen["total_steps"] == 1_000_000, err
+    assert parse_steps(form) == parse_count(form) == 1_000_000
+
+
+def test_parse_count_refuses_what_is_not_a_whole_number():
+    assert parse_count("2.5k") == 2500 and parse_count("-3") == -3 and parse_count("1B") == 10**9
+    assert parse_count("123456789012345678901") == 123456789012345678901  # exact
+    for bad in ("1.5", "1e-3", "nan", "inf", "1e400", "", "abc", "1x", "0x10"):
+        with pytest.raises(ValueError):
+            parse_count(bad)
+
+
+def test_eval_json_writes_null_for_nan(capsys, tmp_path, monkeypatch):
+    def evaluate(*args, **kwargs):
+        rates = dict.fromkeys(("success_rate", "collision_rate", "timeout_rate",
+                               "collision_static_rate", "collision_dynamic_rate",
+                               "collision_bounds_rate", "collision_border_rate",
+                               "border_time_fraction", "outside_time_fraction",
+                               "mean_path_length", "min_clearance", "mean_speed"), 0.5)  # fmt: skip
+        return {**rates, "mean_time_to_goal": math.nan, "detour_ratio": math.nan,
+                "per_episode": {"time": [1.0, math.inf]}}  # fmt: skip
+
+    monkeypatch.setattr("safenav.experiments.evaluate.evaluate", evaluate)
+    out = tmp_path / "eval.json"
+    code, _, err = run(
+        capsys, ["eval", "--policy", "scripted", "--preset", "easy", "--json", str(out)]
+    )
+    assert code == 0, err
+
+    def no_constants(name):
+        raise AssertionError(f"{name} is not JSON")
+
+    data = json.loads(out.read_text(), parse_constant=no_constants)
+    assert data["mean_time_to_goal"] is None and data["per_episode"]["time"] == [1.0, None]
+
+
+@pytest.mark.parametrize("collisions", [4, 0])
+def test_fly_reports_collisions_and_exits_nonzero_when_the_flight_collided(
+    collisions, capsys, tmp_path, monkeypatch
+):
+    summary = {"reached_goal": True, "collisions": collisions, "min_clearance_m": -0.3 if collisions else 0.4,
+               "flight_time_s": 39.8}  # fmt: skip
+    monkeypatch.setattr("safenav.deploy.demo.run_demo", lambda **kwargs: dict(summary))
+    out = tmp_path / "flight.json"
+    code, stdout, err = run(capsys, ["fly", "--demo", "--scripted", "--preset", "easy", "--json",
+                                     str(out), "--gif", str(tmp_path / "f.gif")])  # fmt: skip
+    data = json.loads(out.read_text())
+    assert (
+        data["collisions"] == collisions and data["min_clearance_m"] == summary["min_clearance_m"]
+    )
+    assert json.loads(stdout) == data
+    last = err.strip().splitlines()[-1]
+    assert f"{collisions} collision" in last and "min clearance" in last
+    if collisions:
+        assert code == 4 and data["outcome"] == "collided" and "collided" in last
+    else:
+        assert code == 0 and data["outcome"] == "reached_goal"
+
+
+def test_the_flight_log_summary_carries_the_simulator_truth():
+    from safenav.deploy.fly import FlightLog
+
+    log = FlightLog(reached_goal=True)
+    assert log.summary()["collisions"] is None  # real sensors: unknown, not 0
+    log.truth = {"collisions": 4, "min_clearance": -0.31234}
+    assert log.summary()["collisions"] == 4 and log.summary()["min_clearance_m"] == -0.312
+
+
+# ---------------------------------------------------------------------------------------- output
+
+
+def test_version_and_a_one_screen_help(capsys):
+    from safenav import __version__
+
+    code, out, _ = run(capsys, ["--version"])
+    assert code == 0 and out.strip() == f"safenav {__version__}"
+    code, out, _ = run(capsys, ["--help"])
+    assert code == 0 and len(out.splitlines()) <= 40 and max(map(len, out.splitlines())) <= 200
+    for verb in VERBS:
+        assert re.search(rf"^  {verb} ", out, re.M), verb
+    assert set(VERBS) == set(app._subcommands)  # every registered verb is listed
+    code, out, _ = run(capsys, ["eval", "--help"])  # the detail is in the verb's own help
+    assert code == 0 and "--episodes" in out and "--json" in out
+
+
+def test_progress_line_fits_80_and_100_columns(monkeypatch):
+    from rich.console import Console
+
+    from safenav.common.progress import ProgressDisplay
+
+    display = ProgressDisplay(5_000_000, 0, enabled=True, title="csac SafeNav-v1",
+                              console=Console(file=io.StringIO()))  # fmt: skip
+    assert display.live is None  # not a terminal
+    display.metrics(1_234_567, {"constraint/lambda": 1.2345, "charts/alpha": 0.05},
+                    {"success": deque([1.0, 1.0, 0.0, 1.0]), "collision": deque([0.0, 0.2]),
+                     "return": deque([3.0])}, 0.5)  # fmt: skip
+    display._samples = deque([(display.t0, 0), (display.t0 + 100, 1_000_000)])  # 10k steps/s
+    for width in (80, 100):
+        line = display.line(width)
+        assert len(line) <= width and "\n" not in line
+        for part in ("1.23M/5M", "ETA 0:06:16", "10k steps/s", "succ 0.75", "coll 0.10",
+                     "λ 1.23", "d 0.5"):  # fmt: skip
+            assert part in line, (width, part, line)
+    # as a terminal of COLUMNS=80 draws it: one line
+    monkeypatch.setenv("COLUMNS", "80")
+    buf = io.StringIO()
+    console = Console(file=buf, force_terminal=True)
+    assert console.width == 80
+    console.print(display)
+    drawn = re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", buf.getvalue())
+    assert drawn.count("\n") == 1 and len(drawn.rstrip("\n")) <= 80 and "steps/s" in drawn
+    display.close()
+
+
+def test_readme_documents_the_exit_codes():
+    text = (ROOT / "README.md").read_text()
+    section = text.split("### Exit codes")[1].split("\n## ")[0]
+    for code, word in (("0", "success"), ("1", "runtime"), ("2", "usage"), ("3", "aborted"),
+                       ("4", "collided"), ("130", "Ctrl-C"), ("143", "SIGTERM")):  # fmt: skip
+        assert re.search(rf"^\| {code} \|.*{word}", section, re.M | re.I), code
