@@ -71,7 +71,9 @@ class RunConfig:
         if not 0 <= self.seed <= MAX_SEED:
             raise ValueError(f"seed={self.seed} must lie in [0, {MAX_SEED}]")
         if self.torch_threads > 1024:
-            raise ValueError(f"torch-threads={self.torch_threads} must be <= 1024 (0 = one per core)")
+            raise ValueError(
+                f"torch-threads={self.torch_threads} must be <= 1024 (0 = one per core)"
+            )
 
     def train_env_seed(self, refresh: int) -> int:
         """Seed of the training maps after ``refresh`` redraws: >= 100000, so never the test

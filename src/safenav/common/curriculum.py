@@ -91,13 +91,17 @@ class MeasuredCostScale:
         """Record the costs of episodes that just finished."""
         for c in episode_costs:
             self.cost_n += 1
-            self.cost_mean += (float(c) - self.cost_mean) * max(1.0 / self.cost_n, 1.0 / self.span_episodes)
+            self.cost_mean += (float(c) - self.cost_mean) * max(
+                1.0 / self.cost_n, 1.0 / self.span_episodes
+            )
 
     def observe_q(self, q_cost_mean: float) -> None:
         """Record one measurement of the replay-averaged ``E[Q_C(s, a ~ pi)]`` (an update's)."""
         if math.isfinite(q_cost_mean):
             self.q_n += 1
-            self.q_mean += (q_cost_mean - self.q_mean) * max(1.0 / self.q_n, 1.0 / self.span_updates)
+            self.q_mean += (q_cost_mean - self.q_mean) * max(
+                1.0 / self.q_n, 1.0 / self.span_updates
+            )
 
     @property
     def ratio(self) -> float:

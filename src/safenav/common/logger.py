@@ -44,9 +44,7 @@ def prepare_run_dir(run_dir: Path, resume: bool, overwrite: bool) -> None:
         fix = ("pass --resume to continue it or --overwrite to replace it"
                if (run_dir / "checkpoint.pt").exists() else
                "it stopped before its first checkpoint: pass --overwrite to replace it")  # fmt: skip
-        raise SafenavError(
-            f"--run-dir {run_dir} already holds a run ({', '.join(held)}): {fix}"
-        )
+        raise SafenavError(f"--run-dir {run_dir} already holds a run ({', '.join(held)}): {fix}")
     # A run that never trained (it failed before its first progress row, e.g. on a bad env) left
     # only its config: replace it, so that the retry with the same --run-dir is not refused.
     if held:

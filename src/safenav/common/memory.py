@@ -43,7 +43,9 @@ def network_bytes(net: Any, obs_floats: int, action_dim: int, critics: int,
     worst) with Adam state."""
     lidar = (obs_shapes or {}).get("lidar", (4, 36))
     channels = [lidar[0], *net.lidar_channels]
-    convs = sum(a * b * net.lidar_kernel + b for a, b in zip(channels[:-1], channels[1:], strict=False))
+    convs = sum(
+        a * b * net.lidar_kernel + b for a, b in zip(channels[:-1], channels[1:], strict=False)
+    )
     extractor = (convs + channels[-1] * lidar[-1] * net.lidar_embed
                  + _mlp_params([10, net.dynamic_hidden, net.dynamic_embed])
                  + _mlp_params([obs_floats, *net.flatten_hidden]))  # fmt: skip
