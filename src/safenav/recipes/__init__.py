@@ -1,0 +1,153 @@
+"""Training recipes: named, versioned sets of hyperparameters, one TOML file each.
+
+``safenav train --config NAME|PATH`` starts from a recipe (a file shipped here, or a user's own
+by path); command-line flags override it; ``config.json`` records the resolved values and the
+recipe's name. Without ``--config``, ``--algo A`` on SafeNav takes the recipe named ``A`` (with
+``_`` read as ``-``) when one ships. A file's header (its leading ``#`` comments) says where its
+values come from, how it departs from the paper's equations, and what it measured.
+
+Layout of a recipe file::
+
+    [recipe]
+    algo = "csac"          # the --algo it trains (required)
+    base = "csac-paper"    # optional: start from another recipe, then apply this file
+    [run]                  # RunConfig fields (--num-envs, --total-steps, --density.*, ...)
+    num_envs = 256
+    [csac]                 # CSACConfig fields (or [ppo]: PPOConfig), nested tables for sub-configs
+    actor_lr = 3e-4
+    [csac.curriculum]
+    d_min = 0.05
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from safenav.errors import SafenavError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+SECTIONS = ("run", "csac", "ppo")
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """A resolved recipe: its name, the algorithm, and field overrides per config section."""
+
+    name: str
+    algo: str
+    sections: dict[str, dict[str, Any]] = field(default_factory=dict)
+    header: str = ""
+    source: str = ""
+
+    def section(self, name: str) -> dict[str, Any]:
+        return self.sections.get(name, {})
+
+
+def available() -> list[str]:
+    """Names of the recipes shipped with safenav."""
+    return sorted(
+        p.name[:-5] for p in resources.files(__name__).iterdir() if p.name.endswith(".toml")
+    )
+
+
+def default_recipe(algo: str, env_id: str) -> str | None:
+    """The recipe ``--algo algo`` takes on ``env_id`` without ``--config`` (None: none ships)."""
+    if env_id.split(":")[-1].startswith("SafeNav-"):
+        name = algo.replace("_", "-")
+        return name if name in available() else None
+    return None
+
+
+def _read(name_or_path: str) -> tuple[dict[str, Any], str, str, str]:
+    path = Path(name_or_path)
+    if name_or_path.endswith(".toml") or path.exists():
+        if not path.is_file():
+            raise SafenavError(f"--config {name_or_path}: no such recipe file")
+        text, name, source = path.read_text(), path.stem, str(path)
+    else:
+        shipped = resources.files(__name__) / f"{name_or_path}.toml"
+        if not shipped.is_file():
+            raise SafenavError(f"--config {name_or_path}: unknown recipe; shipped: {', '.join(available())} "
+                               "(or give a path to a .toml file)")  # fmt: skip
+        text, name, source = (
+            shipped.read_text(),
+            name_or_path,
+            f"safenav/recipes/{name_or_path}.toml",
+        )
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise SafenavError(f"--config {name_or_path}: not valid TOML ({err})") from None
+    header = "\n".join(line[1:].strip() for line in text.splitlines() if line.startswith("#"))
+    return data, name, source, header.split("\n\n")[0] if header else ""
+
+
+def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def load_recipe(name_or_path: str, _seen: tuple[str, ...] = ()) -> Recipe:
+    """The recipe ``name_or_path`` (a shipped name or a ``.toml`` path), its ``base`` applied
+    first; ``SafenavError`` for unknown names, bad TOML, unknown sections or a cycle."""
+    if name_or_path in _seen:
+        raise SafenavError(f"--config: recipes {' -> '.join((*_seen, name_or_path))} form a cycle")
+    data, name, source, header = _read(name_or_path)
+    meta = data.pop("recipe", None)
+    if not isinstance(meta, dict) or not isinstance(meta.get("algo"), str):
+        raise SafenavError(f'{source}: a recipe needs a [recipe] table with algo = "..."')
+    unknown = sorted(set(data) - set(SECTIONS))
+    if unknown:
+        raise SafenavError(
+            f"{source}: unknown section(s) {unknown}; a recipe has {', '.join(SECTIONS)}"
+        )
+    sections: dict[str, dict[str, Any]] = {}
+    if "base" in meta:
+        base = load_recipe(str(meta["base"]), (*_seen, name_or_path))
+        sections = {k: dict(v) for k, v in base.sections.items()}
+    for k, v in data.items():
+        if not isinstance(v, dict):
+            raise SafenavError(f"{source}: [{k}] must be a table")
+        sections[k] = _merge(sections.get(k, {}), v)
+    return Recipe(
+        name=name, algo=str(meta["algo"]), sections=sections, header=header, source=source
+    )
+
+
+def apply(obj: Any, overrides: dict[str, Any], where: str = "") -> Any:
+    """A copy of the (frozen, nested) dataclass ``obj`` with ``overrides`` set, validated by
+    the dataclasses themselves; ``SafenavError`` naming an unknown or invalid field."""
+    import dataclasses
+
+    from safenav.common.config import from_dict, to_dict
+
+    names = {f.name for f in dataclasses.fields(obj)}
+    unknown = sorted(set(overrides) - names)
+    if unknown:
+        raise SafenavError(f"recipe: unknown field(s) {[f'{where}{u}' for u in unknown]}")
+    data = to_dict(obj)
+    for k, v in overrides.items():
+        current = getattr(obj, k)
+        if dataclasses.is_dataclass(current) and isinstance(v, dict):
+            data[k] = to_dict(apply(current, v, f"{where}{k}."))
+        else:
+            data[k] = v
+    try:
+        return from_dict(type(obj), data)
+    except (TypeError, ValueError) as err:
+        raise SafenavError(
+            f"recipe: invalid value in [{where.rstrip('.') or 'section'}]: {err}"
+        ) from None
+
+
+__all__ = ["SECTIONS", "Recipe", "apply", "available", "default_recipe", "load_recipe"]
