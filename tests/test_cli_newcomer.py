@@ -116,6 +116,8 @@ def test_sim_vehicle_port_in_use_and_fly_port_out_of_range(capsys):
             capsys, ["sim-vehicle", "--preset", "easy", "--perception-port", str(port)]
         )
     assert code == 1 and f"127.0.0.1:{port} is already in use" in one_error(err)
+    code, _, err = run(capsys, ["fly", "--perception-port", "70000"])  # fly has --perception
+    assert code == 2 and "did you mean --perception?" in one_error(err)
     for argv in (["sim-vehicle", "--perception-port", "70000"],
                  ["fly", "--perception", "127.0.0.1:70000", "--goal", "1", "2", "1.5",
                   "--connect", "udpin://127.0.0.1:0"]):  # fmt: skip
@@ -344,6 +346,22 @@ def test_fly_reports_collisions_and_exits_nonzero_when_the_flight_collided(
         assert code == 4 and data["outcome"] == "collided" and "collided" in last
     else:
         assert code == 0 and data["outcome"] == "reached_goal"
+
+
+def test_an_aborted_flight_reports_its_collisions_too(capsys, tmp_path, monkeypatch):
+    from safenav.deploy.fly import FlightAborted
+
+    def run_demo(**kwargs):
+        err = FlightAborted("goal not reached within 120 s")
+        err.summary = {"reached_goal": False, "collisions": 7, "min_clearance_m": -0.3}
+        raise err
+
+    monkeypatch.setattr("safenav.deploy.demo.run_demo", run_demo)
+    out = tmp_path / "flight.json"
+    code, _, err = run(capsys, ["fly", "--demo", "--scripted", "--json", str(out), "--gif",
+                                str(tmp_path / "f.gif")])  # fmt: skip
+    assert code == 3 and "7 collisions, min clearance -0.3 m" in err.strip().splitlines()[-1]
+    assert json.loads(out.read_text())["outcome"] == "aborted"
 
 
 def test_the_flight_log_summary_carries_the_simulator_truth():

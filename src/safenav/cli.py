@@ -183,6 +183,44 @@ def _help_of(prog: str) -> str:
     return f"see {prog} --help"
 
 
+def verb_flags(verb: str) -> list[str]:
+    """The ``--options`` of ``verb``, from its signature as tyro names them (for "did you mean");
+    [] if it cannot be told."""
+    import dataclasses
+    import inspect
+    import typing
+
+    spec = getattr(app, "_subcommands", {}).get(verb)  # tyro's registry (private): best effort
+    target = getattr(spec, "target", None)
+    if target is None:
+        return []
+
+    def walk(hints: dict, names: list[str], prefix: str) -> list[str]:
+        flags = []
+        for name in names:
+            tp, arg_name = hints.get(name), None
+            if typing.get_origin(tp) is typing.Annotated:
+                tp, *extra = typing.get_args(tp)
+                if any("Positional" in repr(e) for e in extra):
+                    continue  # no --flag
+                arg_name = next(
+                    (getattr(e, "name", None) for e in extra if hasattr(e, "name")), None
+                )
+            if dataclasses.is_dataclass(tp):
+                sub = prefix if arg_name == "" else f"{prefix}{arg_name or name}."
+                fields = [f.name for f in dataclasses.fields(tp)]
+                flags += walk(typing.get_type_hints(tp, include_extras=True), fields, sub)
+            else:
+                flags.append(f"--{prefix}{(arg_name or name).replace('_', '-')}")
+        return flags
+
+    try:
+        hints = typing.get_type_hints(target, include_extras=True)
+        return walk(hints, list(inspect.signature(target).parameters), "")
+    except Exception:  # noqa: BLE001 -- a hint, never a new error
+        return []
+
+
 def parse_error_message(event: object, verb: str | None = None) -> str:
     """One line for a tyro ``ParseErrorEvent`` (matched by class name: the module is private)."""
     kind = type(event).__name__
@@ -197,7 +235,10 @@ def parse_error_message(event: object, verb: str | None = None) -> str:
         return f"invalid {_flag(getattr(event, 'argument', None))} value: {message}"
     if kind == "UnrecognizedArgs":
         tokens = [str(t) for t in getattr(event, "tokens", [])]
-        return f"unrecognized option(s) {' '.join(tokens)}: {_help_of(prog)}"
+        flag = next((t.split("=")[0] for t in tokens if t.startswith("--")), None)
+        close = difflib.get_close_matches(flag, verb_flags(verb), n=1) if flag and verb else []
+        hint = f"did you mean {close[0]}? " if close else ""
+        return f"unrecognized option(s) {' '.join(tokens)}: {hint}{_help_of(prog)}"
     if kind == "MissingArgs":
         names = [_flag(getattr(a, "arg", a)) for a in getattr(event, "missing_arguments", [])]
         return f"missing {', '.join(names)}: {_help_of(prog)}"

@@ -106,7 +106,11 @@ def fly(
             from safenav.common.jsonout import write_json
 
             write_json(json_out, {**summary, "outcome": "aborted"})
-        print(f"safenav fly: aborted: {err}", file=sys.stderr, flush=True)
+        known = summary or {}
+        so_far = (f" ({known['collisions']} collision{'s' if known['collisions'] != 1 else ''}, "
+                  f"min clearance {known.get('min_clearance_m')} m)"
+                  if known.get("collisions") is not None else "")  # fmt: skip
+        print(f"safenav fly: aborted: {err}{so_far}", file=sys.stderr, flush=True)
         raise SystemExit(EXIT_ABORTED) from None
     from safenav.common.jsonout import dumps, write_json
 
