@@ -232,7 +232,12 @@ def parse_error_message(event: object, verb: str | None = None) -> str:
             reasons = [re.sub(r"^(<class '[^']*'>|[\w.]+\[.*?\]): ", "", r) for r in reasons
                        if r and "NoneType" not in r]  # fmt: skip
             message = "; ".join(reasons) or message
-        return f"invalid {_flag(getattr(event, 'argument', None))} value: {message}"
+        flag = _flag(getattr(event, "argument", None))
+        nonfinite = re.fullmatch(r"expected a finite number, got '(.*)'", message)
+        if nonfinite:  # in the configs' own words: "lr=nan must be ..."
+            field = flag.split("/")[0].split(".")[-1].lstrip("-")
+            return f"invalid {flag} value: {field}={nonfinite.group(1)} must be a finite number"
+        return f"invalid {flag} value: {message}"
     if kind == "UnrecognizedArgs":
         tokens = [str(t) for t in getattr(event, "tokens", [])]
         flag = next((t.split("=")[0] for t in tokens if t.startswith("--")), None)
