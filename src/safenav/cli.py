@@ -50,13 +50,11 @@ EXIT_CODES = ("0 success, 1 runtime error (port in use, no memory or permission)
 def main(argv: list[str] | None = None) -> None:
     """Run the CLI; every failure prints one line and exits non-zero, never a traceback."""
     args = list(sys.argv[1:] if argv is None else argv)
-    if args in (["-h"], ["--help"]):
-        print(short_help())
-        return
-    if args in (["--version"], ["-V"]):
-        from safenav import __version__
-
-        print(f"safenav {__version__}")
+    if args in (["-h"], ["--help"], ["--version"], ["-V"]):
+        try:
+            print(short_help() if args[0].startswith("-h") or args[0] == "--help" else version())
+        except BrokenPipeError:  # `safenav --help | head -3`
+            _quiet_stdout()
         return
     if not args:
         _fail("no verb given: safenav VERB [options]; safenav --help lists the verbs", EXIT_USAGE)
@@ -78,8 +76,7 @@ def main(argv: list[str] | None = None) -> None:
     except SystemExit:
         raise
     except BrokenPipeError:  # `safenav ... | head`: the reader left; nothing to report
-        with contextlib.suppress(OSError):
-            sys.stdout = open(os.devnull, "w")  # noqa: SIM115 -- keeps the exit flush quiet
+        _quiet_stdout()
         raise SystemExit(EXIT_RUNTIME) from None
     except BaseException as err:  # noqa: BLE001 -- one line instead of a traceback
         message, code = describe(err)
@@ -92,6 +89,19 @@ def main(argv: list[str] | None = None) -> None:
         _fail(message, code)
     finally:
         ARGS.reset(token)
+
+
+def version() -> str:
+    from safenav import __version__
+
+    return f"safenav {__version__}"
+
+
+def _quiet_stdout() -> None:
+    """Point stdout at /dev/null so that the interpreter's final flush into a closed pipe stays
+    silent."""
+    with contextlib.suppress(OSError, ValueError):
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
 
 
 def _run(args: list[str]) -> None:
