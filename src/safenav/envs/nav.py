@@ -8,6 +8,7 @@ Python loop), on CPU or CUDA. :class:`SafeNavEnv` is the single-env view of it (
 from __future__ import annotations
 
 import math
+import time
 from typing import Any
 
 import numpy as np
@@ -211,6 +212,22 @@ class SafeNavVectorEnv(VectorEnv):
     with: ``hit_static``, ``hit_dynamic``, ``out_of_bounds`` (altitude band or border wall),
     ``hit_border``).
 
+    ## Gymnasium 1.x conventions
+    ``metadata["autoreset_mode"]`` declares the mode: ``SAME_STEP`` (default) or ``DISABLED``
+    (``NEXT_STEP`` is refused). ``SAME_STEP`` as Gymnasium's ``SyncVectorEnv`` does it, with one
+    difference: ``info["final_obs"]`` is batched (a dict of ``(num_envs, ...)`` arrays, valid
+    rows marked by ``info["_final_obs"]``), not an object array of per-env observations;
+    Gymnasium's ``DictInfoToList`` turns it into per-env ones. ``info["final_info"]`` holds the
+    finished envs' info of their last step (``cost``, ``success``, ``collision``, ``clearance``,
+    ``episode``, each with its ``_key`` mask; ``info["_final_info"]``): the same arrays as the
+    top-level keys, which keep them. ``DISABLED``: nothing resets by itself; ``reset(options=
+    {"reset_mask": mask})`` starts the next episode of the envs in ``mask`` only.
+    ``info["episode"]`` also has ``RecordEpisodeStatistics``' keys: ``r`` (return), ``l``
+    (length), ``t`` (wall-clock seconds), 0 where the episode goes on. That wrapper refuses to
+    overwrite ``info["episode"]``: give it another ``stats_key``. Tested:
+    ``gymnasium.utils.env_checker.check_env`` on :class:`SafeNavEnv`, the vector-env counterpart
+    of its checks and of both autoreset modes in ``tests/test_gym_conventions.py``.
+
     ## Arguments
     ``num_envs``; ``preset`` (``"easy"``, ``"medium"``, ``"paper"``) or ``config``
     (:class:`EnvConfig`); any ``EnvConfig`` field as keyword; ``device`` (``"cpu"``,
@@ -311,6 +328,8 @@ class SafeNavVectorEnv(VectorEnv):
                        ("return", "cost", "path_length", "speed_sum", "border_steps",
                         "outside_steps")}  # fmt: skip
         self._min_clear = torch.full((n,), math.inf, device=dev)
+        # Wall-clock start of each episode (time.perf_counter), for the episode statistic "t".
+        self._t0 = torch.zeros(n, dtype=torch.float64, device=dev)
         self.worlds: list[World] = []
         self._fresh_worlds = False
         self._trail: list[np.ndarray] = []
@@ -427,6 +446,7 @@ class SafeNavVectorEnv(VectorEnv):
         for v in self._stats.values():
             v[ids] = 0.0
         self._min_clear[ids] = math.inf
+        self._t0[ids] = time.perf_counter()
         if self.render_mode is not None and bool((ids == self.render_env_index).any()):
             self._trail = []
 
@@ -435,24 +455,33 @@ class SafeNavVectorEnv(VectorEnv):
         from ``seed + i``); without it the maps are kept and each env starts its next episode.
 
         ``options``: ``"density"`` (float), ``"starts"`` and ``"goals"`` (``(num_envs, 3)`` arrays)
-        to pin the episodes, e.g. to the fixed test scenario.
+        to pin the episodes, e.g. to the fixed test scenario; ``"reset_mask"`` (a boolean
+        ``(num_envs,)`` array, Gymnasium 1.x's way to reset some envs of a vector env, for
+        ``DISABLED`` autoreset): only those envs start their next episode (rows of ``starts`` /
+        ``goals`` outside the mask are ignored), the others fly on; the maps are kept.
         """
-        options = dict(options or {})
-        unknown = set(options) - {"density", "starts", "goals"}
+        options = dict(options or {})  # a copy: wrappers read "reset_mask" after this call
+        unknown = set(options) - {"density", "starts", "goals", "reset_mask"}
         if unknown:
             raise ValueError(
-                f"unknown reset option(s) {sorted(unknown)}: use density, starts, goals"
+                f"unknown reset option(s) {sorted(unknown)}: use density, starts, goals, reset_mask"
             )
+        mask = self._reset_mask(options.get("reset_mask"), seed)
         if "density" in options:
             self.set_density(options["density"])
         if seed is not None or not self.worlds:
             if seed is None:
                 seed = int(np.random.SeedSequence().entropy % (2**31))
             self._build_worlds(int(seed))
-        if self._fresh_worlds:
-            self.episode_counter.zero_()
+        if mask is not None:
+            ids = mask.nonzero().squeeze(-1)
+            self.episode_counter[ids] += 1
         else:
-            self.episode_counter += 1
+            ids = torch.arange(self.num_envs, device=self.device)
+            if self._fresh_worlds:
+                self.episode_counter.zero_()
+            else:
+                self.episode_counter += 1
         starts, goals = options.get("starts"), options.get("goals")
         if (starts is None) != (goals is None):
             raise ValueError("reset options 'starts' and 'goals' must be given together")
@@ -462,15 +491,38 @@ class SafeNavVectorEnv(VectorEnv):
             if starts.shape != (self.num_envs, 3) or goals.shape != (self.num_envs, 3):
                 raise ValueError(f"starts/goals must have shape ({self.num_envs}, 3), "
                                  f"got {tuple(starts.shape)} and {tuple(goals.shape)}")  # fmt: skip
+            if mask is not None:
+                starts, goals = starts[ids.cpu()], goals[ids.cpu()]
         self._fresh_worlds = False
-        ids = torch.arange(self.num_envs, device=self.device)
         self._start_episodes(ids, starts, goals)
+        # All envs: an env outside the mask gets the observation of its unchanged state again.
         obs, aux = self._sense()
         self._last_ranges = aux["ranges"]
-        if self.render_mode is not None:
+        if self.render_mode is not None and bool((ids == self.render_env_index).any()):
             self._trail = [self.pos[self.render_env_index].cpu().numpy().copy()]
-        info = {"episode_id": self._out(self.episode_counter.clone())}
-        return self._out(obs), info
+        info: dict[str, Any] = {"episode_id": self.episode_counter.clone()}
+        if mask is not None:
+            info["_episode_id"] = mask.clone()
+        return self._out(obs), self._out(info)
+
+    def _reset_mask(self, mask, seed: int | None) -> torch.Tensor | None:
+        """The ``reset_mask`` option as a bool tensor on the device (``None``: reset all)."""
+        if mask is None:
+            return None
+        if isinstance(mask, torch.Tensor):
+            mask = mask.detach().cpu().numpy()
+        mask = np.asarray(mask)
+        if mask.dtype != np.bool_ or mask.shape != (self.num_envs,):
+            raise ValueError(f"reset_mask must be a bool array of shape ({self.num_envs},), got "
+                             f"{mask.dtype} {mask.shape}")  # fmt: skip
+        if not mask.any():
+            raise ValueError("reset_mask must select at least one env")
+        if seed is not None:
+            # A seed draws new maps, which every env flies in: not a per-env reset.
+            raise ValueError("reset with a seed resets every env: pass no reset_mask with it")
+        if not self.worlds:
+            raise ValueError("reset_mask needs a first reset() of all envs")
+        return torch.as_tensor(mask, device=self.device)
 
     # ------------------------------------------------------------------ sensing
     def _sense(
@@ -644,11 +696,23 @@ class SafeNavVectorEnv(VectorEnv):
                 # kinds can be touched in the same step).
                 "hit_static": hit_static.clone(), "hit_dynamic": hit_dynamic.clone(),
                 "out_of_bounds": out_of_bounds.clone(), "hit_border": hit_border.clone(),
+                # Gymnasium's RecordEpisodeStatistics keys: return, length, wall-clock seconds
+                # (rounded to 1 us as it does), 0 where the episode goes on.
+                "r": torch.where(done, st["return"], 0.0),
+                "l": torch.where(done, self.steps, 0),
+                "t": torch.where(done, (time.perf_counter() - self._t0).round(decimals=6), 0.0),
             }  # fmt: skip
             info["_episode"] = done.clone()
             if self.autoreset_mode == AutoresetMode.SAME_STEP:
                 info["final_obs"] = {k: v.clone() for k, v in obs.items()}
                 info["_final_obs"] = done.clone()
+                # Gymnasium 1.x SAME_STEP: the finished envs' info of their last step, each key
+                # with its "_key" mask (here the same arrays as the top-level keys, which keep it).
+                info["final_info"] = {}
+                for key in ("cost", "success", "collision", "clearance", "episode"):
+                    info["final_info"][key] = info[key]
+                    info["final_info"][f"_{key}"] = info["_final_obs"]
+                info["_final_info"] = info["_final_obs"]
                 ids = done.nonzero().squeeze(-1)
                 self.episode_counter[ids] += 1
                 self._start_episodes(ids)
