@@ -22,9 +22,17 @@ from gymnasium.vector import AutoresetMode
 from gymnasium.wrappers import RecordEpisodeStatistics
 from gymnasium.wrappers.vector import DictInfoToList
 from gymnasium.wrappers.vector import RecordEpisodeStatistics as VecRecordEpisodeStatistics
+from packaging.version import Version
 
 import safenav  # noqa: F401  (registers SafeNav-v1)
 from safenav.envs.nav import SafeNavVectorEnv
+
+gym_version = Version(gym.__version__)
+# Older Gymnasium wrappers (the floor is 1.1, `make test-floors`): the vector
+# RecordEpisodeStatistics drops the first step of every SAME_STEP episode before 1.4 (it assumed
+# NEXT_STEP), and DictInfoToList needs a "_key" mask for every key, nested ones too, before 1.2.2.
+OLD_RECORD = pytest.mark.skipif(gym_version < Version("1.4"), reason="SAME_STEP from gymnasium 1.4")
+OLD_DICT_INFO = pytest.mark.skipif(gym_version < Version("1.2.2"), reason="gymnasium >= 1.2.2")
 
 # Short episodes (2 s = 20 steps) in a sparse map: many episodes end, by timeout and collision.
 FAST = dict(preset="easy", max_episode_seconds=2.0, num_static=40, num_dynamic=8)
@@ -198,7 +206,7 @@ def test_bad_reset_masks_are_clear_errors():
     assert not np.array_equal(env.start[0].numpy(), starts[0])
 
 
-@pytest.mark.parametrize("mode", ["SameStep", "Disabled"])
+@pytest.mark.parametrize("mode", [pytest.param("SameStep", marks=OLD_RECORD), "Disabled"])
 def test_record_episode_statistics_agrees_with_the_envs_own_r_l(mode):
     """The wrapper needs another ``stats_key``: SafeNav already writes ``info["episode"]`` (with
     its ``r`` / ``l`` / ``t``), and the wrapper refuses to overwrite it."""
@@ -248,6 +256,7 @@ def test_single_env_record_episode_statistics_agrees_with_r_l():
     assert ended >= 2
 
 
+@OLD_DICT_INFO
 def test_dict_info_to_list_gives_per_env_final_obs_and_final_info():
     """With Gymnasium's DictInfoToList the batched ``final_obs`` becomes what a SyncVectorEnv
     gives: each finished env's own last observation, and its last step's info."""

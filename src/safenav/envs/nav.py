@@ -223,8 +223,10 @@ class SafeNavVectorEnv(VectorEnv):
     top-level keys, which keep them. ``DISABLED``: nothing resets by itself; ``reset(options=
     {"reset_mask": mask})`` starts the next episode of the envs in ``mask`` only.
     ``info["episode"]`` also has ``RecordEpisodeStatistics``' keys: ``r`` (return), ``l``
-    (length), ``t`` (wall-clock seconds), 0 where the episode goes on. That wrapper refuses to
-    overwrite ``info["episode"]``: give it another ``stats_key``. Tested:
+    (length), ``t`` (wall-clock seconds), 0 where the episode goes on: right on every Gymnasium,
+    while that wrapper counts ``SAME_STEP`` episodes right only from Gymnasium 1.4 (before, it
+    drops each episode's first step), and refuses to overwrite ``info["episode"]``: give it
+    another ``stats_key``. ``DictInfoToList`` needs Gymnasium >= 1.2.2. Tested:
     ``gymnasium.utils.env_checker.check_env`` on :class:`SafeNavEnv`, the vector-env counterpart
     of its checks and of both autoreset modes in ``tests/test_gym_conventions.py``.
 
@@ -706,13 +708,6 @@ class SafeNavVectorEnv(VectorEnv):
             if self.autoreset_mode == AutoresetMode.SAME_STEP:
                 info["final_obs"] = {k: v.clone() for k, v in obs.items()}
                 info["_final_obs"] = done.clone()
-                # Gymnasium 1.x SAME_STEP: the finished envs' info of their last step, each key
-                # with its "_key" mask (here the same arrays as the top-level keys, which keep it).
-                info["final_info"] = {}
-                for key in ("cost", "success", "collision", "clearance", "episode"):
-                    info["final_info"][key] = info[key]
-                    info["final_info"][f"_{key}"] = info["_final_obs"]
-                info["_final_info"] = info["_final_obs"]
                 ids = done.nonzero().squeeze(-1)
                 self.episode_counter[ids] += 1
                 self._start_episodes(ids)
@@ -720,13 +715,17 @@ class SafeNavVectorEnv(VectorEnv):
                 for key in obs:
                     obs[key][ids] = new_obs[key]
                 self._last_ranges[ids] = new_aux["ranges"]
-        return (
-            self._out(obs),
-            self._out(reward),
-            self._out(terminated),
-            self._out(truncated),
-            self._out(info),
-        )
+        info = self._out(info)
+        if "_final_obs" in info:
+            # Gymnasium 1.x SAME_STEP: the finished envs' info of their last step, each key with
+            # its "_key" mask: the same arrays as the top-level keys (which keep them), added
+            # after the conversion so that NumPy output converts them once.
+            mask = info["_final_obs"]
+            final = {}
+            for key in ("cost", "success", "collision", "clearance", "episode"):
+                final[key], final[f"_{key}"] = info[key], mask
+            info["final_info"], info["_final_info"] = final, mask
+        return self._out(obs), self._out(reward), self._out(terminated), self._out(truncated), info
 
     def _out(self, x):
         """Tensors as the env's ``output`` type (NumPy views of CPU tensors cost no copy)."""
