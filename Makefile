@@ -6,7 +6,7 @@ BIN    := $(VENV)/bin
 TORCH  ?= torch==2.13.0
 PYTEST_ARGS ?=
 
-.PHONY: setup demo test test-slow lint bench clean
+.PHONY: setup demo test test-slow test-floors lint bench clean
 
 setup: $(VENV)/.installed
 
@@ -26,6 +26,18 @@ test: setup
 test-slow: setup
 	$(BIN)/python -m pytest -m slow -q $(PYTEST_ARGS)
 
+# The fast tests against the lowest versions pyproject.toml allows (constraints/floors.txt), in a
+# fresh .venv-floors. Not part of `make test` or CI: a second environment to download and install
+# (about 1 min of installs and 3 of tests on the 2-core machine, 2026-11-24).
+FLOORS_VENV ?= .venv-floors
+test-floors:
+	rm -rf $(FLOORS_VENV)
+	$(PYTHON) -m venv $(FLOORS_VENV)
+	$(FLOORS_VENV)/bin/pip install -q --upgrade pip
+	$(FLOORS_VENV)/bin/pip install -q -c constraints/floors.txt torch -e ".[all]"
+	$(FLOORS_VENV)/bin/pip freeze --exclude-editable > $(FLOORS_VENV)/installed.txt
+	$(FLOORS_VENV)/bin/python -m pytest -m "not slow" -q -p no:cacheprovider $(PYTEST_ARGS)
+
 lint: setup
 	$(BIN)/ruff check src tests benchmarks
 	$(BIN)/ruff format --check src tests benchmarks
@@ -38,4 +50,4 @@ bench: setup
 	$(BIN)/safenav bench soak --json benchmarks/results/soak.json
 
 clean:
-	rm -rf $(VENV) .pytest_cache runs
+	rm -rf $(VENV) $(FLOORS_VENV) .pytest_cache runs
