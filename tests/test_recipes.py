@@ -100,3 +100,69 @@ def test_bad_fields_and_values_and_cycles(tmp_path):
         load_recipe(str(a))
     with pytest.raises(SafenavError, match="unknown recipe"):
         load_recipe("no-such-recipe")
+
+
+# ---------------------------------------------------------------- safenav train --config
+
+
+def test_train_config_flags_override_the_recipe():
+    from safenav.commands.train import parse_train_args
+
+    paper = parse_train_args(["--config", "csac-paper"])
+    assert paper["algo"] == "csac" and paper["csac"].cost_target == "mean"
+    assert paper["run"].num_envs == 16 and paper["run"].total_steps == 5_000_000
+    mine = parse_train_args(["--config", "csac-paper", "--num-envs", "8", "--csac.actor-lr=1e-3",
+                             "--density.ramp-fraction", "0.3"])  # fmt: skip
+    assert mine["run"].num_envs == 8 and mine["csac"].actor_lr == 1e-3
+    assert mine["run"].density.ramp_fraction == 0.3 and mine["csac"].cost_target == "mean"
+
+
+def test_train_default_recipe_per_algo_and_none():
+    from safenav.commands.train import parse_train_args
+    from safenav.common.config import RunConfig
+
+    csac = parse_train_args(["--algo", "csac"])
+    assert csac["csac"].cost_target == load_recipe("csac").section("csac")["cost_target"]
+    ppo = parse_train_args(["--algo", "ppo_lag"])  # ppo-lag.toml, based on ppo.toml
+    assert ppo["run"].num_envs == load_recipe("ppo").section("run")["num_envs"]
+    builtin = parse_train_args(["--algo", "csac", "--config", "none"])
+    assert builtin["run"] == RunConfig() and builtin["csac"].cost_target == "mean"
+    gym = parse_train_args(["--algo", "sac", "--env", "Pendulum-v1"])  # no SafeNav recipe there
+    assert gym["run"].num_envs == RunConfig().num_envs
+
+
+def test_train_config_from_a_users_file(tmp_path):
+    from safenav.commands.train import parse_train_args
+
+    path = tmp_path / "mine.toml"
+    path.write_text('[recipe]\nalgo = "sac"\nbase = "csac-paper"\n[csac]\nbatch_size = 64\n')
+    parsed = parse_train_args(["--config", str(path)])
+    assert parsed["algo"] == "sac" and parsed["csac"].batch_size == 64
+    assert parsed["run"].total_steps == 5_000_000  # from its base
+
+
+def test_train_config_refusals(tmp_path):
+    from safenav.commands.train import parse_train_args
+
+    with pytest.raises(SafenavError, match="trains --algo ppo, not --algo csac"):
+        parse_train_args(["--config", "ppo", "--algo", "csac"])
+    with pytest.raises(SafenavError, match="unknown recipe"):
+        parse_train_args(["--config", "csac-nonesuch"])
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[recipe]\nalgo = "csac"\n[csac]\nactor_lr = -1.0\n')
+    with pytest.raises(SafenavError, match="actor"):
+        parse_train_args(["--config", str(bad)])
+
+
+def test_train_records_the_recipe_in_config_json(tmp_path, capsys):
+    import json
+
+    from safenav.cli import main
+
+    run_dir = tmp_path / "run"
+    main(["train", "--config", "csac-paper", "--preset", "easy", "--total-steps", "64",
+          "--num-envs", "4", "--eval-every", "0", "--no-progress", "--no-tensorboard",
+          "--csac.learning-starts", "32", "--csac.batch-size", "16", "--run-dir", str(run_dir)])  # fmt: skip
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["recipe"]["name"] == "csac-paper" and config["csac"]["cost_target"] == "mean"
+    assert "recipe csac-paper" in capsys.readouterr().out

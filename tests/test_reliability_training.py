@@ -54,7 +54,8 @@ WALL_CLOCK = ("time/elapsed_s", "perf/sps", "perf/updates_per_s")
 
 
 def train_args(algo: str, run_dir: Path, total: int = TOTAL, *extra: str) -> list[str]:
-    return ["train", "--algo", algo, "--run-dir", str(run_dir), "--total-steps", str(total),
+    # --config none: the built-in defaults, which the step arithmetic of these tests counts on
+    return ["train", "--algo", algo, "--config", "none", "--run-dir", str(run_dir), "--total-steps", str(total),
             *FAST, *SMALL[algo], *extra]  # fmt: skip
 
 

@@ -44,9 +44,13 @@ def test_the_seed_sets_are_disjoint():
     assert not RESERVED_SEEDS & set(VALIDATION_SEEDS)
 
 
-def test_training_and_selection_never_fly_the_test_or_heldout_maps(tmp_path, world_seeds):
-    from tests.test_train_cli import FAST
+FAST = ["--num-envs", "4", "--log-every", "100", "--eval-every", "200", "--eval-episodes", "2",
+        "--checkpoint-every", "200", "--no-progress", "--no-tensorboard", "--torch-threads", "1",
+        "--csac.learning-starts", "100", "--csac.batch-size", "32", "--csac.buffer-size", "2000",
+        "--csac.updates-per-step", "0.25", "--csac.net.hidden", "32", "32"]  # fmt: skip
 
+
+def test_training_and_selection_never_fly_the_test_or_heldout_maps(tmp_path, world_seeds):
     run_dir = tmp_path / "run"
     main(["train", "--algo", "csac", "--preset", "easy", "--seed", "2", "--total-steps", "600",
           "--keep-policies", "--run-dir", str(run_dir), *FAST])  # fmt: skip
@@ -113,3 +117,26 @@ def test_report_needs_a_safenav_policy(tmp_path):
     with pytest.raises(Exception, match="missing.pt"):
         report_policy(path, episodes=1)
     assert selection.TEST_SEED == 1
+
+
+def test_train_select_ends_with_a_validation_choice_and_its_report(tmp_path, monkeypatch, capsys):
+    """``safenav train --select``: policy.pt chosen on validation, final.json with the test and
+    held-out report (fewer episodes here to stay fast)."""
+    import functools
+
+    from safenav.experiments import selection
+
+    monkeypatch.setattr(selection, "select_final_policy",
+                        functools.partial(selection.select_final_policy, episodes=4))  # fmt: skip
+    monkeypatch.setattr(selection, "report_policy",
+                        functools.partial(selection.report_policy, episodes=2, heldout=(2,)))  # fmt: skip
+    run_dir = tmp_path / "run"
+    main(["train", "--algo", "csac", "--preset", "easy", "--seed", "4", "--total-steps", "400",
+          "--select", "--run-dir", str(run_dir), *FAST])  # fmt: skip
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["run"]["select"] and config["run"]["keep_policies"]  # --select keeps them
+    final = json.loads((run_dir / "final.json").read_text())
+    assert final["selection"]["selection"] == "validation"
+    assert final["test"]["env_seed"] == TEST_SEED and final["heldout"]["seeds"] == [2]
+    assert (run_dir / "policy.pt").is_file()
+    assert "policy chosen on validation" in capsys.readouterr().out

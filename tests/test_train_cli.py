@@ -54,10 +54,13 @@ def test_cli_smoke_run_directory(csac_run):
     assert math.isfinite(float(last["losses/qc"]))
     config = json.loads((csac_run / "config.json").read_text())
     assert config["algo"] == "csac" and config["run"]["preset"] == "easy"
-    assert (
-        config["csac"]["actor_lr"] == pytest.approx(5e-5)
-        and config["env_config"]["map_size"] == 20.0
-    )
+    # no --config: --algo csac on SafeNav takes the shipped csac recipe; options given win
+    from safenav.recipes import load_recipe
+
+    recipe = load_recipe("csac")
+    assert config["recipe"]["name"] == "csac" and config["env_config"]["map_size"] == 20.0
+    assert config["csac"]["actor_lr"] == pytest.approx(recipe.section("csac")["actor_lr"])
+    assert config["run"]["num_envs"] == 4 != recipe.section("run")["num_envs"]
     state = load_checkpoint(csac_run / "checkpoint.pt")
     assert state["global_step"] == 300 and state["updates"] > 0
     for key in ("agent", "optimizers", "curriculum", "density", "rng", "policy"):
@@ -69,10 +72,13 @@ def test_cli_smoke_run_directory(csac_run):
     # best.pt: the policy of the best periodic evaluation, loadable like any policy checkpoint
     best = load_checkpoint(csac_run / "best.pt")
     assert best["policy_only"] and "agent" not in best and best["global_step"] % 200 == 0
-    exported = load_checkpoint(save_policy_only(csac_run / "checkpoint.pt", csac_run.parent / "exported.pt"))
+    exported = load_checkpoint(
+        save_policy_only(csac_run / "checkpoint.pt", csac_run.parent / "exported.pt")
+    )
     assert set(best) == {*exported, "evaluation"}  # what `safenav export --policy-only` keeps
     assert best["evaluation"]["eval/success_rate"] == max(
-        float(r["eval/success_rate"]) for r in rows if r["eval/success_rate"])
+        float(r["eval/success_rate"]) for r in rows if r["eval/success_rate"]
+    )
     assert load_policy(csac_run / "best.pt").meta["algo"] == "csac"
     assert state["best"]["score"][0] == best["evaluation"]["eval/success_rate"]
     # --keep-policies: every evaluated policy, best.pt's among them

@@ -518,9 +518,11 @@ def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: boo
     return run_summary(global_step, updates, recent)
 
 
-def write_config(run_dir: Path, algo: str, run: RunConfig, cfg: CSACConfig) -> None:
+def write_config(
+    run_dir: Path, algo: str, run: RunConfig, cfg: CSACConfig, recipe: dict | None = None
+) -> None:
     """``config.json`` of a csac run (see :func:`safenav.common.runs.write_run_config`)."""
-    write_run_config(run_dir, algo, run, "csac", cfg)
+    write_run_config(run_dir, algo, run, "csac", cfg, recipe)
 
 
 __all__ = ["CSAC", "COLUMNS", "CSACConfig", "train", "write_config"]

@@ -422,9 +422,11 @@ def train(algo: str, run: RunConfig, cfg: PPOConfig, run_dir: Path, resume: bool
     return run_summary(global_step, updates, recent)
 
 
-def write_config(run_dir: Path, algo: str, run: RunConfig, cfg: PPOConfig) -> None:
+def write_config(
+    run_dir: Path, algo: str, run: RunConfig, cfg: PPOConfig, recipe: dict | None = None
+) -> None:
     """``config.json`` of a ppo run (see :func:`safenav.common.runs.write_run_config`)."""
-    write_run_config(run_dir, algo, run, "ppo", cfg)
+    write_run_config(run_dir, algo, run, "ppo", cfg, recipe)
 
 
 __all__ = ["COLUMNS", "PPO", "PPOConfig", "collect_rollout", "train", "write_config"]

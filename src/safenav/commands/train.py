@@ -28,6 +28,7 @@ def train(
     # A plain str checked below, not a Literal: tyro would answer a typo with a boxed usage error
     # instead of the CLI's one-line ``safenav: error: ...``.
     algo: Annotated[str, tyro.conf.arg(metavar="{" + ",".join(ALGOS) + "}")] = "csac",
+    config: Annotated[str | None, tyro.conf.arg(metavar="NAME|PATH")] = None,
     run: Annotated[RunConfig, tyro.conf.arg(name="")] = RunConfig(),  # noqa: B008
     csac: CSACConfig = CSACConfig(),  # noqa: B008
     ppo: PPOConfig = PPOConfig(),  # noqa: B008
@@ -46,24 +47,129 @@ def train(
     and the logging options may change) or --overwrite (replace it); one whose run failed before
     training is reused. Default run dir: runs/<algo>-<env>-s<seed>-<time>.
 
+    --config NAME|PATH starts from a recipe: one shipped with safenav (csac, csac-paper,
+    csac-maxcost, sac, sac-lag, ppo, ppo-lag, ...) or a TOML file of your own; options given on
+    the command line override it, and config.json records the resolved values and the recipe.
+    Without --config, --algo A on SafeNav takes the recipe named A; --config none keeps the
+    built-in defaults. --select ends the run by choosing its policy on validation maps only
+    (RUN_DIR/policy.pt) and reporting it on the test and held-out scenarios (RUN_DIR/final.json).
+
     Step counts take 1000000, 1e6, 1_000_000 or 1M. Everything is checked before the run
     directory is written, including the memory the run needs (refused with the estimate).
     """
     from safenav.algos import csac as csac_module
+    from safenav.cli import ARGS
     from safenav.common.logger import prepare_run_dir
 
+    algo, run, csac, ppo, recipe = apply_recipe(config, algo, run, csac, ppo, ARGS.get(), resume)
     run, cfg, run_dir = plan(algo, run, csac, ppo, run_dir, resume, overwrite)
+    if recipe is not None:
+        print(
+            f"safenav train: recipe {recipe.name} ({recipe.source}); options given here override it"
+        )
     prepare_run_dir(run_dir, resume=resume is not None, overwrite=overwrite)
     if algo in ("ppo", "ppo_lag"):
         from safenav.algos import ppo as module
     else:
         module = csac_module
     if resume is None:
-        module.write_config(run_dir, algo, run, cfg)
+        module.write_config(run_dir, algo, run, cfg, recipe_record(recipe))
     result = module.train(algo, run, cfg, run_dir, resume=resume is not None, progress=progress)
     print(f"safenav train: {algo} finished at step {result['global_step']} ({result['updates']} updates); "
           f"last 100 episodes: success {result['success_rate']:.3f}, collision {result['collision_rate']:.3f}, "
           f"return {result['return']:.2f}; run dir {run_dir}")  # fmt: skip
+    if run.select:
+        finish_run(run_dir, run.device)
+
+
+def finish_run(run_dir: Path, device: str = "cpu") -> dict:
+    """``--select``: the run's policy chosen on validation maps only (``RUN_DIR/policy.pt``,
+    ``selection.json``), then reported on the test scenario and the held-out maps
+    (``RUN_DIR/final.json``; :mod:`safenav.experiments.selection`)."""
+    from safenav.common.jsonout import write_json
+    from safenav.experiments.selection import report_policy, select_final_policy
+
+    t0 = time.perf_counter()
+    selection = select_final_policy(run_dir, device=device)
+    report = report_policy(run_dir / "policy.pt", device=device)
+    final = {"policy": str(run_dir / "policy.pt"), "selection": selection,
+             **report, "report_wall_clock_s": round(time.perf_counter() - t0, 1)}  # fmt: skip
+    write_json(run_dir / "final.json", final)
+    test, held = report["test"], report["heldout"]
+    print(f"safenav train: policy chosen on validation ({selection['method']}, steps "
+          f"{selection['chosen_steps']}) -> {run_dir / 'policy.pt'}; test success "
+          f"{test['success_rate']:.3f} collision {test['collision_rate']:.3f}; held-out success "
+          f"{held['success_rate']:.3f} collision {held['collision_rate']:.3f}")  # fmt: skip
+    return final
+
+
+def given_flag(flag: str, args: tuple[str, ...] | list[str]) -> bool:
+    """Whether ``args`` names ``--flag`` (as ``--a.b-c``, ``--a.b_c``, ``--no-...`` or with
+    ``=value``)."""
+    dotted, _, last = flag.rpartition(".")
+    prefix = dotted + "." if dotted else ""
+    forms = set()
+    for name in (last.replace("_", "-"), last.replace("-", "_")):
+        forms |= {f"--{prefix}{name}", f"--{prefix}no-{name}", f"--{prefix}no_{name}"}
+    return any(a.split("=", 1)[0] in forms for a in args)
+
+
+def _recipe_overrides(section: dict, obj, prefix: str, args) -> dict:
+    """The recipe's values for the fields of ``obj`` whose flags ``args`` does not give."""
+    import dataclasses
+
+    out = {}
+    for key, value in section.items():
+        current = getattr(obj, key, None)
+        if dataclasses.is_dataclass(current) and isinstance(value, dict):
+            sub = _recipe_overrides(value, current, f"{prefix}{key}.", args)
+            if sub:
+                out[key] = sub
+        elif not given_flag(f"{prefix}{key}", args):
+            out[key] = value
+    return out
+
+
+def apply_recipe(config: str | None, algo: str, run: RunConfig, csac: CSACConfig, ppo: PPOConfig,
+                 args: tuple[str, ...] | list[str], resume: Path | None = None):  # fmt: skip
+    """``(algo, run, csac, ppo, recipe)`` with the recipe of ``--config`` (or the default recipe
+    of ``--algo`` on SafeNav) applied under the options ``args`` gives (those win). A resumed
+    run keeps the configuration in its config.json."""
+    from safenav import recipes
+    from safenav.errors import SafenavError
+
+    if resume is not None:
+        if config is not None:
+            raise SafenavError("--config with --resume: a resumed run keeps the configuration "
+                               "in its config.json")  # fmt: skip
+        return algo, run, csac, ppo, None
+    if config is not None and config.lower() == "none":
+        return algo, run, csac, ppo, None
+    name = config if config is not None else recipes.default_recipe(algo, run.env)
+    if name is None:
+        return algo, run, csac, ppo, None
+    recipe = recipes.load_recipe(name)
+    if recipe.algo not in ALGOS:
+        raise SafenavError(
+            f"--config {name}: its algo {recipe.algo!r} is not one of {', '.join(ALGOS)}"
+        )
+    if config is not None:
+        if given_flag("algo", args) and algo != recipe.algo:
+            raise SafenavError(f"--config {name} trains --algo {recipe.algo}, not --algo {algo}: "
+                               "drop --algo or choose another recipe")  # fmt: skip
+        algo = recipe.algo
+    run = recipes.apply(run, _recipe_overrides(recipe.section("run"), run, "", args), "run.")
+    csac = recipes.apply(csac, _recipe_overrides(recipe.section("csac"), csac, "csac.", args),
+                         "csac.")  # fmt: skip
+    ppo = recipes.apply(ppo, _recipe_overrides(recipe.section("ppo"), ppo, "ppo.", args), "ppo.")
+    return algo, run, csac, ppo, recipe
+
+
+def recipe_record(recipe) -> dict | None:
+    """What config.json keeps of the recipe a run started from."""
+    if recipe is None:
+        return None
+    return {"name": recipe.name, "source": recipe.source, "header": recipe.header}
 
 
 def plan(algo: str, run: RunConfig, csac: CSACConfig, ppo: PPOConfig, run_dir: Path | None,
@@ -184,9 +290,11 @@ def parse_train_args(args: list[str]) -> dict:
     options = functools.wraps(train)(lambda **kwargs: kwargs)
     with _parse_errors_as_safenav_errors("train"):
         parsed = tyro.cli(options, args=args, prog="safenav train", registry=registry())
-    if parsed["algo"] not in ALGOS:
+    algo, run, csac, ppo, _ = apply_recipe(parsed["config"], parsed["algo"], parsed["run"],
+                                           parsed["csac"], parsed["ppo"], args)  # fmt: skip
+    if algo not in ALGOS:
         from safenav.errors import SafenavError
 
-        raise SafenavError(f"unknown algorithm {parsed['algo']!r} (--algo): choose one of "
+        raise SafenavError(f"unknown algorithm {algo!r} (--algo): choose one of "
                            f"{', '.join(ALGOS)}")  # fmt: skip
-    return parsed
+    return parsed | {"algo": algo, "run": run, "csac": csac, "ppo": ppo}

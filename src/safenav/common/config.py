@@ -52,6 +52,10 @@ class RunConfig:
     keep_policies: bool = False
     """Also keep the policy of every periodic evaluation as ``policies/step_<N>.pt`` (policy-only,
     ~0.6 MB each), to compare a run's policies afterwards (benchmarks/checkpoint_sweep.py)."""
+    select: bool = False
+    """End the run by choosing its policy on validation maps only (greedy soup of the policies
+    kept in its last half; implies keep_policies): ``RUN_DIR/policy.pt`` and ``selection.json``,
+    then its report on the test scenario and held-out maps in ``RUN_DIR/final.json``."""
     save_buffer: bool = False
     """Store the replay buffer in checkpoint.pt (large); without it a resume refills it first."""
     matmul_precision: Literal["highest", "high", "medium"] = "highest"
@@ -70,6 +74,8 @@ class RunConfig:
             raise ValueError("eval-every, torch-threads and map-refresh-every must be >= 0")
         if not 0 <= self.seed <= MAX_SEED:
             raise ValueError(f"seed={self.seed} must lie in [0, {MAX_SEED}]")
+        if self.select and not self.keep_policies:
+            object.__setattr__(self, "keep_policies", True)  # the candidates of the selection
         if self.torch_threads > 1024:
             raise ValueError(
                 f"torch-threads={self.torch_threads} must be <= 1024 (0 = one per core)"

@@ -40,9 +40,19 @@ def run_summary(
             "return": nanmean(recent["return"])}  # fmt: skip
 
 
-def write_run_config(run_dir: Path, algo: str, run: RunConfig, section: str, cfg: Any) -> None:
-    """``config.json``: the resolved configuration (and the SafeNav env config, for reference)."""
+def write_run_config(
+    run_dir: Path,
+    algo: str,
+    run: RunConfig,
+    section: str,
+    cfg: Any,
+    recipe: dict[str, Any] | None = None,
+) -> None:
+    """``config.json``: the resolved configuration, the recipe it started from (``safenav train
+    --config``) and the SafeNav env config, for reference."""
     data: dict[str, Any] = {"algo": algo, "run": to_dict(run), section: to_dict(cfg)}
+    if recipe is not None:
+        data["recipe"] = recipe
     if is_safenav(run.env):
         from safenav.envs.config import make_config
 
