@@ -146,6 +146,7 @@ def base(verb: str, flag: str, ws: Path) -> list[str]:
         "plot": ["plot", str(ws / "runs"), "--out", str(s / "figs")],
         "average": ["average", str(ws / "ckpt.pt"), "--out", str(s / "avg.pt")],
         "export": ["export", str(ws / "ckpt.pt"), "--onnx", str(s / "p.onnx")],
+        "convert": ["convert", str(ws / "ckpt.pt"), "--out", str(s / "c.pt")],
         "sim-vehicle": ["sim-vehicle", "--bind", "127.0.0.1:0", "--perception-port", "0"],
         # --connect port 0: no probe of the (maybe busy) default port 14540 of this machine
         "fly": [
@@ -288,6 +289,8 @@ def path_cases(ws: Path) -> dict[str, list[tuple[str, int]]]:
         "export CHECKPOINT": [(missing, 2), (garbage, 2)],
         "export --onnx": [*out_file("p.onnx"), (ckpt, 2), (afile, 2)],  # never onto a checkpoint
         "export --policy-only": [*out_file("p.pt"), (ckpt, 2)],  # the checkpoint it reads
+        "convert CHECKPOINT": [(missing, 2), (adir, 2), (garbage, 2), (afile, 2)],
+        "convert --out": out_file("c.pt"),
         "fly --policy": [(missing, 2), (adir, 2), (ckpt, 2), (garbage, 2)],
         "fly --json": out_file("flight.json"),
         "fly --checkpoint": [(missing, 2), (adir, 2)],

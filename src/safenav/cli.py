@@ -38,6 +38,7 @@ VERBS = {
     "plot": "learning curves and test results of runs as PNG",
     "average": "weight average of a run's kept policies into one policy",
     "export": "a checkpoint's policy as ONNX (or as a small policy-only file)",
+    "convert": "an older safenav's checkpoint rewritten to load without pickle",
     "sim-vehicle": "a simulated PX4 vehicle speaking MAVLink on loopback",
     "fly": "fly an ONNX policy on PX4 (or --demo against sim-vehicle)",
     "bench": "throughput, latency and memory benchmarks",

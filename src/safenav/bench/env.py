@@ -4,7 +4,6 @@ speed-up over a brute-force reference (every beam against every pillar) measured
 
 from __future__ import annotations
 
-import json
 import platform
 import statistics
 import time
@@ -15,6 +14,7 @@ from rich.console import Console
 from rich.progress import track
 from rich.table import Table
 
+from safenav.common.jsonout import write_json
 from safenav.envs.nav import SafeNavVectorEnv
 
 
@@ -111,5 +111,5 @@ def bench_env(
     )
     if json_out is not None:
         Path(json_out).parent.mkdir(parents=True, exist_ok=True)
-        Path(json_out).write_text(json.dumps(report, indent=2))
+        write_json(Path(json_out), report)
     return report

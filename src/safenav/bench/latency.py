@@ -23,7 +23,6 @@ change latency.
 
 from __future__ import annotations
 
-import json
 import platform
 import tempfile
 import time
@@ -35,6 +34,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from safenav.common.jsonout import write_json
 from safenav.envs.config import EnvConfig, make_config
 
 TARGET_PIPELINE_P99_MS = 2.0
@@ -249,7 +249,7 @@ def bench_latency(
     if json_out is not None:
         json_out = Path(json_out)
         json_out.parent.mkdir(parents=True, exist_ok=True)
-        json_out.write_text(json.dumps(out, indent=2) + "\n")
+        write_json(json_out, out)
     return out
 
 

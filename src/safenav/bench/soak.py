@@ -20,7 +20,6 @@ from the layer widths.
 
 from __future__ import annotations
 
-import json
 import platform
 import statistics
 import tempfile
@@ -31,6 +30,8 @@ from pathlib import Path
 from typing import Any
 
 import torch
+
+from safenav.common.jsonout import write_json
 
 
 def rss_mb() -> float:
@@ -184,7 +185,7 @@ def bench_soak(
             print(f"{k:<36}{v:>14}")
     if json_out is not None:
         Path(json_out).parent.mkdir(parents=True, exist_ok=True)
-        Path(json_out).write_text(json.dumps(out, indent=2) + "\n")
+        write_json(Path(json_out), out)
     return out
 
 

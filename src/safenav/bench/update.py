@@ -17,7 +17,6 @@ on the machine hits all alike) and the medians reported.
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import statistics
@@ -27,6 +26,8 @@ from typing import Any
 
 import numpy as np
 import torch
+
+from safenav.common.jsonout import write_json
 
 SAFENAV_SHAPES = {"state": (8,), "lidar": (4, 36), "dynamic": (5, 10)}
 BATCH = 256
@@ -173,7 +174,7 @@ def bench_update(json_out: Path | None, repeats: int = 5, updates: int = 40,
     if json_out is not None:
         json_out = Path(json_out)
         json_out.parent.mkdir(parents=True, exist_ok=True)
-        json_out.write_text(json.dumps(result, indent=2) + "\n")
+        write_json(json_out, result)
     return result
 
 

@@ -3,6 +3,7 @@
 from safenav.commands import (  # noqa: F401
     average,
     bench,
+    convert,
     eval,
     export,
     fly,

@@ -1,14 +1,18 @@
-"""Strict JSON for the files the CLI writes (``eval --json``, ``fly --json``): a metric without a
-value (NaN, e.g. the mean time to goal of a policy that never arrives) is ``null``, since
-Python's ``json`` would write a bare ``NaN`` that no other JSON reader accepts."""
+"""Strict JSON for every JSON file safenav writes (``config.json``, ``final.json``, ``eval
+--json``, ``fly --json``, ONNX sidecars, results, benchmarks): a metric without a value (NaN,
+e.g. the mean time to goal of a policy that never arrives) is ``null``, since Python's ``json``
+would write a bare ``NaN`` that no other JSON reader accepts. :func:`write_json` is the one
+writer: atomic and ``fsync``-ed (:func:`~safenav.common.atomic.atomic_write`)."""
 
 from __future__ import annotations
 
 import json
 import math
-import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+
+from safenav.common.atomic import write_text_atomic
 
 
 def jsonable(obj: Any) -> Any:
@@ -27,22 +31,17 @@ def jsonable(obj: Any) -> Any:
     return obj
 
 
-def dumps(obj: Any) -> str:
-    """Indented strict JSON (``allow_nan=False``: a non-finite number left is a bug, not output)."""
-    return json.dumps(jsonable(obj), indent=2, allow_nan=False) + "\n"
+def dumps(obj: Any, default: Callable[[Any], Any] | None = None) -> str:
+    """Indented strict JSON (``allow_nan=False``: a non-finite number left is a bug, not output);
+    ``default`` turns what JSON has no type for into something it has (``str``, say)."""
+    return json.dumps(jsonable(obj), indent=2, allow_nan=False, default=default) + "\n"
 
 
-def write_json(path: Path, obj: Any) -> None:
-    """Write ``obj`` as strict JSON to ``path`` atomically (a temporary file, then a rename): an
-    existing file is either kept or replaced whole."""
-    path = Path(path)
-    text = dumps(obj)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        tmp.write_text(text)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+def write_json(path: str | Path, obj: Any, default: Callable[[Any], Any] | None = None) -> None:
+    """Write ``obj`` as strict JSON (:func:`dumps`) to ``path`` atomically and durably: a
+    temporary file, ``fsync``, a rename, ``fsync`` of the directory. An existing file is either
+    kept or replaced whole, also across a crash or power cut."""
+    write_text_atomic(path, dumps(obj, default))
 
 
 __all__ = ["dumps", "jsonable", "write_json"]

@@ -93,9 +93,11 @@ def _check_writable(run_dir: Path) -> None:
 
 
 def write_json_atomic(path: Path, obj: Any) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=2, default=str) + "\n")
-    os.replace(tmp, path)
+    """``config.json`` and the like: :func:`safenav.common.jsonout.write_json` (atomic, fsynced,
+    strict JSON), anything JSON has no type for written as its ``str``."""
+    from safenav.common.jsonout import write_json
+
+    write_json(path, obj, default=str)
 
 
 class RunLogger:

@@ -27,6 +27,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from safenav.common.atomic import replace_synced
+from safenav.common.jsonout import write_json
 from safenav.envs.config import EnvConfig, observation_shapes
 from safenav.envs.nav import DIST_SCALE, Z_SCALE
 from safenav.errors import SafenavError, one_line
@@ -177,13 +179,10 @@ def export_onnx(
             "env_config": dataclasses.asdict(cfg),
             "check": {"max_abs_diff": worst, "atol": atol},
         }
-        os.replace(tmp, onnx_path)
+        replace_synced(tmp, onnx_path)  # fsync, rename, fsync of the directory
     finally:
         tmp.unlink(missing_ok=True)
-    side = sidecar_path(onnx_path)
-    side_tmp = side.with_name(f".{side.name}.{os.getpid()}.tmp")
-    side_tmp.write_text(json.dumps(sidecar, indent=2) + "\n")
-    os.replace(side_tmp, side)
+    write_json(sidecar_path(onnx_path), sidecar)
     return sidecar
 
 

@@ -28,6 +28,9 @@ from typing import Any
 
 import numpy as np
 
+from safenav.common.atomic import write_text_atomic
+from safenav.common.jsonout import write_json
+
 #: The paper's Fig. 4 / Section IV-B figures (test success and collision rates), as fractions.
 PAPER_RESULTS: dict[str, dict[str, float]] = {
     "csac": {"success_rate": 0.847, "collision_rate": 0.111},
@@ -452,8 +455,8 @@ def write_results(results: dict[str, Any], out_dir: str | Path) -> tuple[Path, P
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     js, md = out_dir / "results.json", out_dir / "results.md"
-    js.write_text(json.dumps(results, indent=2, allow_nan=False, default=_json_default) + "\n")
-    md.write_text(render_markdown(results))
+    write_json(js, results, default=_json_default)  # atomic and fsynced, strict JSON
+    write_text_atomic(md, render_markdown(results))
     return js, md
 
 

@@ -26,7 +26,6 @@ newer than its checkpoint is skipped; one with a checkpoint but unfinished is re
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import platform
 import shlex
@@ -41,6 +40,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
+from safenav.common.jsonout import write_json
 from safenav.errors import SafenavError
 from safenav.experiments.aggregate import (
     aggregate,
@@ -183,9 +183,7 @@ def _run_logged(cmd: list[str], log: Path, threads: int) -> float:
 
 
 def _write_json(path: Path, data: dict[str, Any]) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, default=str))
-    os.replace(tmp, path)
+    write_json(path, data, default=str)  # atomic and fsynced
 
 
 def run_trial(trial: Trial) -> dict[str, Any]:
