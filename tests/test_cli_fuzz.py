@@ -281,6 +281,7 @@ def path_cases(ws: Path) -> dict[str, list[tuple[str, int]]]:
         "eval --json": out_file("eval.json"),
         "render CHECKPOINT": [(missing, 2), (adir, 2), (garbage, 2)],
         "render --out": [*out_file("e.gif"), (str(ws / "scratch" / "e.png"), 2)],
+        "render --record": [*out_file("e.mcap"), (str(ws / "scratch" / "e.gif"), 2)],
         "reproduce --out": out_dir("repro"),
         "plot DIRS": [(missing, 2), (adir, 2), (afile, 2)],
         "plot --out": out_dir("figs"),
@@ -295,6 +296,7 @@ def path_cases(ws: Path) -> dict[str, list[tuple[str, int]]]:
         "fly --json": out_file("flight.json"),
         "fly --checkpoint": [(missing, 2), (adir, 2)],
         "fly --gif": [*out_file("f.gif"), (str(ws / "scratch" / "f.png"), 2)],
+        "fly --record": [*out_file("flight.mcap"), (str(ws / "scratch" / "f.gif"), 2)],
         "bench --json": out_file("env.json"),
     }
 

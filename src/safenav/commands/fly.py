@@ -36,6 +36,7 @@ def fly(
     preset: str = "paper",
     episode: int = 0,
     gif: Path | None = None,
+    record: Path | None = None,
     verbose: bool = False,
 ) -> None:
     """Connect to PX4 (``--connect``, a MAVSDK URL), arm, take off, fly the ONNX ``--policy`` to
@@ -51,6 +52,9 @@ def fly(
     ``--preset`` scenario with ``--checkpoint`` (exported on the fly; ``--scripted`` flies the
     scripted go-to-goal actor instead), printing a summary, writing ``--json`` and a GIF
     (``--gif``, default flight.gif).
+
+    ``--record flight.mcap`` logs the flight in MCAP with ROS 2 messages (pose, setpoints, range
+    image, obstacles, goal) for Foxglove or ``ros2 bag`` (docs/deployment.md, "Flight logs").
 
     Args:
         policy: Exported ONNX policy (its ``.json`` sidecar next to it).
@@ -72,6 +76,7 @@ def fly(
         preset: With ``--demo``: SafeNav-v1 preset of the scenario.
         episode: With ``--demo``: test episode (start and goal) of the fixed scenario.
         gif: With ``--demo``: where to write the flight's GIF (default flight.gif).
+        record: Log the flight here (*.mcap: ROS 2 messages, for Foxglove / ros2 bag).
         verbose: Log MAVSDK's own messages and debug output.
     """
     from safenav.deploy.fly import FlightAborted
@@ -87,19 +92,19 @@ def fly(
         )
     check_fly_args(policy, connect, perception, rate, takeoff_altitude, link_timeout,
                    max_flight_time, json_out, demo, preset, episode, gif, goal, origin,
-                   checkpoint if demo and not scripted and policy is None else None)  # fmt: skip
+                   checkpoint if demo and not scripted and policy is None else None, record)  # fmt: skip
     try:
         if demo:
             from safenav.deploy.demo import run_demo
 
             summary = run_demo(policy=policy, checkpoint=checkpoint, scripted=scripted, preset=preset,
                                episode=episode, rate=rate, shield=shield, gif=gif or Path("flight.gif"),
-                               max_flight_time=max_flight_time)  # fmt: skip
+                               max_flight_time=max_flight_time, record=record)  # fmt: skip
         else:
             if policy is None or goal is None:
                 raise SafenavError("pass --policy policy.onnx and --goal X Y Z (or --demo)")
             summary = fly_policy(policy, connect, goal, perception, rate, shield, takeoff_altitude, origin,
-                                 link_timeout, max_flight_time, land)  # fmt: skip
+                                 link_timeout, max_flight_time, land, record=record)  # fmt: skip
     except FlightAborted as err:
         summary = getattr(err, "summary", None)
         if json_out is not None and summary is not None:
@@ -151,7 +156,7 @@ def check_fly_args(policy: Path | None, connect: str, perception: str, rate: flo
                    takeoff_altitude: float, link_timeout: float, max_flight_time: float,
                    json_out: Path | None, demo: bool, preset: str, episode: int,
                    gif: Path | None, goal=None, origin=(0.0, 0.0, 0.0),
-                   checkpoint: Path | None = None) -> None:  # fmt: skip
+                   checkpoint: Path | None = None, record: Path | None = None) -> None:  # fmt: skip
     """Refuse bad values before connecting to anything."""
     from safenav.common.checks import (
         at_least,
@@ -180,6 +185,10 @@ def check_fly_args(policy: Path | None, connect: str, perception: str, rate: flo
         parse_hostport(perception, "--perception")
     if json_out is not None:
         check_output_file(json_out, "--json", "flight.json")
+    if record is not None:
+        from safenav.deploy.mcap_log import check_record_path
+
+        check_record_path(record, "--record")
     if policy is not None:
         from safenav.deploy.export import is_torch_file
 
@@ -239,7 +248,8 @@ def check_connect_url(url: str) -> None:
 
 
 def fly_policy(policy: Path, connect: str, goal, perception: str, rate: float, shield: bool,
-               takeoff_altitude: float, origin, link_timeout: float, max_flight_time: float, land: bool) -> dict:  # fmt: skip
+               takeoff_altitude: float, origin, link_timeout: float, max_flight_time: float, land: bool,
+               record: Path | None = None) -> dict:  # fmt: skip
     import torch
 
     from safenav.common.checks import parse_hostport
@@ -252,15 +262,30 @@ def fly_policy(policy: Path, connect: str, goal, perception: str, rate: float, s
     torch.set_num_threads(1)  # the runtime is single-threaded by design; leave the other cores
     runtime = OnboardRuntime(OnnxPolicy(policy), cfg,
                              RuntimeConfig(shield=ShieldConfig.for_env(cfg) if shield else None))  # fmt: skip
+    recorder = None
+    if record is not None:  # no ground truth here: the map holds the goal and the geofence
+        from safenav.deploy.mcap_log import McapRecorder, Scene
+
+        recorder = McapRecorder(record, Scene.for_env(cfg, goal, arena=runtime.config.geofence),
+                                metadata={"verb": "fly", "policy": str(policy), "connect": connect,
+                                          "rate_hz": rate, "shield": shield})  # fmt: skip
     link = MavsdkLink(connect)
     ctl = FlightController(runtime, link, FlyConfig(
         goal=tuple(goal), rate_hz=rate, takeoff_altitude=takeoff_altitude, origin=tuple(origin),
         goal_tolerance=cfg.goal_tolerance, link_timeout_s=link_timeout, max_flight_s=max_flight_time, land=land,
-    ), perception=parse_hostport(perception, "--perception") if perception else None)  # fmt: skip
+    ), perception=parse_hostport(perception, "--perception") if perception else None,
+        recorder=recorder)  # fmt: skip
     try:
-        return ctl.fly().summary()
+        summary = ctl.fly().summary()
     except FlightAborted as err:
         err.summary = ctl.log.summary()
         raise
     finally:
         link.close()
+        if recorder is not None:
+            recorder.close()  # never raises: a failure is in recorder.error
+    if recorder is not None:
+        summary["record"] = str(record)
+        if recorder.error:
+            summary["record_error"] = recorder.error
+    return summary

@@ -21,12 +21,15 @@ def render(
     env_seed: int = 1,
     episode: int = 0,
     fps: int = 10,
+    record: Path | None = None,
 ) -> None:
     """Render one episode (top-down: pillars, moving obstacles, lidar beams, trail, goal) to a GIF.
 
     Flies episode ``episode`` of the fixed test scenario (env seed ``env_seed``, full density)
     with the checkpoint's deterministic policy, or a scripted potential-field controller
     (``--policy scripted``, the default without a checkpoint) or uniform random actions.
+    ``--record episode.mcap`` also logs it in MCAP with ROS 2 messages, in simulation time, for
+    Foxglove or ``ros2 bag`` (docs/deployment.md, "Flight logs").
 
     Args:
         checkpoint: Policy or training checkpoint, or a run directory.
@@ -36,6 +39,7 @@ def render(
         env_seed: Env seed of the test scenario's map.
         episode: Which episode of the fixed scenario (start and goal), from 0.
         fps: Frames per second of the GIF (1-100).
+        record: Also log the episode here (*.mcap: ROS 2 messages, for Foxglove / ros2 bag).
     """
     from safenav.common.checks import check_output_file, in_range
     from safenav.common.config import MAX_SEED
@@ -52,8 +56,12 @@ def render(
     check_output_file(out, "--out", "episode.gif")
     if out.suffix.lower() != ".gif":
         raise SafenavError(f"--out {out}: a GIF is written; name it *.gif, e.g. --out episode.gif")
+    if record is not None:
+        from safenav.deploy.mcap_log import check_record_path
+
+        check_record_path(record, "--record")
     if checkpoint is None and policy == "checkpoint":
         policy = "scripted"
     stats = render_episode(out, checkpoint=checkpoint, policy=policy, preset=preset,
-                           env_seed=env_seed, episode=episode, fps=fps)  # fmt: skip
-    print(f"wrote {out}: {stats}")
+                           env_seed=env_seed, episode=episode, fps=fps, record=record)  # fmt: skip
+    print(f"wrote {out}{f' and {record}' if record is not None else ''}: {stats}")

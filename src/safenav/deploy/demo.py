@@ -93,8 +93,11 @@ def run_demo(
     gif: Path | None = Path("flight.gif"),
     max_flight_time: float = 120.0,
     world_seed: int = 1,
+    record: Path | None = None,
 ) -> dict[str, Any]:
-    """Fly test episode ``episode`` of ``preset`` (world ``world_seed``) against a simulated PX4."""
+    """Fly test episode ``episode`` of ``preset`` (world ``world_seed``) against a simulated PX4;
+    ``record``: write the flight's MCAP log there (:mod:`safenav.deploy.mcap_log`, with the
+    simulator's pillars in ``/safenav/map``)."""
     from safenav.deploy.export import OnnxPolicy, load_sidecar
     from safenav.deploy.fly import FlightAborted, FlightController, FlyConfig, MavsdkLink
     from safenav.deploy.runtime import OnboardRuntime, RuntimeConfig
@@ -124,10 +127,18 @@ def run_demo(
             runtime = OnboardRuntime(OnnxPolicy(onnx), pcfg,
                                      RuntimeConfig(shield=ShieldConfig.for_env(pcfg) if shield else None))  # fmt: skip
             link = MavsdkLink(f"udpin://127.0.0.1:{port}")
+            recorder = None
+            if record is not None:
+                from safenav.deploy.mcap_log import McapRecorder, Scene
+
+                recorder = McapRecorder(record, Scene.for_env(cfg, goal, start, world=generate_world(cfg, world_seed)),
+                                        metadata={"verb": "fly --demo", "preset": preset, "world_seed": world_seed,
+                                                  "episode": episode, "rate_hz": rate, "shield": shield,
+                                                  "policy": str(policy) if policy else ("scripted" if scripted else str(checkpoint))})  # fmt: skip
             ctl = FlightController(runtime, link, FlyConfig(
                 goal=tuple(goal), rate_hz=rate, takeoff_altitude=max(0.5, float(start[2])),
                 goal_tolerance=cfg.goal_tolerance, max_flight_s=max_flight_time,
-            ), perception=("127.0.0.1", pport))  # fmt: skip
+            ), perception=("127.0.0.1", pport), recorder=recorder)  # fmt: skip
             t0 = time.monotonic()
             try:
                 flight = ctl.fly()
@@ -136,6 +147,8 @@ def run_demo(
                 raise
             finally:
                 link.close()
+                if recorder is not None:
+                    recorder.close()  # never raises: a failure is in recorder.error
             wall = time.monotonic() - t0
     truth = flight.truth
     summary = {
@@ -155,6 +168,10 @@ def run_demo(
     if gif is not None and ctl.snapshots:
         render_flight_gif(gif, cfg, world_seed, ctl.snapshots, start, goal)
         summary["gif"] = str(gif)
+    if recorder is not None:
+        summary["record"] = str(record)
+        if recorder.error:
+            summary["record_error"] = recorder.error
     return summary
 
 

@@ -31,7 +31,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from safenav.deploy.frames import local_ned_to_world
+from safenav.deploy.frames import local_ned_to_world, ned_to_enu
 from safenav.deploy.perception_link import PerceptionClient, PerceptionFrame
 from safenav.deploy.runtime import OnboardRuntime
 from safenav.errors import SafenavError
@@ -256,7 +256,7 @@ class FlightController:
     """Runs one flight of ``runtime``'s policy on ``link`` (see the module docstring)."""
 
     def __init__(self, runtime: OnboardRuntime, link: VehicleLink, config: FlyConfig,
-                 perception: tuple[str, int] | None = None) -> None:  # fmt: skip
+                 perception: tuple[str, int] | None = None, recorder: Any = None) -> None:  # fmt: skip
         if not config.rate_hz >= 10.0:
             raise SafenavError(
                 f"--rate {config.rate_hz} Hz is too low: PX4 offboard needs a steady stream, use >= 10 Hz"
@@ -267,16 +267,24 @@ class FlightController:
                 raise SafenavError(f"--{name} {value.tolist()} is not three finite numbers")
         self.runtime, self.link, self.config = runtime, link, config
         self.perception_addr = perception
+        self.recorder = recorder  # a McapRecorder (safenav.deploy.mcap_log) or None
         self.log = FlightLog()
         self._perception: PerceptionClient | None = None
         self._stop = threading.Event()
         self.snapshots: list[dict[str, Any]] = []  # simulator truth at <= 5 Hz (for rendering)
         self._last_snapshot = -math.inf
         self._last_heard = -math.inf  # stamp of the latest telemetry with a finite stamp
+        self._movers: np.ndarray | None = None  # the latest tracker output, for the recorder
 
     # ------------------------------------------------------------------ helpers
     def _on_frame(self, frame: PerceptionFrame) -> None:
         self.runtime.update_frame(frame)
+        if self.recorder is not None and frame.obstacles is not None:
+            with contextlib.suppress(TypeError, ValueError):  # the runtime rejects it too
+                self._movers = np.array([[*np.asarray(o.p, dtype=float).reshape(3), float(o.width),
+                                          float(o.height), float(bool(o.cuboid if o.cuboid is not None
+                                          else o.height < self.runtime.config.cuboid_below_height))]
+                                         for o in frame.obstacles], dtype=float).reshape(-1, 6)  # fmt: skip
         if frame.truth:
             self.log.truth = frame.truth
             if frame.stamp - self._last_snapshot >= 0.2:
@@ -300,6 +308,21 @@ class FlightController:
         vel = local_ned_to_world(tel.velocity_ned, (0.0, 0.0, 0.0))
         self.runtime.update_state(pos, vel, tel.stamp)
 
+    def _record(self, tel: Telemetry, now: float, setpoint_ned=None, sp=None) -> None:
+        """Hand this tick to the recorder (``--record``): the vehicle's state, the setpoint sent
+        (world ENU), the range image the policy saw and the tracked obstacles."""
+        if self.recorder is None:
+            return
+        ranges = None
+        if sp is not None and sp.observation is not None:  # lidar = (range - d) / range
+            ranges = self.runtime.cfg.lidar_range * (1.0 - sp.observation["lidar"])
+        self.recorder.record(
+            now, local_ned_to_world(tel.position_ned, self.config.origin),
+            local_ned_to_world(tel.velocity_ned, (0.0, 0.0, 0.0)), self.runtime.goal_yaw,
+            setpoint=None if setpoint_ned is None else ned_to_enu(setpoint_ned), ranges=ranges,
+            movers=self._movers if sp is not None else None,
+        )  # fmt: skip
+
     def _finite_telemetry(self, timeout_s: float) -> Telemetry:
         """The latest telemetry once its position and velocity are finite: a NaN or Inf sample is
         no home or start position (the link check runs meanwhile)."""
@@ -315,7 +338,9 @@ class FlightController:
     def _wait(self, what: str, cond, timeout_s: float) -> None:
         end = time.monotonic() + timeout_s
         while not cond():
-            self._on_telemetry()
+            tel = self._on_telemetry()
+            if np.isfinite(tel.position_ned).all():
+                self._record(tel, time.monotonic())
             if time.monotonic() > end:
                 raise FlightAborted(f"timed out after {timeout_s:.0f} s waiting for {what}")
             time.sleep(0.05)
@@ -344,7 +369,10 @@ class FlightController:
                        c.takeoff_timeout_s)  # fmt: skip
             tel = self._finite_telemetry(c.takeoff_timeout_s)
             self._feed_state(tel)
-            self.runtime.set_goal(c.goal, start=local_ned_to_world(tel.position_ned, c.origin))
+            start = local_ned_to_world(tel.position_ned, c.origin)
+            self.runtime.set_goal(c.goal, start=start)
+            if self.recorder is not None:
+                self.recorder.update_scene(start=start, goal_yaw=self.runtime.goal_yaw)
             yaw = self.runtime.step().yaw_ned_deg
             self.link.start_offboard(yaw)
             log.info(
@@ -402,6 +430,7 @@ class FlightController:
                 self.log.shielded_ticks += int(sp.shielded)
             yaw = sp.yaw_ned_deg if math.isfinite(sp.yaw_ned_deg) else 0.0
             self.link.send_velocity_ned(v, yaw)
+            self._record(tel, now, v, sp)
             self.log.ticks += 1
             self.log.flight_time_s = now - t_start
             pos = local_ned_to_world(tel.position_ned, c.origin)

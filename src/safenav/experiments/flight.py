@@ -1,4 +1,5 @@
-"""One rendered flight: an episode of the fixed test scenario, written as a GIF."""
+"""One rendered flight: an episode of the fixed test scenario, written as a GIF (and, with
+``record``, as an MCAP log with ROS 2 messages: :mod:`safenav.deploy.mcap_log`)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from safenav.envs.config import make_config
 from safenav.envs.nav import SafeNavVectorEnv
 from safenav.envs.render import render_topdown, write_gif
 from safenav.envs.scripted import BorderFollower, go_to_goal, potential_field
-from safenav.errors import SafenavError
+from safenav.errors import SafenavError, SafenavRuntimeError
 from safenav.experiments.evaluate import fixed_test_scenario
 
 POLICIES = ("checkpoint", "scripted", "straight", "border", "random")
@@ -49,8 +50,10 @@ def render_episode(
     episode: int = 0,
     fps: int = 10,
     size: int = 600,
+    record: Path | None = None,
 ) -> dict:
-    """Fly episode ``episode`` of the fixed scenario and write ``out`` (GIF); returns its stats."""
+    """Fly episode ``episode`` of the fixed scenario and write ``out`` (GIF), and ``record``
+    (MCAP, stamped with the simulation time) when given; returns its stats."""
     fn, cfg = resolve_policy(checkpoint, policy)
     if preset is not None or cfg is None:
         cfg = make_config(preset or "paper")
@@ -62,10 +65,39 @@ def render_episode(
     )
     act = (lambda o: fn(o, env)) if getattr(fn, "needs_env", False) else fn
     frames = [env.render()]
+    recorder = None
+    if record is not None:
+        from safenav.deploy.mcap_log import McapRecorder
+
+        recorder = McapRecorder(record, episode_scene(env), clock="sim", threaded=False,
+                                metadata={"verb": "render", "policy": policy, "checkpoint": checkpoint,
+                                          "preset": preset or "the checkpoint's",
+                                          "env_seed": env_seed, "episode": episode})  # fmt: skip
+    try:
+        stats = _fly_episode(env, act, cfg, frames, recorder, obs)
+    finally:
+        if recorder is not None:
+            recorder.close()
+    if recorder is not None and recorder.error:
+        raise SafenavRuntimeError(f"--record {record}: {recorder.error}")
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    # Hold the last frame for a second so the outcome is visible.
+    frames += [frames[-1]] * fps
+    write_gif(out, frames, fps)
+    return stats
+
+
+def _fly_episode(env, act, cfg, frames: list, recorder, obs) -> dict:
+    """Step env 0 until its episode ends, appending rendered frames (and recording each step)."""
     stats: dict = {}
     for _ in range(cfg.max_episode_steps):
-        obs, _, term, trunc, info = env.step(act(obs))
+        action = act(obs)
+        if recorder is not None:
+            record_step(recorder, env, action)
+        obs, _, term, trunc, info = env.step(action)
         if bool(term[0] or trunc[0]):
+            if recorder is not None:
+                record_step(recorder, env, None)
             ep = info["episode"]
             stats = {k: round(float(ep[k][0]), 3) for k in ("success", "collision", "timeout", "time",
                                                            "return", "min_clearance", "detour_ratio",
@@ -76,11 +108,49 @@ def render_episode(
             frames.append(render_topdown(env, 0, trail=env._trail, outcome=outcome))
             break
         frames.append(env.render())
-    Path(out).parent.mkdir(parents=True, exist_ok=True)
-    # Hold the last frame for a second so the outcome is visible.
-    frames += [frames[-1]] * fps
-    write_gif(out, frames, fps)
     return stats
 
 
-__all__ = ["POLICIES", "render_episode", "resolve_policy"]
+def episode_scene(env, index: int = 0):
+    """The :class:`~safenav.deploy.mcap_log.Scene` of env ``index``'s episode: its world's active
+    pillars, the arena border, start and goal."""
+    import dataclasses
+
+    import numpy as np
+
+    from safenav.deploy.mcap_log import Scene
+
+    w, ns = int(env.world_idx[index]), env.n_static
+    pillars = np.column_stack([env.pillar_xy[w, :ns].cpu().numpy(), env.pillar_half[w, :ns].cpu().numpy(),
+                               env.pillar_height[w, :ns].cpu().numpy()]).astype(float)  # fmt: skip
+    scene = Scene.for_env(env.cfg, env.goal[index].cpu().numpy(), env.start[index].cpu().numpy(),
+                          goal_yaw=float(env.yaw[index]))  # fmt: skip
+    return dataclasses.replace(scene, pillars=pillars)
+
+
+def record_step(recorder, env, action, index: int = 0) -> None:
+    """Record env ``index`` now (simulation time): its state, the range image it observed, the
+    moving obstacles, and ``action`` (normalised, goal frame) as the world velocity it commands
+    (None: no command, the episode's last state)."""
+    from safenav.envs.dynamics import goal_frame_to_world
+    from safenav.envs.world import CUBOID_HEIGHT, CYLINDER_HEIGHT
+
+    cfg = env.cfg
+    setpoint = None
+    if action is not None:
+        a = torch.as_tensor(action, dtype=torch.float32)[index].clamp(-1.0, 1.0) * cfg.v_max
+        setpoint = goal_frame_to_world(a, env.cos_yaw[index], env.sin_yaw[index]).cpu().numpy()
+    w, nd = int(env.world_idx[index]), env.n_dynamic
+    pos, width = env.dyn_pos[w, :nd].cpu(), env.dyn_width[w, :nd].cpu()
+    cuboid = env.dyn_is_cuboid[w, :nd].cpu()
+    # cylinders stand on the ground; cuboids float, centred at their position
+    z = torch.where(cuboid, pos[:, 2], torch.full_like(pos[:, 2], CYLINDER_HEIGHT / 2))
+    height = torch.where(cuboid, CUBOID_HEIGHT, CYLINDER_HEIGHT)
+    movers = torch.stack([pos[:, 0], pos[:, 1], z, width, height, cuboid.float()], -1)
+    ranges = env._last_ranges[index].cpu().numpy() if env._last_ranges is not None else None
+    recorder.record(float(env.steps[index]) * cfg.dt, env.pos[index].cpu().numpy(),
+                    env.vel[index].cpu().numpy(), float(env.yaw[index]), setpoint=setpoint,
+                    ranges=ranges, movers=movers.numpy())  # fmt: skip
+
+
+__all__ = ["POLICIES", "episode_scene", "record_step", "render_episode", "resolve_policy"]
