@@ -48,5 +48,7 @@ def test_floors_pin_every_dependency_at_its_declared_floor():
 def test_lock_satisfies_every_declared_requirement():
     reqs, lock = declared(), pins("lock.txt")
     for name, req in reqs.items():
+        if req.marker is not None and not req.marker.evaluate():
+            continue  # not for this Python (tomli before 3.11)
         assert name in lock, f"{name} is missing from lock.txt"
         assert req.specifier.contains(lock[name], prereleases=True), f"lock {lock[name]}, {req}"

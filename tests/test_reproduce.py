@@ -257,6 +257,12 @@ success = 0.8 + 0.05 * seed
 (run / "config.json").write_text(json.dumps({{"algo": arg("--algo"), "seed": seed}}))
 (run / "checkpoint.pt").write_text(json.dumps({{"step": total, "resumed_from": start,
                                                 "success": success}}))
+if "--select" in args:  # what train --select leaves: the validation choice and its report
+    (run / "policy.pt").write_text((run / "checkpoint.pt").read_text())
+    (run / "selection.json").write_text(json.dumps({{"selection": "validation"}}))
+    (run / "final.json").write_text(json.dumps({{"heldout": {{"seeds": [2, 3, 4, 5, 6],
+        "episodes_per_seed": 10, "success_rate": success - 0.1, "collision_rate": 0.1,
+        "timeout_rate": 0.9 - success}}}}))
 (run.parent / "calls.txt").open("a").write(" ".join(args) + "\\n")
 """
 
@@ -301,6 +307,14 @@ def test_trial_fresh_then_skipped_then_resumed_for_more_steps(tmp_path, fake_pyt
     assert len(marker["attempts"]) == 2 and marker["attempts"][1]["resume"]
     rec = agg.seed_record(trial.run_dir)
     assert rec["algo"] == "csac" and rec["seed"] == 0 and rec["env_steps"] == 2000
+    # the policy chosen on validation was the one evaluated; its held-out report is in the record
+    assert "--select" in last_train and rec["selection"] == "validation"
+    assert rec["heldout"]["success_rate"] == pytest.approx(0.7)
+    # each finished trial leaves OUT/trials/<label>-s<seed>.json, small enough to commit
+    kept = json.loads(longer.record_path.read_text())
+    assert longer.record_path == tmp_path / "trials" / "csac-s0.json"
+    assert kept["env_steps"] == 2000 and kept["budget_env_steps"] == 2000
+    assert "--select" in kept["train_command"] and kept["heldout"]["seeds"] == [2, 3, 4, 5, 6]
     # Training wall-clock: the measured attempts (the run logged no elapsed-time column).
     assert rec["wall_clock_s"] == marker["train_wall_clock_s"] > 0
 
@@ -322,3 +336,19 @@ def test_failed_trial_raises_with_the_log_tail(tmp_path, fake_python):
     with pytest.raises(rep.TrialFailed, match="boom: something broke"):
         rep.run_trial(trial)
     assert rep.trial_state(trial) == "fresh"
+
+
+def test_confidence_intervals_wilson_by_hand_and_bootstrap_over_seeds():
+    import math
+
+    ci = agg.confidence_intervals([(0.85, 200), (0.95, 200), (None, 200)])
+    k, n, z = 360, 400, 1.959963984540054
+    p = k / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    assert ci["pooled"] == p and ci["episodes"] == n and ci["seeds"] == 2
+    assert ci["wilson"] == pytest.approx([centre - half, centre + half], abs=1e-9)
+    low, high = ci["bootstrap_seeds"]  # resampling 2 seeds: the mean lies in [0.85, 0.95]
+    assert 0.85 <= low <= 0.9 <= high <= 0.95
+    assert agg.confidence_intervals([(0.5, 10)])["bootstrap_seeds"] is None  # one seed
+    assert agg.confidence_intervals([(None, 10)]) is None

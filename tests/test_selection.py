@@ -140,3 +140,16 @@ def test_train_select_ends_with_a_validation_choice_and_its_report(tmp_path, mon
     assert final["test"]["env_seed"] == TEST_SEED and final["heldout"]["seeds"] == [2]
     assert (run_dir / "policy.pt").is_file()
     assert "policy chosen on validation" in capsys.readouterr().out
+
+
+def test_a_run_too_short_to_keep_a_policy_is_reported_on_its_final_one(tmp_path):
+    """A run that kept no policy (--no-keep-policies): its final policy becomes policy.pt and
+    the record says it was not a validation choice among several."""
+    run_dir = tmp_path / "run"
+    main(["train", "--algo", "csac", "--preset", "easy", "--seed", "4", "--total-steps", "400",
+          "--no-keep-policies", "--run-dir", str(run_dir), *FAST])  # fmt: skip
+    assert not any((run_dir / "policies").glob("*.pt"))
+    record = select_final_policy(run_dir, episodes=2)
+    assert record["method"] == "final policy (no policy kept)" and record["chosen_steps"] == [400]
+    assert json.loads((run_dir / "selection.json").read_text()) == record
+    assert (run_dir / "policy.pt").is_file()

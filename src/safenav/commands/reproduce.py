@@ -12,9 +12,9 @@ from safenav.cli import app
 
 @app.command(name="reproduce")
 def reproduce(
-    out: Path,
+    out: Path | None = None,
     algos: tuple[str, ...] = ("csac", "sac", "ppo"),
-    seeds: int = 5,
+    seeds: str = "5",
     first_seed: int = 0,
     total_steps: tuple[str, ...] = (),
     preset: str = "paper",
@@ -27,10 +27,13 @@ def reproduce(
     train_args: str = "",
     variants: tuple[str, ...] = (),
     plots: bool = True,
+    select: bool = True,
 ) -> None:
     """Reproduce the paper's Section IV: train every algorithm x seed as a Ray task, evaluate each
-    final policy on the fixed test scenario (env seed 1), and write OUT/results.json,
-    OUT/results.md (mean ± std across seeds beside the paper's figures) and OUT/figures/.
+    policy on the fixed test scenario (env seed 1), and write OUT/results.json, OUT/results.md
+    (mean ± std and 95 % CIs across seeds beside the paper's figures), OUT/trials/ (one small
+    JSON per finished trial, to commit) and OUT/figures/. Each trial trains with --select: its
+    policy is chosen on validation maps only and reported on the held-out maps (env seeds 2-6).
 
     Rerunning the same command resumes: finished trials are skipped, interrupted ones resume from
     their checkpoint. Without --address a local Ray instance starts with all cores (or the
@@ -38,15 +41,16 @@ def reproduce(
     existing Ray cluster (OUT must then be on a file system every node sees). Every option,
     including each trial's train options, is checked before Ray starts.
 
+    Example: safenav reproduce --algos csac --seeds 1-5  # writes results/csac/
     Example: safenav reproduce --out runs/repro-easy --algos csac ppo --seeds 2 --total-steps 300k
     ppo=2M --preset easy --cpus-per-trial 1 --train-args="--num-envs 64 --csac.batch-size 512"
     --variants "csac_nocurr=csac --csac.curriculum.no-enabled"
 
     Args:
-        out: Output directory (runs/, logs/, results.json, results.md, figures/).
+        out: Output directory (runs/, logs/, trials/, results.json, results.md, figures/); default results/paper for the default algorithms, else results/<algos joined by +>.
         algos: Algorithms (safenav train --algo) or --variants labels to run.
-        seeds: Seeds per algorithm: first_seed, first_seed+1, ...
-        first_seed: The first training seed.
+        seeds: Training seeds: a count N (first_seed, first_seed+1, ...), a range A-B or a list A,B,C.
+        first_seed: The first training seed when --seeds is a count.
         total_steps: Env steps per trial: N for every algorithm and/or ALGO=N (300k, 2M, 1e6 accepted); unnamed algorithms use a per-algorithm default (docs/reproduce.md).
         preset: Env preset to train on (easy, medium, paper).
         address: Ray cluster address (e.g. ray://head:10001 or auto); default: start a local Ray.
@@ -58,16 +62,22 @@ def reproduce(
         train_args: Extra options for every safenav train, one string, e.g. --train-args="--num-envs 64 --csac.batch-size 512".
         variants: Extra labelled configurations, LABEL=ALGO [train options], e.g. 'csac_nocurr=csac --csac.curriculum.no-enabled'.
         plots: Write the figures (safenav plot OUT) at the end.
+        select: Each trial ends by choosing its policy on validation maps (train --select); --no-select evaluates the final checkpoint.
     """
     from safenav.experiments.reproduce import SweepConfig, TrialFailed, run_sweep
 
+    count, seed_list = parse_seeds(seeds)
+    if out is None:
+        default = ("csac", "sac", "ppo")
+        out = Path("results") / ("paper" if tuple(algos) == default else "+".join(algos))
     cfg = SweepConfig(
-        out=out, algos=algos, seeds=seeds, first_seed=first_seed, total_steps=total_steps,
+        out=out, algos=algos, seeds=count, first_seed=first_seed, seed_list=seed_list,
+        total_steps=total_steps, select=select,
         preset=preset, address=address, cpus_per_trial=cpus_per_trial,
         gpus_per_trial=gpus_per_trial, num_cpus=num_cpus, eval_episodes=eval_episodes,
         device=device, train_args=tuple(shlex.split(train_args)), variants=variants, plots=plots,
         command=shlex.join(["safenav", *sys.argv[1:]]) if sys.argv[1:2] == ["reproduce"]
-        else shlex.join(["safenav", "reproduce", "--out", str(out)]),
+        else shlex.join(["safenav", "reproduce", "--out", str(out), "--seeds", seeds]),
     )  # fmt: skip
     check_sweep(cfg)
     try:
@@ -75,6 +85,34 @@ def reproduce(
     except TrialFailed as err:
         print(f"safenav: {err}", file=sys.stderr)
         raise SystemExit(1) from None
+
+
+def parse_seeds(text: str) -> tuple[int, tuple[int, ...]]:
+    """``--seeds``: ``"5"`` -> ``(5, ())`` (a count from --first-seed); ``"1-5"`` or ``"1,3,5"``
+    -> ``(count, seeds)``. ``SafenavError`` for anything else."""
+    from safenav.common.config import MAX_SEED
+    from safenav.errors import SafenavError
+
+    text = str(text).strip()
+    try:
+        if "-" in text[1:] and "," not in text:
+            lo, hi = (int(v) for v in text.split("-", 1))
+            seeds = tuple(range(lo, hi + 1))
+        elif "," in text:
+            seeds = tuple(int(v) for v in text.split(","))
+        else:
+            count = int(text)
+            if not 1 <= count <= 1000:
+                raise SafenavError(f"--seeds {text}: must lie in [1, 1000]")
+            return count, ()
+    except ValueError:
+        raise SafenavError(f"--seeds {text!r}: give a count (5), a range (1-5) or a list "
+                           "(1,3,5)") from None  # fmt: skip
+    if not seeds or len(seeds) > 1000 or len(set(seeds)) != len(seeds):
+        raise SafenavError(f"--seeds {text}: 1 to 1000 distinct seeds, low-high in order")
+    if min(seeds) < 0 or max(seeds) > MAX_SEED:
+        raise SafenavError(f"--seeds {text}: seeds lie in [0, {MAX_SEED}]")
+    return len(seeds), seeds
 
 
 def check_sweep(cfg) -> None:
@@ -96,7 +134,8 @@ def check_sweep(cfg) -> None:
     from safenav.experiments.reproduce import parse_variants, plan
 
     in_range("--seeds", cfg.seeds, 1, 1000)
-    in_range("--first-seed", cfg.first_seed, 0, MAX_SEED - cfg.seeds + 1)
+    if not cfg.seed_list:
+        in_range("--first-seed", cfg.first_seed, 0, MAX_SEED - cfg.seeds + 1)
     at_least("--gpus-per-trial", cfg.gpus_per_trial, 0)
     if cfg.num_cpus is not None:
         in_range("--num-cpus", cfg.num_cpus, 1, 1024)

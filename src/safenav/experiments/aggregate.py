@@ -258,6 +258,13 @@ def seed_record(
         ok = isinstance(value, (int, float)) and math.isfinite(value)
         return float(value) if ok else None
 
+    final = read_json(run_dir / "final.json") or {}
+    held = final.get("heldout")
+    heldout = None
+    if isinstance(held, dict):
+        heldout = {k: held.get(k) for k in ("seeds", "episodes_per_seed", "success_rate",
+                                            "collision_rate", "timeout_rate")}  # fmt: skip
+
     return {
         "algo": algo,
         "seed": seed,
@@ -268,6 +275,10 @@ def seed_record(
         "mean_time_to_goal": metric("mean_time_to_goal"),
         "min_clearance": metric("min_clearance"),
         "eval_episodes": ev.get("episodes"),
+        "detour_ratio": metric("detour_ratio"),
+        "border_time_fraction": metric("border_time_fraction"),
+        "selection": "validation" if (run_dir / "selection.json").exists() else "final checkpoint",
+        "heldout": heldout,
         "env_steps": env_steps,
         "wall_clock_s": wall_clock_s,
         "time_to_target": time_to_target(progress, target) if progress else None,
@@ -275,6 +286,32 @@ def seed_record(
 
 
 # -- aggregation -------------------------------------------------------------------------------
+
+
+def confidence_intervals(rates: Sequence[tuple[float | None, int | None]]) -> dict[str, Any] | None:
+    """95 % intervals of a rate from its per-seed ``(rate, episodes)``: ``wilson`` on the pooled
+    episodes (scipy's ``binomtest(...).proportion_ci(method="wilson")``; the episode-level
+    uncertainty of these maps) and ``bootstrap`` of the mean over seeds (scipy's ``bootstrap``,
+    percentile, 10,000 resamples; the seed-to-seed spread; None below 2 seeds)."""
+    from scipy import stats
+
+    pairs = [(float(r), int(n)) for r, n in rates if r is not None and n and math.isfinite(r)]
+    if not pairs:
+        return None
+    k = sum(round(r * n) for r, n in pairs)
+    n = sum(n for _, n in pairs)
+    wilson = stats.binomtest(k, n).proportion_ci(confidence_level=0.95, method="wilson")
+    xs = np.array([r for r, _ in pairs])
+    boot = None
+    if len(xs) >= 2:
+        if np.ptp(xs) == 0:
+            boot = [float(xs[0]), float(xs[0])]
+        else:
+            res = stats.bootstrap((xs,), np.mean, confidence_level=0.95, n_resamples=10_000,
+                                  method="percentile", random_state=0)  # fmt: skip
+            boot = [float(res.confidence_interval.low), float(res.confidence_interval.high)]
+    return {"pooled": k / n, "episodes": n, "wilson": [float(wilson.low), float(wilson.high)],
+            "bootstrap_seeds": boot, "seeds": len(pairs)}  # fmt: skip
 
 
 def mean_std(values: Iterable[float | None]) -> dict[str, float] | None:
@@ -298,11 +335,37 @@ def aggregate_algo(
     sources = sorted({t["source"] for t in reached})
     steps = mean_std(r.get("env_steps") for r in per_seed)
     wall = mean_std(r.get("wall_clock_s") for r in per_seed)
+    held = [r["heldout"] for r in evaluated if isinstance(r.get("heldout"), dict)]
     return {
         "success_rate": mean_std(r["success_rate"] for r in evaluated),
         "collision_rate": mean_std(r["collision_rate"] for r in evaluated),
         "timeout_rate": mean_std(r["timeout_rate"] for r in evaluated),
         "mean_time_to_goal": mean_std(r.get("mean_time_to_goal") for r in evaluated),
+        "detour_ratio": mean_std(r.get("detour_ratio") for r in evaluated),
+        "border_time_fraction": mean_std(r.get("border_time_fraction") for r in evaluated),
+        "ci95": {
+            "test": {
+                key: confidence_intervals([(r[key], r.get("eval_episodes")) for r in evaluated])
+                for key in ("success_rate", "collision_rate")
+            },
+            "heldout": {
+                key: confidence_intervals(
+                    [
+                        (h[key], len(h.get("seeds") or []) * (h.get("episodes_per_seed") or 0))
+                        for h in held
+                    ]
+                )
+                for key in ("success_rate", "collision_rate")
+            }
+            if held
+            else None,
+        },  # fmt: skip
+        "heldout": {
+            key: mean_std(h.get(key) for h in held)
+            for key in ("success_rate", "collision_rate", "timeout_rate")
+        }
+        if held
+        else None,  # fmt: skip
         "seeds": len(evaluated),
         "env_steps": steps["mean"] if steps else None,
         "wall_clock_s": wall["mean"] if wall else None,
@@ -374,6 +437,17 @@ def pct(value: float | None) -> str:
     return "—" if value is None else f"{100 * value:.1f} %"
 
 
+def held_cell(held: dict[str, Any] | None) -> str:
+    """Held-out success / collision of one seed, or —."""
+    if not held:
+        return "—"
+    return f"{pct(held.get('success_rate'))} / {pct(held.get('collision_rate'))}"
+
+
+def ratio(value: float | None) -> str:
+    return "—" if value is None else f"{value:.2f}"
+
+
 def render_markdown(results: dict[str, Any]) -> str:
     """``results.md``: ours beside the paper's figures, time to target, and every seed."""
     algos: dict[str, dict[str, Any]] = results["algos"]
@@ -403,6 +477,23 @@ def render_markdown(results: dict[str, Any]) -> str:
             f"| {fmt_rate(a['timeout_rate'])} | {fmt_steps(a['env_steps'])} "
             f"| {fmt_seconds(a['wall_clock_s'])} |"
         )
+    lines += ["", "## 95 % confidence intervals", "",
+              "Wilson: the episodes of every seed pooled (episode-level uncertainty); bootstrap: "
+              "the mean over seeds resampled (seed-to-seed spread; none below 2 seeds). Held-out: "
+              "env seeds 2-6, never used for a choice.", "",
+              "| algorithm | scenario | success | Wilson | bootstrap | collision | Wilson | bootstrap |",
+              "|---|---|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+    for name, a in algos.items():
+        for scenario, cis in (a.get("ci95") or {}).items():
+            if not cis or not cis.get("success_rate"):
+                continue
+            cells = []
+            for key in ("success_rate", "collision_rate"):
+                c = cis[key]
+                boot = c["bootstrap_seeds"]
+                cells += [pct(c["pooled"]), f"{pct(c['wilson'][0])} – {pct(c['wilson'][1])}",
+                          f"{pct(boot[0])} – {pct(boot[1])}" if boot else "—"]  # fmt: skip
+            lines.append(f"| {display_name(name)} | {scenario} | " + " | ".join(cells) + " |")
     lines += ["", "## Time to target", ""]
     first = next(iter(algos.values()), None)
     ttt0 = first["time_to_target"] if first else {"success_min": 0.85, "collision_max": 0.10}
@@ -431,15 +522,17 @@ def render_markdown(results: dict[str, Any]) -> str:
         "",
         "## Every seed",
         "",
-        "| algorithm | seed | success | collision | timeout | env steps | training time | run |",
-        "|---|---:|---:|---:|---:|---:|---:|---|",
+        "| algorithm | seed | success | collision | timeout | held-out success / collision "
+        "| detour | policy | env steps | training time | run |",
+        "|---|---:|---:|---:|---:|---:|---:|---|---:|---:|---|",
     ]
     for name, a in algos.items():
         for r in a["per_seed"]:
             lines.append(
                 f"| {display_name(name)} | {r.get('seed')} | {pct(r.get('success_rate'))} "
                 f"| {pct(r.get('collision_rate'))} | {pct(r.get('timeout_rate'))} "
-                f"| {fmt_steps(r.get('env_steps'))} | {fmt_seconds(r.get('wall_clock_s'))} "
+                f"| {held_cell(r.get('heldout'))} | {ratio(r.get('detour_ratio'))} "
+                f"| {r.get('selection', '—')} | {fmt_steps(r.get('env_steps'))} | {fmt_seconds(r.get('wall_clock_s'))} "
                 f"| `{r.get('run_dir')}` |"
             )
     lines.append("")

@@ -89,6 +89,10 @@ class Trial:
     """Extra arguments appended to ``safenav train`` (config overrides)."""
     python: str | None = None
     """Interpreter that runs ``-m safenav`` (default: the Ray worker's own ``sys.executable``)."""
+    select: bool = True
+    """Train with ``--select``: the run ends by choosing ``policy.pt`` on validation maps only
+    and reporting it on the held-out maps (``final.json``); the test evaluation flies that
+    policy. False: the final checkpoint's policy, as before."""
 
     @property
     def name(self) -> str:
@@ -97,6 +101,17 @@ class Trial:
     @property
     def checkpoint(self) -> Path:
         return self.run_dir / "checkpoint.pt"
+
+    @property
+    def policy(self) -> Path:
+        """The policy the test evaluation flies: ``policy.pt`` (chosen on validation) or the
+        final checkpoint."""
+        return self.run_dir / "policy.pt" if self.select else self.checkpoint
+
+    @property
+    def record_path(self) -> Path:
+        """``OUT/trials/<label>-s<S>.json``: the finished trial's record, small enough to commit."""
+        return self.log_dir.parent / "trials" / f"{self.label}-s{self.seed}.json"
 
     def log(self, kind: str) -> Path:
         """``OUT/logs/<label>-seed<S>.<kind>``."""
@@ -110,6 +125,8 @@ class Trial:
                "--device", self.device]  # fmt: skip
         if self.preset is not None:
             cmd += ["--preset", self.preset]
+        if self.select:
+            cmd += ["--select"]
         if resume:
             cmd += ["--resume", str(self.run_dir)]
         elif overwrite:
@@ -118,7 +135,7 @@ class Trial:
 
     def eval_command(self) -> list[str]:
         """``python -m safenav eval CHECKPOINT ...`` writing ``eval.json`` into the run dir."""
-        return [self.python or sys.executable, "-m", "safenav", "eval", str(self.checkpoint),
+        return [self.python or sys.executable, "-m", "safenav", "eval", str(self.policy),
                 "--env-seed", str(self.env_seed), "--episodes", str(self.eval_episodes),
                 "--device", self.device, "--json", str(self.run_dir / "eval.json")]  # fmt: skip
 
@@ -127,12 +144,12 @@ def trial_state(trial: Trial) -> str:
     """``"done"``, ``"evaluate"`` (trained, not evaluated), ``"resume"`` or ``"fresh"``."""
     marker = read_json(trial.run_dir / "reproduce.json") or {}
     trained = bool(marker.get("trained")) and int(marker.get("total_steps", 0)) >= trial.total_steps
-    if trained and trial.checkpoint.exists():
+    if trained and trial.checkpoint.exists() and trial.policy.exists():
         ev = read_json(trial.run_dir / "eval.json") or {}
         fresh_eval = (
             ev.get("episodes") == trial.eval_episodes
             and ev.get("env_seed") == trial.env_seed
-            and (trial.run_dir / "eval.json").stat().st_mtime >= trial.checkpoint.stat().st_mtime
+            and (trial.run_dir / "eval.json").stat().st_mtime >= trial.policy.stat().st_mtime
         )
         return "done" if fresh_eval else "evaluate"
     return "resume" if trial.checkpoint.exists() else "fresh"
@@ -232,8 +249,25 @@ def run_trial(trial: Trial) -> dict[str, Any]:
     if state != "done":
         status.write_text("evaluating")
         info["eval_s"] = _run_logged(trial.eval_command(), trial.log("eval.log"), trial.cpus)
+    write_trial_record(trial)
     status.write_text("done")
     return info
+
+
+def write_trial_record(trial: Trial) -> dict[str, Any]:
+    """``OUT/trials/<label>-s<S>.json``: the trial's row of the results (test, held-out,
+    selection, budget, wall-clock, arena metrics) and the commands that made it; commit it as
+    each trial finishes (the run directory itself is large and ignored)."""
+    rec = seed_record(trial.run_dir, algo=trial.label, seed=trial.seed)
+    marker = read_json(trial.run_dir / "reproduce.json") or {}
+    out = trial.log_dir.parent
+    rec["run_dir"] = os.path.relpath(trial.run_dir, out)
+    rec |= {"budget_env_steps": trial.total_steps, "train_command": marker.get("command"),
+            "eval_command": shlex.join(trial.eval_command()[1:]),
+            "recipe": (read_json(trial.run_dir / "config.json") or {}).get("recipe", {}).get("name")}  # fmt: skip
+    trial.record_path.parent.mkdir(parents=True, exist_ok=True)
+    write_json(trial.record_path, rec)
+    return rec
 
 
 # -- the sweep -----------------------------------------------------------------------------------
@@ -305,6 +339,8 @@ class SweepConfig:
     algos: tuple[str, ...] = ("csac", "sac", "ppo")
     seeds: int = 5
     first_seed: int = 0
+    seed_list: tuple[int, ...] = ()
+    """Explicit training seeds (``--seeds 1-5``); empty: ``seeds`` seeds from ``first_seed``."""
     total_steps: tuple[str, ...] = ()
     preset: str | None = "paper"
     address: str | None = None
@@ -318,6 +354,7 @@ class SweepConfig:
     variants: tuple[str, ...] = ()
     plots: bool = True
     progress: bool = True
+    select: bool = True
     python: str | None = None
     command: str = ""
     extra_meta: dict[str, Any] = field(default_factory=dict)
@@ -353,8 +390,8 @@ def plan(cfg: SweepConfig) -> list[Trial]:
               preset=cfg.preset, device=cfg.device, cpus=cfg.cpus_per_trial,
               gpus=cfg.gpus_per_trial, eval_episodes=cfg.eval_episodes, env_seed=cfg.env_seed,
               train_args=tuple(cfg.train_args) + variants.get(label, ("", ()))[1],
-              python=cfg.python)
-        for seed in range(cfg.first_seed, cfg.first_seed + cfg.seeds)
+              python=cfg.python, select=cfg.select)
+        for seed in (cfg.seed_list or range(cfg.first_seed, cfg.first_seed + cfg.seeds))
         for label in labels
     ]  # fmt: skip
 
@@ -482,7 +519,9 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
         "command": cfg.command,
         "machine": machine_description(),
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "env": "SafeNav-v1",
         "preset": cfg.preset,
+        "selection": "validation" if cfg.select else "final checkpoint",
         "total_steps": {t.label: t.total_steps for t in trials},
         "evaluation": {"env_seed": cfg.env_seed, "episodes": cfg.eval_episodes},
         "ray": ray_meta,

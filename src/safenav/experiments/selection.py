@@ -65,14 +65,30 @@ def select_final_policy(
     """Choose ``run_dir/policy.pt`` on validation alone: the greedy soup of the policies kept
     (``--keep-policies``) in the last ``last_fraction`` of the run, ranked by their periodic
     evaluation (validation maps) and each candidate soup compared on ``episodes`` validation
-    episodes. Returns the record written to ``run_dir/selection.json``."""
+    episodes. A run too short for any periodic evaluation keeps no policy: its final policy is
+    taken, and the record says so. Returns the record written to ``run_dir/selection.json``."""
     from safenav.algos.averaging import load_policy_states
     from safenav.common.checkpoint import save_checkpoint
     from safenav.experiments.soup import greedy_soup
 
     run_dir = Path(run_dir)
     t0 = time.perf_counter()
-    states = load_policy_states([run_dir / "policies"])
+    kept = run_dir / "policies"
+    states = load_policy_states([kept]) if kept.is_dir() and any(kept.glob("*.pt")) else []
+    if not states:
+        from safenav.algos.policy import save_policy_only
+
+        if not (run_dir / "checkpoint.pt").exists():
+            raise SafenavError(f"{run_dir}: no policy files in policies/ and no checkpoint.pt")
+
+        save_policy_only(run_dir / "checkpoint.pt", run_dir / "policy.pt")
+        final = load_checkpoint_step(run_dir / "policy.pt")
+        record = {"selection": "validation", "method": "final policy (no policy kept)",
+                  "validation_seeds": list(VALIDATION_SEEDS), "validation_episodes": 0,
+                  "candidates": [final], "chosen_steps": [final], "log": [],
+                  "wall_clock_s": round(time.perf_counter() - t0, 1)}  # fmt: skip
+        write_json(run_dir / "selection.json", record)
+        return record
     last = max(int(s["global_step"]) for s in states)
     late = [s for s in states if int(s["global_step"]) >= (1.0 - last_fraction) * last]
     ranks = {int(s["global_step"]): _periodic_success(s) for s in late}
@@ -83,6 +99,12 @@ def select_final_policy(
               "log": log, "wall_clock_s": round(time.perf_counter() - t0, 1)}  # fmt: skip
     write_json(run_dir / "selection.json", record)
     return record
+
+
+def load_checkpoint_step(path: Path) -> int:
+    from safenav.common.checkpoint import load_checkpoint
+
+    return int(load_checkpoint(path).get("global_step", 0))
 
 
 def _periodic_success(state: dict[str, Any]) -> float:
@@ -108,11 +130,11 @@ def report_policy(
         raise SafenavError(f"{policy}: not a SafeNav policy, no test scenario to report on")
     keys = ("success_rate", "collision_rate", "timeout_rate", "detour_ratio",
             "border_time_fraction", "collision_static_rate", "collision_dynamic_rate",
-            "collision_border_rate")  # fmt: skip
+            "collision_border_rate", "mean_time_to_goal", "min_clearance")  # fmt: skip
 
     def summary(seed: int) -> dict[str, Any]:
         res = evaluate(fn, cfg, env_seed=seed, episodes=episodes, device=device)
-        return {k: res[k] for k in keys} | {"env_seed": seed, "episodes": episodes,
+        return {k: res.get(k) for k in keys} | {"env_seed": seed, "episodes": episodes,
                                             "per_episode": {k: res["per_episode"][k]
                                                             for k in ("success", "collision")}}  # fmt: skip
 
