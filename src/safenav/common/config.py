@@ -51,7 +51,7 @@ class RunConfig:
     """SafeNav-v1: env steps between redraws of the training maps (new seeds); 0 = keep them."""
     keep_policies: bool = False
     """Also keep the policy of every periodic evaluation as ``policies/step_<N>.pt`` (policy-only,
-    ~0.6 MB each), to compare a run's policies afterwards (benchmarks/checkpoint_sweep.py)."""
+    ~0.6 MB each), to compare a run's policies afterwards (experiments/checkpoint_sweep.py)."""
     select: bool = False
     """End the run by choosing its policy on validation maps only (greedy soup of the policies
     kept in its last half; implies keep_policies): ``RUN_DIR/policy.pt`` and ``selection.json``,

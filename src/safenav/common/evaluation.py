@@ -53,7 +53,7 @@ class BestPolicy:
     test figures of ``best.pt`` stay an unbiased estimate. The score so far is part of the
     training checkpoint (:meth:`state_dict`), so a resumed run keeps comparing with it. With
     ``keep_dir`` (``--keep-policies``) every offered policy is also kept there as
-    ``step_<global_step>.pt``, for a sweep over a run's policies (benchmarks/checkpoint_sweep.py).
+    ``step_<global_step>.pt``, for a sweep over a run's policies (experiments/checkpoint_sweep.py).
     """
 
     def __init__(self, path: str | Path, state: dict[str, Any] | None = None,

@@ -10,7 +10,7 @@ on a CPU at batch 256 is what makes four critics affordable (docs/csac.md, "Meas
 range image wrap around), written as one dense matmul per layer: its ``(L * C_in, L_out * C_out)``
 weight is built from the ``K``-tap kernel at each call by a matmul with fixed 0/1 shift matrices.
 At these sizes (L <= 36, C <= 16) that "circulant" form beat ``nn.Conv1d``, ``nn.Conv2d`` and an
-unfold + matmul im2col on this CPU, forward and backward (``benchmarks/cnn_forms.py``).
+unfold + matmul im2col on this CPU, forward and backward (``experiments/cnn_forms.py``).
 """
 
 from __future__ import annotations

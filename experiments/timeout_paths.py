@@ -7,7 +7,7 @@ timeout), the start-goal distance, the flown path length, their ratio and the me
 (minimum / median / maximum). A hovering policy times out with a short path; a wandering one with
 a path far longer than the distance.
 
-Run: ``.venv/bin/python benchmarks/timeout_paths.py results/paper/csac-paper-eval.json [--json OUT]``.
+Run: ``.venv/bin/python experiments/timeout_paths.py results/paper/csac-paper-eval.json [--json OUT]``.
 """
 
 from __future__ import annotations

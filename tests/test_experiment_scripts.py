@@ -1,4 +1,4 @@
-"""The diagnostic scripts of ``benchmarks/`` that docs/csac.md quotes run on a tiny CSAC run:
+"""The diagnostic scripts of ``experiments/`` that docs/csac.md quotes run on a tiny CSAC run:
 ``checkpoint_sweep.py`` (with ``--sampled``), ``cost_critic_bias.py`` and ``timeout_paths.py``."""
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def script(name: str):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
+    spec = importlib.util.spec_from_file_location(name, ROOT / "experiments" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module

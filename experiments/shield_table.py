@@ -1,7 +1,7 @@
 """The shield table of docs/deployment.md section 7: scripted policies on the fixed test scenario
 (env seed 1, deterministic), plain and with the velocity-obstacle shield.
 
-    python benchmarks/shield_table.py      # ~5 min on one CPU thread
+    python experiments/shield_table.py      # ~5 min on one CPU thread
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 Not the product's trainer (see ``safenav train``): a quick, dependency-light script to learn how
 fast the paper scenario is learnable on a CPU, to choose env-count, update ratio and curriculum.
 
-    python benchmarks/probe_sac.py --preset paper --minutes 8 --num-envs 32 --utd 0.25
+    python experiments/probe_sac.py --preset paper --minutes 8 --num-envs 32 --utd 0.25
 """
 
 from __future__ import annotations

@@ -20,7 +20,7 @@ each policy on the evaluation maps with actions *sampled* from its squashed Gaus
 training (CSAC/SAC policies): equal timeouts mean caution, not a deadlock of the deterministic
 mean action.
 
-Run: ``.venv/bin/python benchmarks/checkpoint_sweep.py runs/NAME/policies [--average 3000000 5000000]
+Run: ``.venv/bin/python experiments/checkpoint_sweep.py runs/NAME/policies [--average 3000000 5000000]
 [--sampled] [--json OUT]``.
 """
 

@@ -14,7 +14,7 @@ Averaged over transitions, equal means an unbiased critic; ``predicted / realise
 means the constraint holds a cost lower than the real one. The same for the reward critics
 (``min_j Q_R,j``, realised reward-to-go plus the entropy bonus left out: a rough check only).
 
-Run: ``.venv/bin/python benchmarks/cost_critic_bias.py runs/NAME/checkpoint.pt [--steps 400]
+Run: ``.venv/bin/python experiments/cost_critic_bias.py runs/NAME/checkpoint.pt [--steps 400]
 [--json OUT]``.
 """
 

@@ -2,7 +2,7 @@
 # Where SafeNav-v1 starts: the committed policies (trained on SafeNav-v0, the open arena) and the
 # scripted baselines on the v1 test scenario (env seed 1, 200 episodes), plus the v0 policies'
 # flights rendered. Writes results/arena-v1/*.json and docs/img/v1-*.gif; ~3 min on 2 cores.
-# Run from the repository root: bash benchmarks/arena_v1_baseline.sh
+# Run from the repository root: bash experiments/arena_v1_baseline.sh
 set -euo pipefail
 SAFENAV=${SAFENAV:-.venv/bin/safenav}
 OUT=results/arena-v1

@@ -15,7 +15,7 @@ and sorts every collision:
   (within 4 m, the 5 nearest) at the step before the collision;
 - ``altitude band``: ground or ceiling.
 
-Run: ``.venv/bin/python benchmarks/collision_causes.py checkpoints/csac-paper.pt [--json OUT]``.
+Run: ``.venv/bin/python experiments/collision_causes.py checkpoints/csac-paper.pt [--json OUT]``.
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ def classify(checkpoint: str, episodes: int = 200) -> dict:
     causes: dict[int, str] = {}
     for _ in range(cfg.max_episode_steps):
         ranges = (1.0 - obs["lidar"]) * cfg.lidar_range  # (N, V, H) metres
-        history = [*history[-(LOOKBACK - 1):], (env.pos.clone(), env.yaw.clone(), ranges)]
+        history = [*history[-(LOOKBACK - 1) :], (env.pos.clone(), env.yaw.clone(), ranges)]
         before = (env.pos.clone(), env.dyn_pos[0, : env.n_dynamic].clone())
         action = torch.where(done[:, None], torch.zeros(3), policy(obs).clamp(-1, 1))
         obs, _, term, trunc, info = env.step(action)
@@ -89,7 +89,9 @@ def _pillar_cause(pos, pxy, phalf, ph, history, i, cfg) -> str:
         bearing = math.atan2(float(pxy[j, 1]) - qy, float(pxy[j, 0]) - qx) - float(yaw[i])
         col = round(bearing / step) % cfg.lidar_h_beams
         cols = [(col + c) % cfg.lidar_h_beams for c in (-1, 0, 1)]
-        seen.append(dist < cfg.lidar_range and bool(((ranges[i][:, cols] - dist).abs() < 0.3).any()))
+        seen.append(
+            dist < cfg.lidar_range and bool(((ranges[i][:, cols] - dist).abs() < 0.3).any())
+        )
     if any(seen[-2:]):
         return "pillar, in view"
     if any(seen):

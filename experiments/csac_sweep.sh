@@ -7,7 +7,7 @@
 # test success / collision, env steps and updates reached is written to OUT/summary.md.
 # Equal wall-clock, not equal steps: the question is which settings learn most per CPU minute.
 #
-#   bash benchmarks/csac_sweep.sh OUT [MINUTES=24]
+#   bash experiments/csac_sweep.sh OUT [MINUTES=24]
 #
 # Needs 16 cores (on a 2-core machine run one configuration at a time with `safenav train`).
 # SAFENAV overrides the command (default: `python3 -m safenav`, with src/ on PYTHONPATH).

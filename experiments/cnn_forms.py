@@ -3,7 +3,7 @@
 Four implementations of a 3-layer CNN on the (4, 36) range image, each followed by the same
 Linear -> 128, timed forward+backward (parameter gradients; the observation needs none) and
 forward-only (no_grad) at batch 256, median of interleaved trials. A single dense layer on the
-flattened image is the floor. Run: ``.venv/bin/python benchmarks/cnn_forms.py [--threads 1 2]``.
+flattened image is the floor. Run: ``.venv/bin/python experiments/cnn_forms.py [--threads 1 2]``.
 
 - ``conv2d``: image as (1, 4, 36), kernels 3x5, zero padding over elevation, circular over azimuth.
 - ``conv1d``: elevation rows as 4 input channels, kernel 5 over azimuth, circular padding.
