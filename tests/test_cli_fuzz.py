@@ -58,6 +58,7 @@ STUBS = [
     ("safenav.bench.update", "bench_update"),
     ("safenav.bench.latency", "bench_latency"),
     ("safenav.bench.soak", "bench_soak"),
+    ("safenav.bench.gym", "bench_suite"),
 ]
 
 
@@ -211,7 +212,7 @@ VERDICTS: dict[str, dict[str, int]] = {
     "train --density.increment": {}, "train --density.epoch-steps": POSITIVE,
     "train --density.quantum": {},
     "train --csac.gamma": {}, "train --csac.tau": {}, "train --csac.batch-size": {},
-    "train --csac.buffer-size": POSITIVE, "train --csac.learning-starts": NONNEG,
+    "train --csac.buffer-size": POSITIVE, "train --csac.learning-starts": {"0": ACCEPTED},
     "train --csac.updates-per-step": {},
     **{f"train --csac.{lr}": NONNEG for lr in ("actor-lr", "reward-critic-lr", "cost-critic-lr",
                                                 "alpha-lr", "lambda-lr")},
@@ -254,7 +255,8 @@ VERDICTS: dict[str, dict[str, int]] = {
     "fly --origin": {"-1": ACCEPTED, "0": ACCEPTED}, "fly --link-timeout": {},
     "fly --max-flight-time": POSITIVE, "fly --episode": {"0": ACCEPTED},
     "bench --repeats": {}, "bench --num-envs": MEMORY, "bench --env-steps": POSITIVE,
-    "bench --updates": POSITIVE,
+    "bench --updates": POSITIVE, "bench --seeds": {}, "bench --steps": NONNEG, "bench --jobs": {},
+    "bench --cost-limit": NONNEG,
 }  # fmt: skip
 
 
@@ -298,6 +300,7 @@ def path_cases(ws: Path) -> dict[str, list[tuple[str, int]]]:
         "fly --gif": [*out_file("f.gif"), (str(ws / "scratch" / "f.png"), 2)],
         "fly --record": [*out_file("flight.mcap"), (str(ws / "scratch" / "f.gif"), 2)],
         "bench --json": out_file("env.json"),
+        "bench --out": out_dir("results"),
     }
 
 
@@ -324,6 +327,11 @@ STR_CASES: dict[str, list[tuple[str, int]]] = {
     "fly --perception": [("x", 2), ("127.0.0.1:70000", 2)],
     "fly --preset": [("hard", 2)],
     "bench --preset": [("hard", 2)],
+    "bench --tasks": [("NoSuchEnv-v0", 2)],
+    "bench --algos": [("foo", 2)],
+    "bench --sb3": [("NoSuchEnv-v0", 2)],
+    "bench --train-args": [("--nope 1", 2)],
+    "train --cost-fn": [("nomodule:cost", 2), ("math", 2), ("math:nosuch", 2), ("math:sqrt", 2)],
 }
 
 

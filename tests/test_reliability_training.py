@@ -426,7 +426,7 @@ def test_unusable_checkpoints_for_resume_are_one_line_errors(reference, tmp_path
           "holds a 'ppo' run, not 'csac'")  # fmt: skip
     # the same algorithm on another observation layout: a Pendulum-v1 CSAC checkpoint
     pendulum = tmp_path / "pendulum"
-    main(["train", "--algo", "csac", "--env", "Pendulum-v1", "--num-envs", "2", "--total-steps", "64",
+    main(["train", "--algo", "csac", "--env", "Pendulum-v1", "--num-envs", "2", "--total-steps", "96",
           "--run-dir", str(pendulum), *FAST[4:], *SMALL["csac"]])  # fmt: skip
     other = run_dir_with("layout", checkpoint=(pendulum / "checkpoint.pt").read_bytes())
     fails(capsys, resume_args("csac", other), "does not fit the networks", "observation layout")
@@ -454,7 +454,7 @@ def test_unusable_checkpoints_for_eval_are_one_line_errors(reference, tmp_path, 
     fails(capsys, ["eval", str(tmp_path / "beta.pt")], "do not fit")
     # a policy of another env (observation layout {"obs": (3,)})
     pendulum = tmp_path / "pendulum"
-    main(["train", "--algo", "sac", "--env", "Pendulum-v1", "--num-envs", "2", "--total-steps", "64",
+    main(["train", "--algo", "sac", "--env", "Pendulum-v1", "--num-envs", "2", "--total-steps", "96",
           "--run-dir", str(pendulum), *FAST[4:], *SMALL["csac"]])  # fmt: skip
     fails(capsys, ["eval", str(pendulum), "--episodes", "2"], "Pendulum-v1", "not SafeNav")
     # a SafeNav policy on a scenario with another sensor layout

@@ -10,7 +10,9 @@ The parts, as the folders show them:
 * :mod:`safenav.deploy` - ONNX export, the onboard runtime, PX4 over MAVLink, the safety shield.
 
 Importing :mod:`safenav` registers ``SafeNav-v1`` for ``gymnasium.make`` and
-``gymnasium.make_vec`` (or use the id ``"safenav:SafeNav-v1"`` without importing).
+``gymnasium.make_vec`` (or use the id ``"safenav:SafeNav-v1"`` without importing), and the
+velocity-constrained ``SafetyHopperVelocity-v5`` and ``SafetyHalfCheetahVelocity-v5``
+(:mod:`safenav.common.costs`).
 """
 
 import gymnasium
@@ -31,5 +33,10 @@ if ENV_ID not in gymnasium.registry:
         # The env truncates at its own time limit (EnvConfig.max_episode_seconds).
         max_episode_steps=None,
     )
+
+# Safety-Gymnasium's velocity tasks on Gymnasium's MuJoCo v5 models (safenav.common.costs).
+from safenav.common.costs import register_velocity_tasks  # noqa: E402
+
+register_velocity_tasks()
 
 __all__ = ["ENV_ID", "SafenavError", "__version__"]

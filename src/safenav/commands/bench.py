@@ -1,7 +1,9 @@
-"""``safenav bench {env,update,latency,soak}``: the benchmarks whose figures the README quotes."""
+"""``safenav bench {env,update,latency,soak,gym,safe}``: the benchmarks whose figures the README
+and docs/gymnasium.md quote."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -12,13 +14,24 @@ from safenav.cli import app
 
 @app.command(name="bench")
 def bench(
-    which: tyro.conf.Positional[Literal["env", "update", "latency", "soak"]],
+    which: tyro.conf.Positional[Literal["env", "update", "latency", "soak", "gym", "safe"]],
     json_out: Annotated[Path | None, tyro.conf.arg(name="json")] = None,
     repeats: int = 5,
     preset: str = "paper",
     num_envs: tuple[int, ...] = (1, 64, 256, 1024),
     env_steps: int = 10_000_000,
     updates: int = 100_000,
+    out: Path | None = None,
+    tasks: tuple[str, ...] = (),
+    algos: tuple[str, ...] = (),
+    seeds: int = 3,
+    steps: int = 0,
+    sb3: tuple[str, ...] | None = None,
+    jobs: int = 1,
+    cost_limit: float = 25.0,
+    report_only: bool = False,
+    progress: bool = True,
+    train_args: str = "",
 ) -> None:
     """Measure throughput or latency and print a table; ``--json OUT`` writes the figures.
 
@@ -27,7 +40,12 @@ def bench(
     beside Stable-Baselines3's SAC, and PPO's training throughput. latency: batch-1 policy and
     sensor-to-setpoint latency on one CPU thread. soak: ``--env-steps`` env steps and
     ``--updates`` CSAC updates, resident memory at the start and the end (no growth beyond the
-    replay buffer).
+    replay buffer). gym: SAC and PPO on Pendulum-v1, MountainCarContinuous-v0,
+    LunarLanderContinuous-v3, InvertedPendulum-v5, Hopper-v5 and HalfCheetah-v5, --seeds seeds
+    each, Stable-Baselines3 beside them on --sb3 tasks, against published returns; safe: CSAC,
+    SAC-Lag, PPO-Lag and SAC on SafetyHopperVelocity-v5 and SafetyHalfCheetahVelocity-v5 at
+    --cost-limit. Both write OUT/trials/*.json per finished trial (a rerun skips those and resumes
+    interrupted runs), then OUT/table.md, OUT/curves.png and OUT/summary.json (docs/gymnasium.md).
 
     Args:
         which: The benchmark.
@@ -37,6 +55,18 @@ def bench(
         num_envs: env: the env counts to measure.
         env_steps: soak: env steps.
         updates: soak: CSAC updates.
+        out: gym, safe: results directory (default benchmarks/results/gym or .../safe).
+        tasks: gym, safe: the tasks to run (default: all of the suite).
+        algos: gym, safe: the algorithms to run (default: all of the suite).
+        seeds: gym, safe: seeds 1..N per task and algorithm (1-100).
+        steps: gym, safe: env steps per trial; 0 = each task's budget (docs/gymnasium.md).
+        sb3: gym: tasks on which Stable-Baselines3 runs too (default Pendulum-v1 Hopper-v5).
+        jobs: gym, safe: trials run at once, one torch thread each.
+        cost_limit: safe: the episode-cost limit of the constrained algorithms.
+        report_only: gym, safe: write the table and figure from the trial files, run nothing.
+        progress: gym, safe: the live progress bars.
+        train_args: gym, safe: more safenav train options for every safenav trial, one string
+            (e.g. "--csac.learning-starts 1000"); trial files record them.
     """
     from safenav.common.checks import at_least, check_memory, check_output_file, in_range
     from safenav.common.memory import env_bytes
@@ -56,7 +86,30 @@ def bench(
                  "benchmark fewer envs")  # fmt: skip
     if json_out is not None:
         check_output_file(json_out, "--json", f"{which}.json")
-    if which == "env":
+    in_range("--seeds", seeds, 1, 100)
+    in_range("--jobs", jobs, 1, os.cpu_count() or 1, "CPU cores of this machine")
+    at_least("--steps", steps, 0)
+    at_least("--cost-limit", cost_limit, 0)
+    suite = which in ("gym", "safe")
+    for flag, given in (("--tasks", tasks), ("--algos", algos), ("--sb3", sb3),
+                        ("--train-args", train_args)):  # fmt: skip
+        if given and not suite:
+            from safenav.errors import SafenavError
+
+            raise SafenavError(f"{flag} applies to bench gym and bench safe, not bench {which}")
+    if out is not None:
+        from safenav.common.checks import check_output_dir
+
+        check_output_dir(out, "--out")
+    if suite:
+        from safenav.bench.gym import bench_suite, plan_trials
+
+        plan_trials(which, tasks, algos, seeds, steps, sb3)  # unknown tasks, algorithms: exit 2
+        extra = split_train_args(train_args)
+        out = Path("benchmarks/results") / which if out is None else out
+        bench_suite(which, out, tasks, algos, seeds, steps, sb3, jobs, cost_limit, report_only,
+                    progress, extra)  # fmt: skip
+    elif which == "env":
         from safenav.bench.env import bench_env
 
         bench_env(json_out, num_envs=num_envs, repeats=repeats, preset=preset)
@@ -72,3 +125,23 @@ def bench(
         from safenav.bench.latency import bench_latency
 
         bench_latency(json_out)
+
+
+def split_train_args(text: str) -> tuple[str, ...]:
+    """``--train-args`` as argv words, checked by ``safenav train``'s own parser (exit 2)."""
+    import shlex
+
+    from safenav.errors import SafenavError
+
+    try:
+        words = tuple(shlex.split(text))
+    except ValueError as err:
+        raise SafenavError(f"--train-args {text!r}: {err}") from None
+    if words:
+        from safenav.commands.train import parse_train_args
+
+        try:
+            parse_train_args(["--env", "Pendulum-v1", "--config", "none", *words])
+        except SafenavError as err:
+            raise SafenavError(f"--train-args {text!r}: {err}") from None
+    return words

@@ -50,8 +50,13 @@ def train(
     --config NAME|PATH starts from a recipe: one shipped with safenav (csac, csac-paper,
     csac-maxcost, sac, sac-lag, ppo, ppo-lag, ...) or a TOML file of your own; options given on
     the command line override it, and config.json records the resolved values and the recipe.
-    Without --config, --algo A on SafeNav takes the recipe named A; --config none keeps the
-    built-in defaults. --select ends the run by choosing its policy on validation maps only
+    Without --config, --algo A on SafeNav takes the recipe named A, and on any other Gymnasium
+    env the recipe of its task family (classic-*, box2d-*, mujoco-*, else gym-*; -sac for csac,
+    sac and sac_lag, -ppo for ppo and ppo_lag), named in the first line printed; --config none
+    keeps the built-in defaults. A run whose --total-steps do not exceed its warm-up
+    (--csac.learning-starts) is refused. csac, sac_lag and ppo_lag read the cost from
+    info["cost"]; on an env without it they warn that they reduce to sac / ppo, and
+    --cost-fn module:function supplies one (safenav.common.costs). --select ends the run by choosing its policy on validation maps only
     (RUN_DIR/policy.pt) and reporting it on the test and held-out scenarios (RUN_DIR/final.json).
 
     Step counts take 1000000, 1e6, 1_000_000 or 1M. Everything is checked before the run
@@ -59,14 +64,13 @@ def train(
     """
     from safenav.algos import csac as csac_module
     from safenav.cli import ARGS
+    from safenav.common.envs import cost_function
     from safenav.common.logger import prepare_run_dir
 
     algo, run, csac, ppo, recipe = apply_recipe(config, algo, run, csac, ppo, ARGS.get(), resume)
     run, cfg, run_dir = plan(algo, run, csac, ppo, run_dir, resume, overwrite)
     if recipe is not None:
-        print(
-            f"safenav train: recipe {recipe.name} ({recipe.source}); options given here override it"
-        )
+        print(recipe_line(recipe, run.env, chosen=config is None))
     prepare_run_dir(run_dir, resume=resume is not None, overwrite=overwrite)
     if algo in ("ppo", "ppo_lag"):
         from safenav.algos import ppo as module
@@ -74,7 +78,8 @@ def train(
         module = csac_module
     if resume is None:
         module.write_config(run_dir, algo, run, cfg, recipe_record(recipe))
-    result = module.train(algo, run, cfg, run_dir, resume=resume is not None, progress=progress)
+    with cost_function(run.cost_fn):
+        result = module.train(algo, run, cfg, run_dir, resume=resume is not None, progress=progress)
     print(f"safenav train: {algo} finished at step {result['global_step']} ({result['updates']} updates); "
           f"last 100 episodes: success {result['success_rate']:.3f}, collision {result['collision_rate']:.3f}, "
           f"return {result['return']:.2f}; run dir {run_dir}")  # fmt: skip
@@ -149,20 +154,33 @@ def apply_recipe(config: str | None, algo: str, run: RunConfig, csac: CSACConfig
     if name is None:
         return algo, run, csac, ppo, None
     recipe = recipes.load_recipe(name)
-    if recipe.algo not in ALGOS:
-        raise SafenavError(
-            f"--config {name}: its algo {recipe.algo!r} is not one of {', '.join(ALGOS)}"
-        )
+    if recipe.algo not in ALGOS or set(recipe.algos) - set(ALGOS):
+        raise SafenavError(f"--config {name}: its algos {list(recipe.algos)} are not all one of "
+                           f"{', '.join(ALGOS)}")  # fmt: skip
     if config is not None:
-        if given_flag("algo", args) and algo != recipe.algo:
-            raise SafenavError(f"--config {name} trains --algo {recipe.algo}, not --algo {algo}: "
-                               "drop --algo or choose another recipe")  # fmt: skip
-        algo = recipe.algo
-    run = recipes.apply(run, _recipe_overrides(recipe.section("run"), run, "", args), "run.")
-    csac = recipes.apply(csac, _recipe_overrides(recipe.section("csac"), csac, "csac.", args),
+        if given_flag("algo", args) and algo not in recipe.algos:
+            raise SafenavError(f"--config {name} trains --algo {' / '.join(recipe.algos)}, not "
+                               f"--algo {algo}: drop --algo or choose another recipe")  # fmt: skip
+        if not given_flag("algo", args):
+            algo = recipe.algo
+    env = run.env  # the env's own values ([envs."ID"]) for the env of the command line
+    run = recipes.apply(run, _recipe_overrides(recipe.section("run", env), run, "", args), "run.")
+    csac = recipes.apply(csac, _recipe_overrides(recipe.section("csac", env), csac, "csac.", args),
                          "csac.")  # fmt: skip
-    ppo = recipes.apply(ppo, _recipe_overrides(recipe.section("ppo"), ppo, "ppo.", args), "ppo.")
+    ppo = recipes.apply(ppo, _recipe_overrides(recipe.section("ppo", env), ppo, "ppo.", args),
+                        "ppo.")  # fmt: skip
     return algo, run, csac, ppo, recipe
+
+
+def recipe_line(recipe, env_id: str, chosen: bool) -> str:
+    """The line ``safenav train`` prints first: the recipe it starts from, and why."""
+    why = ""
+    if chosen:
+        from safenav.recipes import task_family
+
+        why = f", chosen for {env_id} ({task_family(env_id)[1]})"
+    return (f"safenav train: recipe {recipe.name} ({recipe.source}){why}; options given here "
+            "override it")  # fmt: skip
 
 
 def recipe_record(recipe) -> dict | None:
@@ -238,8 +256,55 @@ def plan(algo: str, run: RunConfig, csac: CSACConfig, ppo: PPOConfig, run_dir: P
         raise SafenavError(f"--ppo.num-minibatches {cfg.num_minibatches}: a rollout holds only "
                            f"{cfg.rollout_steps * run.num_envs} transitions (--ppo.rollout-steps x "
                            "--num-envs)")  # fmt: skip
+    check_budget(family, run, cfg)
+    check_cost(algo, run)
     check_training_memory(algo, run, cfg, obs_shapes, action_dim, env_cfg)
     return run, cfg, Path(run_dir)
+
+
+def check_budget(family: str, run: RunConfig, cfg) -> None:
+    """``SafenavError`` for an off-policy run whose budget ends within its warm-up of uniform
+    random actions: it would never update its networks."""
+    if family == "csac" and run.total_steps <= cfg.learning_starts:
+        from safenav.errors import SafenavError
+
+        raise SafenavError(f"--total-steps {run.total_steps:,} does not exceed the warm-up of "
+                           f"{cfg.learning_starts:,} random steps (--csac.learning-starts): the run "
+                           "would end before its first update; raise --total-steps or lower "
+                           "--csac.learning-starts")  # fmt: skip
+
+
+def check_cost(algo: str, run: RunConfig) -> None:
+    """``--cost-fn`` must name a function (and not be given for SafeNav, which has its own cost);
+    a constrained algorithm on an env that reports no ``info["cost"]`` warns, once, that it
+    trains its unconstrained form."""
+    import sys
+
+    from safenav.common.envs import is_safenav, reports_cost
+    from safenav.errors import SafenavError
+
+    if run.cost_fn is not None:
+        if is_safenav(run.env):
+            raise SafenavError(f"--cost-fn applies to envs without a cost; {run.env} has its own "
+                               "(collisions)")  # fmt: skip
+        from safenav.common.costs import load_cost_fn
+
+        load_cost_fn(run.cost_fn)
+    if (
+        run.cost_fn is not None
+        or algo in ("csac", "sac_lag", "ppo_lag")
+        and not is_safenav(run.env)
+    ):
+        try:
+            has_cost = reports_cost(run.env, run.cost_fn)
+        except Exception as err:  # noqa: BLE001 -- the user's function on this env's steps
+            raise SafenavError(f"--cost-fn {run.cost_fn}: fails on {run.env}'s steps: "
+                               f"{type(err).__name__}: {err}") from None  # fmt: skip
+        if not has_cost and algo in ("csac", "sac_lag", "ppo_lag"):
+            plain = "ppo" if algo == "ppo_lag" else "sac"
+            print(f"safenav train: warning: {run.env} reports no info['cost'], so {algo} sees cost "
+                  f"0 in every step and reduces to {plain}; give a cost with --cost-fn "
+                  "module:function (docs/gymnasium.md)", file=sys.stderr)  # fmt: skip
 
 
 def given(field: str) -> bool:

@@ -28,6 +28,9 @@ class RunConfig:
     """Gymnasium env id: SafeNav-v1 or any registered id (Box actions; Box or Dict observations)."""
     preset: str | None = None
     """SafeNav-v1 preset (easy, medium, paper); None = paper. Only for SafeNav-v1."""
+    cost_fn: str | None = None
+    """``module:function`` that gives the cost of each step of an env that reports no
+    ``info["cost"]`` (:class:`safenav.common.costs.CostFn`); None = the env's own cost, or 0."""
     num_envs: int = 16
     """Parallel envs in the training vector env."""
     seed: int = 1

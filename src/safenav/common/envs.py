@@ -7,7 +7,8 @@
 - observations as a dict of float32 tensors on ``device`` (a ``Box`` observation is ``{"obs": x}``),
 - actions in ``[-1, 1]^A``, mapped affinely onto the env's action box,
 - ``cost`` from ``info["cost"]`` when the env reports one (for a finished env of a ``SyncVectorEnv``
-  the step's info is ``info["final_info"]``), else 0,
+  the step's info is ``info["final_info"]``), else 0; inside :func:`cost_function` every env
+  :func:`make_vec_env` builds is wrapped in :class:`~safenav.common.costs.CostFn` (``--cost-fn``),
 - ``real_next_obs``: the true ``s'`` of every transition (``final_obs`` for finished envs),
 - ``valid``: False for the reset steps a ``NEXT_STEP`` autoreset env interleaves (no transition),
 - ``episodes``: return, cost, length, success, collision, timeout of the episodes that ended
@@ -16,6 +17,9 @@
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
+from contextvars import ContextVar
 from typing import Any, NamedTuple
 
 import gymnasium as gym
@@ -25,6 +29,42 @@ from gymnasium.vector import AutoresetMode
 
 from safenav.errors import SafenavError, SafenavRuntimeError
 from safenav.nn.networks import obs_layout
+
+_COST_FN: ContextVar[str | None] = ContextVar("safenav_cost_fn", default=None)
+
+
+@contextlib.contextmanager
+def cost_function(spec: str | None) -> Iterator[None]:
+    """Within the block, :func:`make_vec_env` wraps every non-SafeNav env in
+    :class:`~safenav.common.costs.CostFn` with ``spec`` (``module:function``; None: no wrapper).
+    ``safenav train`` runs the trainer inside it with ``RunConfig.cost_fn``."""
+    token = _COST_FN.set(spec)
+    try:
+        yield
+    finally:
+        _COST_FN.reset(token)
+
+
+def reports_cost(env_id: str, cost_fn: str | None = None, steps: int = 5) -> bool:
+    """Whether ``env_id`` (wrapped in ``cost_fn`` when given) puts ``cost`` in its step info:
+    a probe of ``steps`` random steps of one env."""
+    from safenav.common.costs import CostFn
+
+    env = gym.make(env_id)
+    if cost_fn is not None:
+        env = CostFn(env, cost_fn)
+    try:
+        env.reset(seed=0)
+        env.action_space.seed(0)
+        for _ in range(steps):
+            _, _, terminated, truncated, info = env.step(env.action_space.sample())
+            if "cost" in info:
+                return True
+            if terminated or truncated:
+                env.reset()
+        return False
+    finally:
+        env.close()
 
 
 def is_safenav(env_id: str) -> bool:
@@ -99,7 +139,14 @@ def make_vec_env(env_id: str, num_envs: int, device: str = "cpu", preset: str | 
         return gym.make_vec(
             env_id, num_envs=num_envs, vectorization_mode="vector_entry_point", **kwargs
         )
-    return gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="sync",
+    cost_fn = _COST_FN.get()
+    wrappers = None
+    if cost_fn is not None:
+        from safenav.common.costs import CostFn, load_cost_fn
+
+        fn = load_cost_fn(cost_fn)
+        wrappers = [lambda env: CostFn(env, fn)]
+    return gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="sync", wrappers=wrappers,
                         vector_kwargs={"autoreset_mode": AutoresetMode.SAME_STEP}, **env_kwargs)  # fmt: skip
 
 
@@ -283,5 +330,5 @@ def env_horizon(envs: gym.vector.VectorEnv, default: int = 1000) -> int:
     return int(steps) if steps else default
 
 
-__all__ = ["Step", "TorchVecEnv", "check_action_space", "check_env", "env_horizon", "env_spaces",
-           "is_safenav", "is_safenav_vector", "make_vec_env"]  # fmt: skip
+__all__ = ["Step", "TorchVecEnv", "check_action_space", "check_env", "cost_function", "env_horizon",
+           "env_spaces", "is_safenav", "is_safenav_vector", "make_vec_env", "reports_cost"]  # fmt: skip

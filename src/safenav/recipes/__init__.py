@@ -10,6 +10,7 @@ Layout of a recipe file::
 
     [recipe]
     algo = "csac"          # the --algo it trains (required)
+    algos = ["csac"]       # optional: every --algo it may train (default: [algo])
     base = "csac-paper"    # optional: start from another recipe, then apply this file
     [run]                  # RunConfig fields (--num-envs, --total-steps, --density.*, ...)
     num_envs = 256
@@ -17,6 +18,8 @@ Layout of a recipe file::
     actor_lr = 3e-4
     [csac.curriculum]
     d_min = 0.05
+    [envs."Pendulum-v1".csac]  # optional: values for one env id (or its name without -vN)
+    actor_lr = 1e-3
 """
 
 from __future__ import annotations
@@ -35,6 +38,13 @@ else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
 SECTIONS = ("run", "csac", "ppo")
+PPO_ALGOS = ("ppo", "ppo_lag")
+FAMILIES = {
+    "gymnasium.envs.classic_control": ("classic", "Gymnasium classic control"),
+    "gymnasium.envs.box2d": ("box2d", "Gymnasium Box2D"),
+    "gymnasium.envs.mujoco": ("mujoco", "Gymnasium MuJoCo locomotion"),
+}
+"""Entry-point package of a Gymnasium env -> (recipe family, its name in words)."""
 
 
 @dataclass(frozen=True)
@@ -46,9 +56,18 @@ class Recipe:
     sections: dict[str, dict[str, Any]] = field(default_factory=dict)
     header: str = ""
     source: str = ""
+    algos: tuple[str, ...] = ()
+    envs: dict[str, dict[str, dict[str, Any]]] = field(default_factory=dict)
 
-    def section(self, name: str) -> dict[str, Any]:
-        return self.sections.get(name, {})
+    def section(self, name: str, env: str | None = None) -> dict[str, Any]:
+        """The recipe's values of config section ``name``; with ``env``, those of its
+        ``[envs."NAME"]`` table (the id without its version first, then the exact id) on top."""
+        out = self.sections.get(name, {})
+        if env is not None:
+            env = env.split(":")[-1]
+            for key in dict.fromkeys((env.rsplit("-v", 1)[0], env)):
+                out = _merge(out, self.envs.get(key, {}).get(name, {}))
+        return out
 
 
 def available() -> list[str]:
@@ -58,12 +77,37 @@ def available() -> list[str]:
     )
 
 
+def task_family(env_id: str) -> tuple[str, str]:
+    """``(family, description)`` of a Gymnasium id: ``safenav`` for SafeNav, ``classic``,
+    ``box2d`` or ``mujoco`` for Gymnasium's own envs (by their entry point's package; an env
+    registered with ``kwargs={"base": ID}``, such as the velocity tasks, takes the family of
+    ``ID``), else ``gym`` (any other env). An unknown id is ``gym`` too (checked elsewhere)."""
+    import gymnasium as gym
+
+    if env_id.split(":")[-1].startswith("SafeNav-"):
+        return "safenav", "SafeNav"
+    try:
+        spec = gym.spec(env_id)
+    except gym.error.Error:
+        return "gym", "a Gymnasium env"
+    base = (spec.kwargs or {}).get("base")
+    if isinstance(base, str) and base != env_id:
+        return task_family(base)
+    entry = spec.entry_point if isinstance(spec.entry_point, str) else ""
+    for package, family in FAMILIES.items():
+        if entry.startswith(package):
+            return family
+    return "gym", "a Gymnasium env outside the classic control, Box2D and MuJoCo families"
+
+
 def default_recipe(algo: str, env_id: str) -> str | None:
     """The recipe ``--algo algo`` takes on ``env_id`` without ``--config`` (None: none ships)."""
-    if env_id.split(":")[-1].startswith("SafeNav-"):
+    family, _ = task_family(env_id)
+    if family == "safenav":
         name = algo.replace("_", "-")
-        return name if name in available() else None
-    return None
+    else:
+        name = f"{family}-{'ppo' if algo in PPO_ALGOS else 'sac'}"
+    return name if name in available() else None
 
 
 def _read(name_or_path: str) -> tuple[dict[str, Any], str, str, str]:
@@ -106,22 +150,33 @@ def load_recipe(name_or_path: str, _seen: tuple[str, ...] = ()) -> Recipe:
     meta = data.pop("recipe", None)
     if not isinstance(meta, dict) or not isinstance(meta.get("algo"), str):
         raise SafenavError(f'{source}: a recipe needs a [recipe] table with algo = "..."')
-    unknown = sorted(set(data) - set(SECTIONS))
-    if unknown:
-        raise SafenavError(
-            f"{source}: unknown section(s) {unknown}; a recipe has {', '.join(SECTIONS)}"
-        )
+    algos = meta.get("algos", [meta["algo"]])
+    if not isinstance(algos, list) or meta["algo"] not in algos:
+        raise SafenavError(f"{source}: [recipe] algos must be a list that holds algo")
     sections: dict[str, dict[str, Any]] = {}
+    envs: dict[str, dict[str, dict[str, Any]]] = {}
     if "base" in meta:
         base = load_recipe(str(meta["base"]), (*_seen, name_or_path))
         sections = {k: dict(v) for k, v in base.sections.items()}
+        envs = {k: dict(v) for k, v in base.envs.items()}
+    env_tables = data.pop("envs", {})
+    if not isinstance(env_tables, dict):
+        raise SafenavError(f"{source}: [envs] must be a table of env ids")
+    for env, tables in env_tables.items():
+        if not isinstance(tables, dict) or set(tables) - set(SECTIONS):
+            raise SafenavError(f"{source}: [envs.{env!r}] may hold only {', '.join(SECTIONS)}")
+        envs[env] = _merge(envs.get(env, {}), tables)
+    unknown = sorted(set(data) - set(SECTIONS))
+    if unknown:
+        raise SafenavError(
+            f"{source}: unknown section(s) {unknown}; a recipe has {', '.join(SECTIONS)}, envs"
+        )
     for k, v in data.items():
         if not isinstance(v, dict):
             raise SafenavError(f"{source}: [{k}] must be a table")
         sections[k] = _merge(sections.get(k, {}), v)
-    return Recipe(
-        name=name, algo=str(meta["algo"]), sections=sections, header=header, source=source
-    )
+    return Recipe(name=name, algo=str(meta["algo"]), sections=sections, header=header,
+                  source=source, algos=tuple(str(a) for a in algos), envs=envs)  # fmt: skip
 
 
 def apply(obj: Any, overrides: dict[str, Any], where: str = "") -> Any:
@@ -150,4 +205,5 @@ def apply(obj: Any, overrides: dict[str, Any], where: str = "") -> Any:
         ) from None
 
 
-__all__ = ["SECTIONS", "Recipe", "apply", "available", "default_recipe", "load_recipe"]
+__all__ = ["SECTIONS", "Recipe", "apply", "available", "default_recipe", "load_recipe",
+           "task_family"]  # fmt: skip

@@ -1,0 +1,428 @@
+"""``safenav bench gym`` and ``safenav bench safe``: safenav's algorithms on Gymnasium tasks whose
+answer is published (:mod:`safenav.bench.suites`), Stable-Baselines3 beside them on the same
+budget, then a table and learning curves.
+
+Each trial (task, algorithm, implementation, seed, budget) is one ``safenav train`` run (its
+family recipe, one torch thread, periodic deterministic evaluations) or one SB3 run
+(:mod:`safenav.bench.sb3_trial`), in a child process. A finished trial writes
+``OUT/trials/<task>-<algo>-<impl>-<steps>-s<seed>.json`` (spec, final and periodic evaluations,
+training returns, wall clock, versions); a rerun skips every trial that has its file, continues
+an interrupted safenav run from its checkpoint (``OUT/runs/``), and finally writes
+``OUT/table.md``, ``OUT/curves.png`` and ``OUT/summary.json`` from all the trial files of the
+current selection. Child logs: ``OUT/logs/``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import math
+import os
+import platform
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from safenav.bench.suites import CONSTRAINED, DEFAULT_SB3, SUITES, Reference, Task
+from safenav.errors import SafenavError, SafenavRuntimeError
+
+EVAL_POINTS = 10
+"""Evaluations per trial (every budget / 10 steps), the last at the end of training."""
+EVAL_EPISODES = 10
+
+
+@dataclass(frozen=True)
+class Trial:
+    suite: str
+    env: str
+    algo: str
+    impl: str  # "safenav" or "sb3"
+    seed: int
+    steps: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.env}-{self.algo}-{self.impl}-{self.steps}-s{self.seed}"
+
+    @property
+    def eval_every(self) -> int:
+        return max(1, self.steps // EVAL_POINTS)
+
+
+def plan_trials(suite: str, tasks: tuple[str, ...], algos: tuple[str, ...], seeds: int, steps: int,
+                sb3: tuple[str, ...] | None) -> list[Trial]:  # fmt: skip
+    """The trials of a selection, checked: ``SafenavError`` for unknown tasks or algorithms."""
+    table = SUITES[suite]
+    tasks = tasks or tuple(table)
+    unknown = [t for t in tasks if t not in table]
+    if unknown:
+        raise SafenavError(f"--tasks {' '.join(unknown)}: not in the {suite} suite; choose from "
+                           f"{', '.join(table)}")  # fmt: skip
+    all_algos = tuple(dict.fromkeys(a for t in table.values() for a in t.steps))
+    algos = algos or all_algos
+    bad = [a for a in algos if a not in all_algos]
+    if bad:
+        raise SafenavError(
+            f"--algos {' '.join(bad)}: the {suite} suite runs {', '.join(all_algos)}"
+        )
+    sb3 = DEFAULT_SB3[suite] if sb3 is None else sb3
+    if suite == "safe" and sb3:
+        raise SafenavError(
+            "--sb3: Stable-Baselines3 has no constrained algorithms (bench gym only)"
+        )
+    bad = [t for t in sb3 if t not in table]
+    if bad:
+        raise SafenavError(f"--sb3 {' '.join(bad)}: not in the {suite} suite; choose from "
+                           f"{', '.join(table)}")  # fmt: skip
+    out = []
+    for env in tasks:
+        for algo in algos:
+            budget = steps or table[env].steps[algo]
+            for seed in range(1, seeds + 1):
+                out.append(Trial(suite, env, algo, "safenav", seed, budget))
+                if env in sb3 and algo in ("sac", "ppo"):
+                    out.append(Trial(suite, env, algo, "sb3", seed, budget))
+    return out
+
+
+# ------------------------------------------------------------------------------ running
+
+
+def train_command(trial: Trial, out: Path, cost_limit: float,
+                  extra: tuple[str, ...] = ()) -> list[str]:  # fmt: skip
+    """The child command line of a trial (a safenav run resumes from its checkpoint)."""
+    run_dir = out / "runs" / trial.name
+    if trial.impl == "sb3":
+        return [sys.executable, "-m", "safenav.bench.sb3_trial", trial.env, trial.algo,
+                str(trial.seed), str(trial.steps), str(trial.eval_every), str(EVAL_EPISODES),
+                str(run_dir)]  # fmt: skip
+    cmd = [sys.executable, "-m", "safenav", "train", "--no-progress", "--no-tensorboard",
+           "--torch-threads", "1", "--total-steps", str(trial.steps)]  # fmt: skip
+    if (run_dir / "checkpoint.pt").is_file():
+        return [*cmd, "--resume", str(run_dir)]
+    cmd += ["--algo", trial.algo, "--env", trial.env, "--seed", str(trial.seed), "--run-dir",
+            str(run_dir), "--overwrite", "--eval-every", str(trial.eval_every), "--eval-episodes",
+            str(EVAL_EPISODES), "--log-every", str(max(1, trial.steps // 100)),
+            "--checkpoint-every", str(max(1, trial.steps // 10))]  # fmt: skip
+    if trial.algo in CONSTRAINED:  # the cost limit: a fixed episode-cost budget d
+        family = "ppo" if trial.algo == "ppo_lag" else "csac"
+        cmd += [f"--{family}.curriculum.no-enabled", f"--{family}.curriculum.d-init",
+                str(cost_limit), f"--{family}.curriculum.d-min", str(cost_limit)]  # fmt: skip
+    return [*cmd, *extra]
+
+
+def read_progress(run_dir: Path) -> list[dict[str, str]]:
+    path = run_dir / "progress.csv"
+    if not path.is_file():
+        return []
+    with path.open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _num(row: dict[str, str], key: str) -> float:
+    value = row.get(key, "")
+    return float(value) if value not in ("", None) else math.nan
+
+
+def steps_done(trial: Trial, out: Path) -> int:
+    """How far a running trial has come (its last progress row or SB3's progress file)."""
+    run_dir = out / "runs" / trial.name
+    if trial.impl == "sb3":
+        try:
+            return int((run_dir / "progress.txt").read_text() or 0)
+        except (OSError, ValueError):
+            return 0
+    rows = read_progress(run_dir)
+    return int(float(rows[-1]["global_step"])) if rows else 0
+
+
+def collect(trial: Trial, out: Path, wall_s: float) -> dict[str, Any]:
+    """The trial file's content from a finished child's outputs."""
+    import json
+
+    run_dir = out / "runs" / trial.name
+    if trial.impl == "sb3":
+        res = json.loads((run_dir / "result.json").read_text())
+        curve, train_curve, wall, done = (res["curve"], res["train_curve"], res["wall_clock_s"],
+                                          res["steps"])  # fmt: skip
+        extra = {"hyperparameters": res["hyperparameters"], "n_envs": res["n_envs"]}
+    else:
+        rows = read_progress(run_dir)
+        curve = [[int(float(r["global_step"])), _num(r, "eval/return"), _num(r, "eval/cost")]
+                 for r in rows if r.get("eval/return")]  # fmt: skip
+        train_curve = [[int(float(r["global_step"])), _num(r, "charts/episodic_return"),
+                        _num(r, "charts/episodic_cost")]
+                       for r in rows if r.get("charts/episodic_return")]  # fmt: skip
+        wall = _num(rows[-1], "time/elapsed_s") if rows else wall_s
+        done = int(float(rows[-1]["global_step"])) if rows else 0
+        config = json.loads((run_dir / "config.json").read_text())
+        extra = {"recipe": (config.get("recipe") or {}).get("name"), "config": config}
+    if not curve:
+        raise SafenavRuntimeError(f"trial {trial.name}: no evaluation recorded ({run_dir})")
+    return {
+        "trial": trial.__dict__ | {"name": trial.name}, "steps_done": done,
+        "final": {"return": curve[-1][1], "cost": curve[-1][2], "step": curve[-1][0]},
+        "curve": curve, "train_curve": train_curve, "wall_clock_s": wall,
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
+                    "python": platform.python_version()},
+        "versions": versions(), "date": time.strftime("%Y-%m-%d"),
+        "eval_episodes": EVAL_EPISODES, **extra,
+    }  # fmt: skip
+
+
+def versions() -> dict[str, str]:
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for name in ("safenav", "torch", "gymnasium", "mujoco", "box2d", "stable-baselines3"):
+        with contextlib.suppress(PackageNotFoundError):
+            out[name] = version(name)
+    return out
+
+
+def run_trials(trials: list[Trial], out: Path, cost_limit: float, jobs: int = 1,
+               progress: bool = True, extra: tuple[str, ...] = ()) -> list[str]:  # fmt: skip
+    """Run the trials that have no trial file yet, ``jobs`` at a time; returns the failures."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from safenav.common.jsonout import write_json
+
+    for sub in ("trials", "runs", "logs"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    todo = [t for t in trials if not (out / "trials" / f"{t.name}.json").is_file()]
+    console = Console(stderr=True)
+    console.print(f"safenav bench: {len(trials)} trials, {len(trials) - len(todo)} already done "
+                  f"(skipped), {len(todo)} to run; results in {out}")  # fmt: skip
+    failures: list[str] = []
+    total = sum(t.steps for t in todo)
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+               TimeElapsedColumn())  # fmt: skip
+    with Progress(*columns, console=console, disable=not progress) as bar:
+        overall = bar.add_task("all trials (env steps)", total=total)
+        running: dict[Trial, tuple[subprocess.Popen, Any, float, int]] = {}
+        queue = list(todo)
+        finished_steps = 0
+        while queue or running:
+            while queue and len(running) < jobs:
+                trial = queue.pop(0)
+                log = (out / "logs" / f"{trial.name}.log").open("a")
+                proc = subprocess.Popen(train_command(trial, out, cost_limit, extra), stdout=log,
+                                        stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)  # fmt: skip
+                task = bar.add_task(trial.name, total=trial.steps)
+                running[trial] = (proc, log, time.perf_counter(), task)
+            time.sleep(0.5 if progress else 0.2)
+            live = 0
+            for trial, (proc, log, t0, task) in list(running.items()):
+                done = min(steps_done(trial, out), trial.steps)
+                bar.update(task, completed=done)
+                live += done
+                if proc.poll() is None:
+                    continue
+                log.close()
+                bar.remove_task(task)
+                del running[trial]
+                finished_steps += trial.steps
+                if proc.returncode != 0:
+                    failures.append(f"{trial.name}: exit {proc.returncode} "
+                                    f"(log: {out / 'logs' / (trial.name + '.log')})")  # fmt: skip
+                    console.print(f"safenav bench: {failures[-1]}")
+                    continue
+                try:
+                    result = collect(trial, out, time.perf_counter() - t0)
+                except (OSError, KeyError, ValueError, SafenavError) as err:
+                    failures.append(f"{trial.name}: {err}")
+                    continue
+                write_json(out / "trials" / f"{trial.name}.json", result)
+                console.print(f"safenav bench: {trial.name} done: return "
+                              f"{result['final']['return']:.1f}, {result['wall_clock_s']:.0f} s")  # fmt: skip
+            bar.update(overall, completed=finished_steps + live)
+    return failures
+
+
+# ------------------------------------------------------------------------------ the report
+
+
+def load_results(trials: list[Trial], out: Path) -> list[dict[str, Any]]:
+    import json
+
+    found = []
+    for t in trials:
+        path = out / "trials" / f"{t.name}.json"
+        if path.is_file():
+            found.append(json.loads(path.read_text()))
+    return found
+
+
+def _mean_std(values: list[float]) -> tuple[float, float]:
+    import numpy as np
+
+    arr = np.asarray(values, dtype=float)
+    return float(arr.mean()), float(arr.std(ddof=1)) if len(arr) > 1 else 0.0
+
+
+def within(value: float, ref: float, tolerance: float = 0.1) -> bool:
+    """At least the reference minus ``tolerance`` of its magnitude (returns may be negative)."""
+    return value >= ref - tolerance * abs(ref)
+
+
+def _ref_text(ref: Reference | None, steps: int) -> str:
+    if ref is None:
+        return "-"
+    at = "" if ref.steps == steps else f" at {_count(ref.steps)}"
+    std = f" ± {ref.std:.0f}" if ref.std is not None else ""
+    return f"{ref.value:.0f}{std}{at} ({ref.source})"
+
+
+def _count(n: int) -> str:
+    return (
+        f"{n // 1_000_000}M" if n % 1_000_000 == 0 else f"{n // 1000}k" if n % 1000 == 0 else str(n)
+    )
+
+
+def summarize(suite: str, results: list[dict[str, Any]], cost_limit: float) -> list[dict[str, Any]]:
+    """One row per (task, algo, budget): mean ± std over seeds, safenav beside SB3 and the
+    published reference."""
+    groups: dict[tuple[str, str, int], dict[str, list[dict]]] = {}
+    for r in results:
+        t = r["trial"]
+        groups.setdefault((t["env"], t["algo"], t["steps"]), {}).setdefault(t["impl"], []).append(r)
+    rows = []
+    for (env, algo, steps), impls in groups.items():
+        task: Task = SUITES[suite][env]
+        ref = task.references.get(algo)
+        row: dict[str, Any] = {"env": env, "algo": algo, "steps": steps,
+                               "reference": ref.__dict__ if ref else None}  # fmt: skip
+        for impl, rs in impls.items():
+            ret, ret_std = _mean_std([x["final"]["return"] for x in rs])
+            cost, cost_std = _mean_std([x["final"]["cost"] for x in rs])
+            wall, _ = _mean_std([x["wall_clock_s"] for x in rs])
+            row[impl] = {"return": ret, "return_std": ret_std, "cost": cost, "cost_std": cost_std,
+                         "wall_clock_s": wall, "seeds": sorted(x["trial"]["seed"] for x in rs)}  # fmt: skip
+        if "safenav" in row and ref is not None and suite == "gym":
+            row["within_10pct"] = within(row["safenav"]["return"], ref.value)
+        if "safenav" in row and suite == "safe":
+            row["under_limit"] = row["safenav"]["cost"] <= cost_limit
+        rows.append(row)
+    order = list(SUITES[suite])
+    rows.sort(key=lambda x: (order.index(x["env"]), x["algo"], x["steps"]))
+    return rows
+
+
+def markdown_table(suite: str, rows: list[dict[str, Any]], cost_limit: float) -> str:
+    def pm(d: dict | None, key: str) -> str:
+        if d is None:
+            return "-"
+        return f"{d[key]:.0f} ± {d[key + '_std']:.0f} (n={len(d['seeds'])})"
+
+    if suite == "gym":
+        lines = ["| task | algo | steps | safenav return | reference (published) | within 10 % "
+                 "| SB3 here | wall clock safenav / SB3 |",
+                 "|---|---|---:|---:|---|:---:|---:|---:|"]  # fmt: skip
+        for r in rows:
+            s, b = r.get("safenav"), r.get("sb3")
+            ref = Reference(**r["reference"]) if r["reference"] else None
+            ok = {True: "yes", False: "no"}.get(r.get("within_10pct"), "-")
+            wall = f"{s['wall_clock_s']:.0f} s" if s else "-"
+            if s and b:
+                wall += f" / {b['wall_clock_s']:.0f} s"
+            lines.append(f"| {r['env']} | {r['algo']} | {_count(r['steps'])} | {pm(s, 'return')} | "
+                         f"{_ref_text(ref, r['steps'])} | {ok} | {pm(b, 'return')} | {wall} |")  # fmt: skip
+        return "\n".join(lines) + "\n"
+    lines = [f"| task | algo | steps | return | episode cost | cost <= {cost_limit:g} | OmniSafe "
+             "(published): return / cost | wall clock |", "|---|---|---:|---:|---:|:---:|---|---:|"]  # fmt: skip
+    for r in rows:
+        s = r.get("safenav")
+        ref = Reference(**r["reference"]) if r["reference"] else None
+        ok = {True: "yes", False: "no"}.get(r.get("under_limit"), "-")
+        refs = "-"
+        if ref is not None:
+            at = "" if ref.steps == r["steps"] else f" at {_count(ref.steps)}"
+            refs = f"{ref.value:.0f} / {ref.cost:.1f}{at} ({ref.source})"
+        wall = f"{s['wall_clock_s']:.0f} s" if s else "-"
+        lines.append(f"| {r['env']} | {r['algo']} | {_count(r['steps'])} | {pm(s, 'return')} | "
+                     f"{pm(s, 'cost')} | {ok} | {refs} | {wall} |")  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
+def plot_curves(suite: str, results: list[dict[str, Any]], path: Path, cost_limit: float) -> None:
+    """Evaluation return (and, for the safe suite, episode cost) against env steps: mean over
+    seeds, shaded between the seeds' lowest and highest."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    envs = list(dict.fromkeys(r["trial"]["env"] for r in results))
+    nrows = 2 if suite == "safe" else 1
+    fig, axes = plt.subplots(nrows, len(envs), figsize=(4.2 * len(envs), 3.4 * nrows),
+                             squeeze=False)  # fmt: skip
+    for j, env in enumerate(envs):
+        lines: dict[str, list[dict]] = {}
+        for r in results:
+            t = r["trial"]
+            if t["env"] == env:
+                lines.setdefault(f"{t['algo']} ({t['impl']}, {_count(t['steps'])})", []).append(r)
+        for label, rs in sorted(lines.items()):
+            for i, col in enumerate((1, 2)[:nrows]):
+                steps = sorted({p[0] for r in rs for p in r["curve"]})
+                values = np.array([[dict((p[0], p[col]) for p in r["curve"]).get(s, np.nan)
+                                    for s in steps] for r in rs])  # fmt: skip
+                ax = axes[i][j]
+                mean = np.nanmean(values, axis=0)
+                ax.plot(steps, mean, label=label, ls="--" if "sb3" in label else "-")
+                ax.fill_between(steps, np.nanmin(values, axis=0), np.nanmax(values, axis=0),
+                                alpha=0.15)  # fmt: skip
+        axes[0][j].set_title(env, fontsize=10)
+        axes[0][j].set_ylabel("evaluation return")
+        axes[-1][j].set_xlabel("env steps")
+        axes[0][j].legend(fontsize=7)
+        if suite == "safe":
+            axes[1][j].axhline(cost_limit, color="k", lw=0.8, ls=":")
+            axes[1][j].set_ylabel("evaluation episode cost")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def report(suite: str, trials: list[Trial], out: Path, cost_limit: float) -> list[dict[str, Any]]:
+    """``OUT/table.md``, ``OUT/curves.png`` and ``OUT/summary.json`` from the trial files."""
+    from safenav.common.atomic import write_text_atomic
+    from safenav.common.jsonout import write_json
+
+    results = load_results(trials, out)
+    if not results:
+        raise SafenavRuntimeError(f"no finished trial in {out / 'trials'} for this selection")
+    rows = summarize(suite, results, cost_limit)
+    table = markdown_table(suite, rows, cost_limit)
+    write_text_atomic(out / "table.md", table)
+    write_json(out / "summary.json", {"suite": suite, "cost_limit": cost_limit, "rows": rows,
+                                      "trials": len(results), "selected": len(trials)})  # fmt: skip
+    plot_curves(suite, results, out / "curves.png", cost_limit)
+    return rows
+
+
+def bench_suite(suite: str, out: Path, tasks: tuple[str, ...] = (), algos: tuple[str, ...] = (),
+                seeds: int = 3, steps: int = 0, sb3: tuple[str, ...] | None = None,
+                jobs: int = 1, cost_limit: float = 25.0, report_only: bool = False,
+                progress: bool = True, extra: tuple[str, ...] = ()) -> list[dict[str, Any]]:  # fmt: skip
+    """Run (or, with ``report_only``, only report) a suite; see the module docstring. ``extra``:
+    more ``safenav train`` options for every safenav trial (not part of a trial's name: give a
+    new ``out`` when they change)."""
+    trials = plan_trials(suite, tasks, algos, seeds, steps, sb3)
+    failures = [] if report_only else run_trials(trials, out, cost_limit, jobs, progress, extra)
+    rows = report(suite, trials, out, cost_limit)
+    print((out / "table.md").read_text(), end="")
+    print(
+        f"safenav bench {suite}: {out / 'table.md'}, {out / 'curves.png'}, {out / 'summary.json'}"
+    )
+    if failures:
+        raise SafenavRuntimeError(f"{len(failures)} trial(s) failed: {'; '.join(failures)}")
+    return rows
+
+
+__all__ = ["Trial", "bench_suite", "plan_trials", "report", "run_trials", "summarize", "within"]

@@ -1,0 +1,385 @@
+"""Any Gymnasium task out of the box: the task-family recipes (chosen from the env id, named in
+the first line), the refusal of a run that ends in its warm-up, the warning of a constrained
+algorithm on an env without a cost, --cost-fn, the velocity tasks' cost, and ``safenav bench
+gym / safe`` on a tiny budget (files, resume, report). Slow (marked): SAC on Pendulum-v1 by 20k
+steps with the recipe alone, CSAC under the cost limit on a velocity task."""
+
+from __future__ import annotations
+
+import csv
+import json
+from importlib import resources
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import safenav  # noqa: F401  (registers the velocity tasks)
+from safenav.algos.config import CSACConfig
+from safenav.algos.ppo_config import PPOConfig
+from safenav.cli import main
+from safenav.common.config import RunConfig
+from safenav.common.costs import (
+    VELOCITY_THRESHOLDS,
+    CostFn,
+    VelocityCost,
+    half_cheetah_velocity_cost,
+    hopper_velocity_cost,
+)
+from safenav.recipes import apply, available, default_recipe, load_recipe, task_family
+
+QUIET = ["--no-progress", "--no-tensorboard", "--torch-threads", "1", "--eval-every", "0"]
+GYM_RECIPES = ("gym-sac", "gym-ppo", "classic-sac", "classic-ppo", "box2d-sac", "box2d-ppo",
+               "mujoco-sac", "mujoco-ppo")  # fmt: skip
+
+
+def has(module: str) -> bool:
+    try:
+        __import__(module)
+    except ImportError:
+        return False
+    return True
+
+
+MUJOCO = pytest.mark.skipif(
+    not has("mujoco"), reason="MuJoCo not installed: pip install -e '.[gym]'"
+)
+BOX2D = pytest.mark.skipif(not has("Box2D"), reason="Box2D not installed: pip install -e '.[gym]'")
+
+
+class Tiny(gym.Env):
+    """A Box env outside Gymnasium's families (the generic gym-* recipes): 20 steps."""
+
+    observation_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        return np.zeros(2, np.float32), {}
+
+    def step(self, action):
+        self.t += 1
+        obs = np.array([self.t / 20, float(action[0])], np.float32)
+        return obs, -(float(action[0]) ** 2), False, self.t >= 20, {}
+
+
+if "TinyBox-v0" not in gym.registry:
+    gym.register("TinyBox-v0", entry_point=Tiny)
+
+
+def run(capsys, argv: list[str]) -> tuple[int, str, str]:
+    capsys.readouterr()
+    try:
+        main(argv)
+        code = 0
+    except SystemExit as err:
+        code = err.code if isinstance(err.code, int) else 1
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def rows(path: Path) -> list[dict[str, str]]:
+    with path.open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+# ------------------------------------------------------------------------------ recipes
+
+
+def test_family_recipes_ship_cite_their_sources_and_build_valid_configs():
+    assert set(GYM_RECIPES) <= set(available())
+    for name in GYM_RECIPES:
+        recipe = load_recipe(name)
+        text = (resources.files("safenav.recipes") / f"{name}.toml").read_text()
+        assert "rl-baselines3-zoo" in text or "CleanRL" in text, name
+        assert "Departures" in text and "Measured" in text, name
+        ppo = name.endswith("-ppo")
+        assert recipe.algos == (("ppo", "ppo_lag") if ppo else ("sac", "csac", "sac_lag"))
+        for env in (None, *recipe.envs):
+            apply(RunConfig(), recipe.section("run", env))
+            cfg = apply(
+                PPOConfig() if ppo else CSACConfig(), recipe.section("ppo" if ppo else "csac", env)
+            )
+            assert cfg.curriculum.d_min == 25.0 and not cfg.curriculum.enabled  # OmniSafe's limit
+
+
+def test_published_values_per_family_and_per_env():
+    pendulum = apply(CSACConfig(), load_recipe("classic-sac").section("csac", "Pendulum-v1"))
+    assert (pendulum.actor_lr, pendulum.learning_starts, pendulum.updates_per_step) == (
+        1e-3,
+        100,
+        1.0,
+    )
+    assert (
+        apply(RunConfig(), load_recipe("classic-sac").section("run", "Pendulum-v1")).total_steps
+        == 20_000
+    )
+    hopper = apply(CSACConfig(), load_recipe("mujoco-sac").section("csac", "Hopper-v5"))
+    assert (hopper.learning_starts, hopper.actor_lr, hopper.init_alpha) == (10_000, 3e-4, 1.0)
+    lunar = apply(
+        CSACConfig(), load_recipe("box2d-sac").section("csac", "LunarLanderContinuous-v3")
+    )
+    assert lunar.net.hidden == (400, 300) and lunar.tau == 0.01
+    ppo = apply(PPOConfig(), load_recipe("mujoco-ppo").section("ppo", "Hopper-v5"))
+    assert (ppo.rollout_steps, ppo.epochs, ppo.num_minibatches, ppo.clip) == (2048, 10, 32, 0.2)
+
+
+def test_the_family_is_read_from_the_env_id():
+    assert task_family("Pendulum-v1")[0] == "classic"
+    assert task_family("LunarLanderContinuous-v3")[0] == "box2d"
+    assert task_family("Hopper-v5")[0] == "mujoco"
+    assert task_family("SafetyHopperVelocity-v5")[0] == "mujoco"  # through its base env
+    assert task_family("TinyBox-v0")[0] == "gym"
+    assert task_family("SafeNav-v1")[0] == "safenav"
+    assert (
+        default_recipe("sac", "Hopper-v5") == default_recipe("sac_lag", "Hopper-v5") == "mujoco-sac"
+    )
+    assert default_recipe("ppo_lag", "MountainCarContinuous-v0") == "classic-ppo"
+    assert default_recipe("csac", "TinyBox-v0") == "gym-sac"
+    assert default_recipe("csac", "SafeNav-v1") == "csac"
+
+
+CASES = [
+    ("sac", "Pendulum-v1", "classic-sac", []),
+    ("ppo", "Pendulum-v1", "classic-ppo", []),
+    ("sac", "TinyBox-v0", "gym-sac", []),
+    ("ppo", "TinyBox-v0", "gym-ppo", []),
+    pytest.param("sac", "LunarLanderContinuous-v3", "box2d-sac", [], marks=BOX2D),
+    pytest.param("ppo", "LunarLanderContinuous-v3", "box2d-ppo", ["--num-envs", "2"], marks=BOX2D),
+    pytest.param("sac", "Hopper-v5", "mujoco-sac", [], marks=MUJOCO),
+    pytest.param("ppo", "HalfCheetah-v5", "mujoco-ppo", [], marks=MUJOCO),
+]
+
+
+@pytest.mark.parametrize(("algo", "env", "recipe", "extra"), CASES)
+def test_each_recipe_is_chosen_from_the_env_and_trains(algo, env, recipe, extra, tmp_path, capsys):
+    """No flag but --algo, --env and a small budget (and sizes that keep it a few seconds)."""
+    small = (["--csac.learning-starts", "100", "--csac.batch-size", "32"] if algo == "sac"
+             else ["--ppo.rollout-steps", "64", "--ppo.num-minibatches", "4"])  # fmt: skip
+    run_dir = tmp_path / "run"
+    code, out, err = run(capsys, ["train", "--algo", algo, "--env", env, "--total-steps", "300",
+                                  "--run-dir", str(run_dir), *QUIET, *small, *extra])  # fmt: skip
+    assert code == 0, err
+    first = out.splitlines()[0]
+    assert first.startswith(f"safenav train: recipe {recipe} ") and f"chosen for {env}" in first
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["recipe"]["name"] == recipe
+    last = rows(run_dir / "progress.csv")[-1]
+    assert int(float(last["global_step"])) >= 300 and float(last["perf/updates"]) > 0
+
+
+# ------------------------------------------------------------------------- no silent nonsense
+
+
+def test_a_budget_within_the_warm_up_is_refused_with_both_numbers(tmp_path, capsys):
+    run_dir = tmp_path / "run"
+    code, _, err = run(capsys, ["train", "--algo", "sac", "--env", "Pendulum-v1", "--total-steps",
+                                "100", "--run-dir", str(run_dir), *QUIET])  # fmt: skip
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert "--total-steps 100 does not exceed the warm-up of 100 random steps" in err
+    code, _, err = run(capsys, ["train", "--algo", "csac", "--preset", "easy", "--total-steps", "9000",
+                                "--csac.learning-starts", "12000", "--run-dir", str(run_dir), *QUIET])  # fmt: skip
+    assert code == 2 and "9,000" in err and "12,000" in err and "--csac.learning-starts" in err
+    assert not run_dir.exists()  # refused before anything is written
+
+
+@pytest.mark.parametrize(
+    ("algo", "plain"), [("csac", "sac"), ("sac_lag", "sac"), ("ppo_lag", "ppo")]
+)
+def test_a_constrained_algorithm_without_a_cost_warns_once(algo, plain, tmp_path, capsys):
+    small = (["--ppo.rollout-steps", "32", "--ppo.num-minibatches", "2"] if algo == "ppo_lag"
+             else ["--csac.learning-starts", "100", "--csac.batch-size", "32"])  # fmt: skip
+    code, _, err = run(capsys, ["train", "--algo", algo, "--env", "Pendulum-v1", "--total-steps", "200",
+                                "--run-dir", str(tmp_path / "run"), *QUIET, *small])  # fmt: skip
+    assert code == 0, err
+    warnings = [line for line in err.splitlines() if "warning" in line]
+    assert len(warnings) == 1 and "reports no info['cost']" in warnings[0]
+    assert f"reduces to {plain}" in warnings[0] and "--cost-fn" in warnings[0]
+
+
+COST_MODULE = """
+def big_action(obs, action, next_obs, info):
+    return float(abs(action[0]) > 1.0)
+
+def broken(obs, action, next_obs, info):
+    return info["no_such_key"]
+"""
+
+
+def test_cost_fn_supplies_a_cost(tmp_path, capsys, monkeypatch):
+    (tmp_path / "mycost.py").write_text(COST_MODULE)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    run_dir = tmp_path / "run"
+    code, _, err = run(capsys, ["train", "--algo", "csac", "--env", "Pendulum-v1", "--total-steps", "400",
+                                "--cost-fn", "mycost:big_action", "--run-dir", str(run_dir), *QUIET,
+                                "--csac.learning-starts", "100", "--csac.batch-size", "32",
+                                "--log-every", "200"])  # fmt: skip
+    assert code == 0, err
+    assert "warning" not in err
+    assert (
+        json.loads((run_dir / "config.json").read_text())["run"]["cost_fn"] == "mycost:big_action"
+    )
+    # random warm-up actions in [-2, 2]: about half the steps cost 1, 200-step episodes
+    costs = [
+        float(r["charts/episodic_cost"])
+        for r in rows(run_dir / "progress.csv")
+        if r["charts/episodic_cost"]
+    ]
+    assert costs and 40 < costs[0] < 160
+    for bad, words in (("mycost:nothing", "has no function"), ("nosuchmodule:f", "cannot import"),
+                       ("mycost", "module:function"), ("mycost:broken", "fails on Pendulum-v1")):  # fmt: skip
+        code, _, err = run(capsys, ["train", "--algo", "csac", "--env", "Pendulum-v1", "--cost-fn", bad,
+                                    "--run-dir", str(tmp_path / "bad"), *QUIET])  # fmt: skip
+        assert code == 2 and words in err and len(err.strip().splitlines()) == 1, err
+
+
+class Scripted(gym.Env):
+    """Reports the x_velocity it is told to (the velocity cost's input)."""
+
+    observation_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+    action_space = gym.spaces.Box(-10.0, 10.0, (1,), np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        return np.zeros(1, np.float32), {}
+
+    def step(self, action):
+        return np.zeros(1, np.float32), 0.0, False, False, {"x_velocity": float(action[0])}
+
+
+def test_velocity_cost_is_one_above_the_threshold_in_either_direction():
+    env = VelocityCost(Scripted(), threshold=0.7402)
+    env.reset()
+    got = [env.step(np.array([v], np.float32))[4]["cost"] for v in (0.0, 0.74, 0.75, -0.75, 3.0)]
+    assert got == [0.0, 0.0, 1.0, 1.0, 1.0]
+    assert VELOCITY_THRESHOLDS == {"Hopper-v5": 0.7402, "HalfCheetah-v5": 3.2096}
+    assert hopper_velocity_cost(None, None, None, {"x_velocity": 0.8}) == 1.0
+    assert half_cheetah_velocity_cost(None, None, None, {"x_velocity": 3.0}) == 0.0
+    wrapped = CostFn(Scripted(), lambda obs, a, nxt, info: info["x_velocity"] * 2)
+    wrapped.reset()
+    assert wrapped.step(np.array([1.5], np.float32))[4]["cost"] == 3.0
+
+
+@MUJOCO
+@pytest.mark.parametrize("task", ["SafetyHopperVelocity-v5", "SafetyHalfCheetahVelocity-v5"])
+def test_velocity_tasks_cost_is_their_velocity_over_the_threshold(task):
+    base = {
+        "SafetyHopperVelocity-v5": "Hopper-v5",
+        "SafetyHalfCheetahVelocity-v5": "HalfCheetah-v5",
+    }[task]
+    env, ref = gym.make(task), gym.make(base)
+    assert env.spec.max_episode_steps == ref.spec.max_episode_steps == 1000
+    env.reset(seed=3), ref.reset(seed=3)
+    rng = np.random.default_rng(0)
+    costs = []
+    for _ in range(200):
+        a = rng.uniform(-1, 1, env.action_space.shape).astype(np.float32)
+        _, r, term, trunc, info = env.step(a)
+        _, r_ref, term_ref, _, info_ref = ref.step(a)
+        assert r == pytest.approx(r_ref) and term == term_ref  # the base task, unchanged
+        assert info["cost"] == float(abs(info_ref["x_velocity"]) > VELOCITY_THRESHOLDS[base])
+        costs.append(info["cost"])
+        if term or trunc:
+            break
+    assert sum(costs) > 0  # random actions exceed the threshold now and then
+
+
+# ------------------------------------------------------------------------------ the benchmark
+
+
+def test_bench_gym_on_a_tiny_budget_writes_its_files_and_resumes(tmp_path, capsys):
+    out = tmp_path / "gym"
+    argv = ["bench", "gym", "--tasks", "Pendulum-v1", "--algos", "sac", "--seeds", "1", "--steps", "400",
+            "--out", str(out), "--no-progress"]  # fmt: skip
+    code, stdout, err = run(capsys, argv)
+    assert code == 0, err
+    names = sorted(p.name for p in (out / "trials").iterdir())
+    assert names == ["Pendulum-v1-sac-safenav-400-s1.json", "Pendulum-v1-sac-sb3-400-s1.json"]
+    for name in names:
+        trial = json.loads((out / "trials" / name).read_text())
+        assert (
+            trial["final"]["step"] == 400
+            and len(trial["curve"]) == 10
+            and trial["wall_clock_s"] > 0
+        )
+    ours = json.loads((out / "trials" / names[0]).read_text())
+    assert ours["recipe"] == "classic-sac"  # the recipe a user gets
+    table = (out / "table.md").read_text()
+    assert (
+        "| Pendulum-v1 | sac | 400 |" in table
+        and "-157 ± 89 at 20k (SB3 zoo benchmark.md)" in table
+    )
+    assert (out / "curves.png").stat().st_size > 10_000 and "table.md" in stdout
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["rows"][0]["sb3"]["seeds"] == [1]
+    # a rerun skips the finished trials
+    before = {n: (out / "trials" / n).stat().st_mtime_ns for n in names}
+    code, _, err = run(capsys, argv)
+    assert code == 0 and "2 already done (skipped), 0 to run" in err
+    assert before == {n: (out / "trials" / n).stat().st_mtime_ns for n in names}
+    # an interrupted safenav trial (no trial file, a checkpoint) is resumed, not restarted
+    (out / "trials" / names[0]).unlink()
+    code, _, err = run(capsys, argv)
+    assert code == 0 and "1 already done (skipped), 1 to run" in err
+    assert "resume" in (out / "runs" / names[0][:-5] / "events.jsonl").read_text()
+    assert (out / "trials" / names[0]).is_file()
+
+
+@MUJOCO
+def test_bench_safe_on_a_tiny_budget(tmp_path, capsys):
+    out = tmp_path / "safe"
+    code, _, err = run(capsys, ["bench", "safe", "--tasks", "SafetyHopperVelocity-v5", "--algos", "csac",
+                                "--seeds", "1", "--steps", "300", "--out", str(out), "--no-progress",
+                                "--train-args", "--csac.learning-starts 100 --csac.batch-size 32"])  # fmt: skip
+    assert code == 0, err
+    trial = json.loads(
+        (out / "trials" / "SafetyHopperVelocity-v5-csac-safenav-300-s1.json").read_text()
+    )
+    assert (
+        trial["config"]["csac"]["curriculum"]["d_min"] == 25.0
+        and trial["config"]["csac"]["learning_starts"] == 100
+    )
+    assert "| SafetyHopperVelocity-v5 | csac | 300 |" in (out / "table.md").read_text()
+
+
+def test_bench_refuses_unknown_tasks_and_algorithms(tmp_path, capsys):
+    for extra, words in ((["--tasks", "CartPole-v1"], "not in the gym suite"),
+                         (["--algos", "csac"], "the gym suite runs sac, ppo"),
+                         (["--sb3", "Nope-v0"], "--sb3 Nope-v0"),
+                         (["--train-args", "--nope 1"], "--train-args")):  # fmt: skip
+        code, _, err = run(capsys, ["bench", "gym", "--out", str(tmp_path / "x"), *extra])
+        assert code == 2 and words in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "x").exists()
+
+
+# ------------------------------------------------------------------------------ learning (slow)
+
+
+@pytest.mark.slow
+def test_sac_on_pendulum_with_its_recipe_alone(tmp_path, capsys):
+    """``safenav train --algo sac --env Pendulum-v1 --total-steps 20000``: the recipe's
+    deterministic evaluation return at the end reaches -300 (SB3 zoo: -157 at 20k)."""
+    run_dir = tmp_path / "pendulum"
+    code, _, err = run(capsys, ["train", "--algo", "sac", "--env", "Pendulum-v1", "--total-steps", "20000",
+                                "--run-dir", str(run_dir), "--no-progress", "--no-tensorboard"])  # fmt: skip
+    assert code == 0, err
+    evals = [float(r["eval/return"]) for r in rows(run_dir / "progress.csv") if r["eval/return"]]
+    assert evals[-1] >= -300, f"SAC on Pendulum-v1: {evals}"
+
+
+@pytest.mark.slow
+@MUJOCO
+def test_csac_keeps_the_cost_limit_on_a_velocity_task(tmp_path, capsys):
+    """CSAC with the mujoco-sac recipe on SafetyHalfCheetahVelocity-v5 (cost limit 25): the
+    final evaluations' episode cost stays within the limit while the return is positive
+    (the cheetah runs, below the threshold)."""
+    run_dir = tmp_path / "cheetah"
+    code, _, err = run(capsys, ["train", "--algo", "csac", "--env", "SafetyHalfCheetahVelocity-v5",
+                                "--total-steps", "100000", "--eval-every", "10000", "--run-dir",
+                                str(run_dir), "--no-progress", "--no-tensorboard"])  # fmt: skip
+    assert code == 0, err
+    evals = [r for r in rows(run_dir / "progress.csv") if r["eval/return"]]
+    cost = np.mean([float(r["eval/cost"]) for r in evals[-3:]])
+    ret = np.mean([float(r["eval/return"]) for r in evals[-3:]])
+    assert cost <= 25.0 and ret > 0, f"episode cost {cost:.1f}, return {ret:.0f}"
