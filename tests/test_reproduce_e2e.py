@@ -23,10 +23,11 @@ def test_tiny_reproduce_end_to_end(tmp_path):
     from safenav.cli import main
 
     out = tmp_path / "repro"
-    # 2000 steps (16 envs) logged every 250 give Fig. 3 a few points; no gradient updates yet.
+    # 2000 steps (16 envs) logged every 250 give Fig. 3 a few points; a warm-up of 1000 steps
+    # (a budget within the warm-up is refused) leaves a few gradient updates.
     main(["reproduce", "--algos", "csac", "sac", "--seeds", "2", "--total-steps", "2000",
           "--preset", "easy", "--cpus-per-trial", "1", "--num-cpus", "2", "--eval-episodes",
-          "10", "--train-args=--log-every 250", "--out", str(out)])  # fmt: skip
+          "10", "--train-args=--log-every 250 --csac.learning-starts 1000", "--out", str(out)])  # fmt: skip
     data = json.loads((out / "results.json").read_text())
     assert list(data["algos"]) == ["csac", "sac"]
     for name, algo in data["algos"].items():

@@ -99,11 +99,11 @@ def train_command(trial: Trial, out: Path, cost_limit: float,
         return [sys.executable, "-m", "safenav.bench.sb3_trial", trial.env, trial.algo,
                 str(trial.seed), str(trial.steps), str(trial.eval_every), str(EVAL_EPISODES),
                 str(run_dir)]  # fmt: skip
-    cmd = [sys.executable, "-m", "safenav", "train", "--no-progress", "--no-tensorboard",
-           "--torch-threads", "1", "--total-steps", str(trial.steps)]  # fmt: skip
+    cmd = [sys.executable, "-m", "safenav", "train", "--algo", trial.algo, "--no-progress",
+           "--no-tensorboard", "--torch-threads", "1", "--total-steps", str(trial.steps)]  # fmt: skip
     if (run_dir / "checkpoint.pt").is_file():
         return [*cmd, "--resume", str(run_dir)]
-    cmd += ["--algo", trial.algo, "--env", trial.env, "--seed", str(trial.seed), "--run-dir",
+    cmd += ["--env", trial.env, "--seed", str(trial.seed), "--run-dir",
             str(run_dir), "--overwrite", "--eval-every", str(trial.eval_every), "--eval-episodes",
             str(EVAL_EPISODES), "--log-every", str(max(1, trial.steps // 100)),
             "--checkpoint-every", str(max(1, trial.steps // 10))]  # fmt: skip
@@ -183,6 +183,11 @@ def versions() -> dict[str, str]:
     return out
 
 
+def say(text: str) -> None:
+    """One plain line on stderr (not wrapped, whatever the terminal)."""
+    print(f"safenav bench: {text}", file=sys.stderr, flush=True)
+
+
 def run_trials(trials: list[Trial], out: Path, cost_limit: float, jobs: int = 1,
                progress: bool = True, extra: tuple[str, ...] = ()) -> list[str]:  # fmt: skip
     """Run the trials that have no trial file yet, ``jobs`` at a time; returns the failures."""
@@ -195,8 +200,8 @@ def run_trials(trials: list[Trial], out: Path, cost_limit: float, jobs: int = 1,
         (out / sub).mkdir(parents=True, exist_ok=True)
     todo = [t for t in trials if not (out / "trials" / f"{t.name}.json").is_file()]
     console = Console(stderr=True)
-    console.print(f"safenav bench: {len(trials)} trials, {len(trials) - len(todo)} already done "
-                  f"(skipped), {len(todo)} to run; results in {out}")  # fmt: skip
+    say(f"{len(trials)} trials, {len(trials) - len(todo)} already done (skipped), {len(todo)} to "
+        f"run; results in {out}")  # fmt: skip
     failures: list[str] = []
     total = sum(t.steps for t in todo)
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
@@ -229,7 +234,7 @@ def run_trials(trials: list[Trial], out: Path, cost_limit: float, jobs: int = 1,
                 if proc.returncode != 0:
                     failures.append(f"{trial.name}: exit {proc.returncode} "
                                     f"(log: {out / 'logs' / (trial.name + '.log')})")  # fmt: skip
-                    console.print(f"safenav bench: {failures[-1]}")
+                    say(failures[-1])
                     continue
                 try:
                     result = collect(trial, out, time.perf_counter() - t0)
@@ -237,8 +242,8 @@ def run_trials(trials: list[Trial], out: Path, cost_limit: float, jobs: int = 1,
                     failures.append(f"{trial.name}: {err}")
                     continue
                 write_json(out / "trials" / f"{trial.name}.json", result)
-                console.print(f"safenav bench: {trial.name} done: return "
-                              f"{result['final']['return']:.1f}, {result['wall_clock_s']:.0f} s")  # fmt: skip
+                say(f"{trial.name} done: return {result['final']['return']:.1f}, "
+                    f"{result['wall_clock_s']:.0f} s")  # fmt: skip
             bar.update(overall, completed=finished_steps + live)
     return failures
 
