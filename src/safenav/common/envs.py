@@ -50,7 +50,7 @@ def reports_cost(env_id: str, cost_fn: str | None = None, steps: int = 5) -> boo
     a probe of ``steps`` random steps of one env."""
     from safenav.common.costs import CostFn
 
-    env = gym.make(env_id)
+    env = _make(env_id)
     if cost_fn is not None:
         env = CostFn(env, cost_fn)
     try:
@@ -65,6 +65,29 @@ def reports_cost(env_id: str, cost_fn: str | None = None, steps: int = 5) -> boo
         return False
     finally:
         env.close()
+
+
+def quiet_mujoco() -> None:
+    """MuJoCo's warnings (MuJoCo 4 warns about an attribute of HalfCheetah's model) as Python
+    warnings instead of lines on stderr and a MUJOCO_LOG.TXT in the working directory."""
+    import importlib.util
+
+    if importlib.util.find_spec("mujoco") is None:
+        return
+    import warnings
+
+    import mujoco
+
+    mujoco.set_mju_user_warning(lambda msg: warnings.warn(f"MuJoCo: {msg}", stacklevel=1))
+
+
+def _make(env_id: str, **kwargs: Any) -> gym.Env:
+    """``gym.make``, MuJoCo's warnings routed first for a MuJoCo task."""
+    from safenav.recipes import task_family
+
+    if task_family(env_id)[0] == "mujoco":
+        quiet_mujoco()
+    return gym.make(env_id, **kwargs)
 
 
 def is_safenav(env_id: str) -> bool:
@@ -102,7 +125,7 @@ def env_spaces(
         cfg = make_config(preset or "paper")
         return observation_shapes(cfg), 3, cfg
     try:
-        env = gym.make(env_id)
+        env = _make(env_id)
     except Exception as err:  # noqa: BLE001 -- a missing extra (box2d, mujoco), a bad kwarg, ...
         missing = isinstance(err, ImportError) or type(err).__name__ == "DependencyNotInstalled"
         kind = SafenavRuntimeError if missing else SafenavError  # install it vs. fix the command
@@ -140,6 +163,10 @@ def make_vec_env(env_id: str, num_envs: int, device: str = "cpu", preset: str | 
             env_id, num_envs=num_envs, vectorization_mode="vector_entry_point", **kwargs
         )
     cost_fn = _COST_FN.get()
+    from safenav.recipes import task_family
+
+    if task_family(env_id)[0] == "mujoco":
+        quiet_mujoco()
     wrappers = None
     if cost_fn is not None:
         from safenav.common.costs import CostFn, load_cost_fn
