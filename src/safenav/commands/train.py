@@ -176,7 +176,7 @@ def recipe_line(recipe, env_id: str, chosen: bool) -> str:
     """The line ``safenav train`` prints first: the recipe it starts from, and why."""
     why = ""
     if chosen:
-        from safenav.recipes import task_family
+        from safenav.common.families import task_family
 
         why = f", chosen for {env_id} ({task_family(env_id)[1]})"
     return (f"safenav train: recipe {recipe.name} ({recipe.source}){why}; options given here "

@@ -83,7 +83,7 @@ def quiet_mujoco() -> None:
 
 def _make(env_id: str, **kwargs: Any) -> gym.Env:
     """``gym.make``, MuJoCo's warnings routed first for a MuJoCo task."""
-    from safenav.recipes import task_family
+    from safenav.common.families import task_family
 
     if task_family(env_id)[0] == "mujoco":
         quiet_mujoco()
@@ -163,7 +163,7 @@ def make_vec_env(env_id: str, num_envs: int, device: str = "cpu", preset: str | 
             env_id, num_envs=num_envs, vectorization_mode="vector_entry_point", **kwargs
         )
     cost_fn = _COST_FN.get()
-    from safenav.recipes import task_family
+    from safenav.common.families import task_family
 
     if task_family(env_id)[0] == "mujoco":
         quiet_mujoco()

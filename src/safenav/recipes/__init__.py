@@ -30,6 +30,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from safenav.common.families import task_family
 from safenav.errors import SafenavError
 
 if sys.version_info >= (3, 11):
@@ -39,12 +40,6 @@ else:  # pragma: no cover - Python 3.10
 
 SECTIONS = ("run", "csac", "ppo")
 PPO_ALGOS = ("ppo", "ppo_lag")
-FAMILIES = {
-    "gymnasium.envs.classic_control": ("classic", "Gymnasium classic control"),
-    "gymnasium.envs.box2d": ("box2d", "Gymnasium Box2D"),
-    "gymnasium.envs.mujoco": ("mujoco", "Gymnasium MuJoCo locomotion"),
-}
-"""Entry-point package of a Gymnasium env -> (recipe family, its name in words)."""
 
 
 @dataclass(frozen=True)
@@ -75,29 +70,6 @@ def available() -> list[str]:
     return sorted(
         p.name[:-5] for p in resources.files(__name__).iterdir() if p.name.endswith(".toml")
     )
-
-
-def task_family(env_id: str) -> tuple[str, str]:
-    """``(family, description)`` of a Gymnasium id: ``safenav`` for SafeNav, ``classic``,
-    ``box2d`` or ``mujoco`` for Gymnasium's own envs (by their entry point's package; an env
-    registered with ``kwargs={"base": ID}``, such as the velocity tasks, takes the family of
-    ``ID``), else ``gym`` (any other env). An unknown id is ``gym`` too (checked elsewhere)."""
-    import gymnasium as gym
-
-    if env_id.split(":")[-1].startswith("SafeNav-"):
-        return "safenav", "SafeNav"
-    try:
-        spec = gym.spec(env_id)
-    except gym.error.Error:
-        return "gym", "a Gymnasium env"
-    base = (spec.kwargs or {}).get("base")
-    if isinstance(base, str) and base != env_id:
-        return task_family(base)
-    entry = spec.entry_point if isinstance(spec.entry_point, str) else ""
-    for package, family in FAMILIES.items():
-        if entry.startswith(package):
-            return family
-    return "gym", "a Gymnasium env outside the classic control, Box2D and MuJoCo families"
 
 
 def default_recipe(algo: str, env_id: str) -> str | None:
