@@ -64,15 +64,7 @@ from safenav.common.nstep import NStepWindow
 from safenav.common.runs import episode_charts, run_summary, write_run_config
 from safenav.common.stopping import RunGuard, enable_sigint
 from safenav.nn.networks import Actor, DeterministicActor, QEnsemble, input_order, make_extractor
-
-
-def adam(params, **kwargs) -> torch.optim.Adam:
-    """Adam with the fused kernel (one kernel per group, 2.4x faster steps on CPU than the default
-    per-parameter loop; docs/csac.md), when supported by the parameters' device."""
-    try:
-        return torch.optim.Adam(params, fused=True, **kwargs)
-    except RuntimeError:
-        return torch.optim.Adam(params, **kwargs)
+from safenav.nn.optim import adam
 
 
 class CSAC(nn.Module):

@@ -4,12 +4,16 @@ No module, optimiser or global state is touched here: each function maps tensors
 each is unit-tested against a hand-computed value (tests/test_losses.py). Shapes: ``B`` is the
 batch; critic outputs are ``(E, B)`` with ``E`` the number of critics of one kind (2 in the paper).
 The caller detaches what must not be differentiated (targets; ``alpha`` and ``lambda`` in the
-actor loss; ``log_prob`` in the temperature loss; ``Q_C`` in the multiplier loss).
+actor loss; ``log_prob`` in the temperature loss; ``Q_C`` in the multiplier loss, Eq. 11, which is
+:func:`safenav.common.lagrange.lagrange_loss`).
 """
 
 from __future__ import annotations
 
 import torch
+
+# Eq. 11 lives with the multiplier it trains, one layer down (no upward import); one of the losses
+from safenav.common.lagrange import lagrange_loss
 
 
 def reward_target(reward: torch.Tensor, terminated: torch.Tensor, next_q: torch.Tensor,
@@ -87,18 +91,6 @@ def alpha_loss(
     (``-|A|`` by default) and lowers it above. ``log_prob`` must be detached.
     """
     return -(log_alpha.exp() * (log_prob.detach() + target_entropy)).mean()
-
-
-def lagrange_loss(lam: torch.Tensor, q_cost_mean: torch.Tensor, d: float) -> torch.Tensor:
-    """Eq. 11: ``E[lambda (d - 1/2 sum_j Q_C_j(s, a))]``, ``a ~ pi(.|s)``.
-
-    ``d(loss)/d(lambda) = d - E[Q_C]``: gradient *descent* raises lambda while the expected cost
-    ``E[Q_C]`` exceeds the threshold ``d`` and lowers it below. ``q_cost_mean`` ``(B,)`` is the
-    mean over the cost critics, detached; ``d`` is on the scale of ``Q_C`` (a discounted sum, see
-    :func:`safenav.common.curriculum.episode_cost_to_q_scale`). Keeping ``lambda >= 0`` is the
-    caller's projection (:class:`safenav.common.lagrange.Lagrange`).
-    """
-    return (lam * (d - q_cost_mean.detach())).mean()
 
 
 __all__ = [

@@ -31,7 +31,6 @@ from typing import Any
 import torch
 from torch import nn
 
-from safenav.algos.csac import adam
 from safenav.algos.csac import policy_meta as csac_policy_meta
 from safenav.algos.ppo_config import PPOConfig
 from safenav.algos.ppo_losses import (
@@ -65,6 +64,7 @@ from safenav.common.stopping import RunGuard, enable_sigint
 from safenav.errors import SafenavError
 from safenav.nn.beta import POLICY_HEAD, BetaActorCritic, BetaDeterministicActor
 from safenav.nn.networks import input_order
+from safenav.nn.optim import adam
 
 
 class PPO(nn.Module):
@@ -80,7 +80,7 @@ class PPO(nn.Module):
         self.model = BetaActorCritic(obs_shapes, action_dim, cfg.net, self.num_values)
         self.value_norm = ValueNorm(self.num_values, cfg.value_norm_beta, cfg.value_norm)
         # One Adam over actor, critic and extractor: NavRL's three Adams share lr 5e-4, and
-        # Adam's per-parameter statistics make that the same update (fused kernel: csac.adam).
+        # Adam's per-parameter statistics make that the same update (fused kernel: nn.optim.adam).
         self.optimizer = adam(self.model.parameters(), lr=cfg.lr)
         self.lagrange = (
             Lagrange(cfg.init_lambda, cfg.lambda_lr, cfg.lambda_max) if cfg.constrained else None

@@ -1,4 +1,4 @@
-"""The pieces of PPO / PPO-Lag as pure functions of tensors (tests/test_ppo_losses.py checks each
+"""The pieces of PPO / PPO-Lag as pure functions of tensors (tests/test_ppo.py checks each
 against hand-computed values).
 
 Shapes: ``T`` rollout steps, ``N`` envs, ``B`` a minibatch, ``A`` action dimensions. Nothing here
@@ -6,19 +6,26 @@ holds state or touches an optimiser; the caller detaches what is data (old log-p
 values, advantages, returns).
 
 The policy is NavRL's: a Beta distribution per action dimension on ``[0, 1]``, mapped affinely
-onto the normalised command ``a = 2 x - 1`` in ``[-1, 1]`` (the env scales by ``v_max``).
+onto the normalised command ``a = 2 x - 1`` in ``[-1, 1]`` (the env scales by ``v_max``); its
+functions (log-density, entropy, mean, sampling) are in :mod:`safenav.nn.beta`, re-exported here.
 """
 
 from __future__ import annotations
 
-import math
-
 import torch
-import torch.nn.functional as F
 
-LOG2 = math.log(2.0)
-UNIT_EPS = 1e-6
-"""Beta samples are kept in ``[eps, 1 - eps]`` so that their log-density stays finite."""
+# The Beta policy's functions live with its network, one layer down (no upward import)
+from safenav.nn.beta import (
+    LOG2,
+    UNIT_EPS,
+    action_to_unit,
+    beta_concentrations,
+    beta_entropy,
+    beta_log_prob,
+    beta_mean_action,
+    sample_beta_action,
+    unit_to_action,
+)
 
 
 # ------------------------------------------------------------------------------- advantages
@@ -97,65 +104,9 @@ def clipped_value_loss(values: torch.Tensor, old_values: torch.Tensor, returns: 
     return 0.5 * loss.mean()
 
 
-# ------------------------------------------------------------------------------ Beta policy
-def beta_concentrations(raw_alpha: torch.Tensor,
-                        raw_beta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
-    """NavRL's ``BetaActor``: ``alpha = 1 + softplus(raw_alpha)``, ``beta = 1 + softplus(raw_beta)``.
-
-    Both exceed 1, so every Beta is unimodal with a finite density on ``[0, 1]``."""
-    return 1.0 + F.softplus(raw_alpha), 1.0 + F.softplus(raw_beta)
-
-
-def unit_to_action(x: torch.Tensor) -> torch.Tensor:
-    """``[0, 1] -> [-1, 1]``: ``a = 2 x - 1``."""
-    return 2.0 * x - 1.0
-
-
-def action_to_unit(action: torch.Tensor) -> torch.Tensor:
-    """``[-1, 1] -> [0, 1]``: ``x = (a + 1) / 2``, kept in ``[eps, 1 - eps]``."""
-    return ((action + 1.0) * 0.5).clamp(UNIT_EPS, 1.0 - UNIT_EPS)
-
-
-def beta_log_prob(alpha: torch.Tensor, beta: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-    """Log-density of ``action`` in ``[-1, 1]^A`` under independent Betas mapped by ``a = 2x - 1``:
-
-        log p(a) = sum_i [(alpha_i - 1) log x_i + (beta_i - 1) log(1 - x_i) - log B(alpha_i, beta_i)]
-                   - A log 2,          x = (a + 1) / 2,   log B(a, b) = lgamma(a) + lgamma(b) - lgamma(a + b)
-
-    (``- A log 2`` is the Jacobian of the affine map; it cancels in PPO's ratio.) ``(B, A)`` -> ``(B,)``.
-    """
-    x = action_to_unit(action)
-    log_b = torch.lgamma(alpha) + torch.lgamma(beta) - torch.lgamma(alpha + beta)
-    log_unit = (alpha - 1.0) * torch.log(x) + (beta - 1.0) * torch.log1p(-x) - log_b
-    return log_unit.sum(-1) - action.shape[-1] * LOG2
-
-
-def beta_entropy(alpha: torch.Tensor, beta: torch.Tensor) -> torch.Tensor:
-    """Differential entropy of the action distribution on ``[-1, 1]^A``:
-
-        H = sum_i [log B(a, b) - (a - 1) psi(a) - (b - 1) psi(b) + (a + b - 2) psi(a + b)] + A log 2
-
-    with ``psi`` the digamma function. ``(B, A)`` -> ``(B,)``."""
-    log_b = torch.lgamma(alpha) + torch.lgamma(beta) - torch.lgamma(alpha + beta)
-    h = (log_b - (alpha - 1.0) * torch.digamma(alpha) - (beta - 1.0) * torch.digamma(beta)
-         + (alpha + beta - 2.0) * torch.digamma(alpha + beta))  # fmt: skip
-    return h.sum(-1) + alpha.shape[-1] * LOG2
-
-
-def beta_mean_action(alpha: torch.Tensor, beta: torch.Tensor) -> torch.Tensor:
-    """The deterministic action: the Beta mean mapped to ``[-1, 1]``, ``2 alpha / (alpha + beta) - 1``
-    (NavRL deploys ``ExplorationType.MEAN``)."""
-    return unit_to_action(alpha / (alpha + beta))
-
-
-def sample_beta_action(alpha: torch.Tensor, beta: torch.Tensor) -> torch.Tensor:
-    """A sample ``a = 2 x - 1``, ``x ~ Beta(alpha, beta)`` (torch's gamma-ratio sampler; uses the
-    global torch RNG), kept where its log-density is finite."""
-    x = torch.distributions.Beta(alpha, beta).sample().clamp(UNIT_EPS, 1.0 - UNIT_EPS)
-    return unit_to_action(x)
-
-
 __all__ = [
+    "LOG2",
+    "UNIT_EPS",
     "action_to_unit",
     "beta_concentrations",
     "beta_entropy",

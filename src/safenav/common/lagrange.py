@@ -20,7 +20,17 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from safenav.algos.losses import lagrange_loss
+
+def lagrange_loss(lam: torch.Tensor, q_cost_mean: torch.Tensor, d: float) -> torch.Tensor:
+    """Eq. 11: ``E[lambda (d - 1/2 sum_j Q_C_j(s, a))]``, ``a ~ pi(.|s)``.
+
+    ``d(loss)/d(lambda) = d - E[Q_C]``: gradient *descent* raises lambda while the expected cost
+    ``E[Q_C]`` exceeds the threshold ``d`` and lowers it below. ``q_cost_mean`` ``(B,)`` is the
+    mean over the cost critics, detached; ``d`` is on the scale of ``Q_C`` (a discounted sum, see
+    :func:`safenav.common.curriculum.episode_cost_to_q_scale`). Keeping ``lambda >= 0`` is the
+    caller's projection (:class:`Lagrange`).
+    """
+    return (lam * (d - q_cost_mean.detach())).mean()
 
 
 class Lagrange(nn.Module):
@@ -51,4 +61,4 @@ class Lagrange(nn.Module):
         return loss.detach()
 
 
-__all__ = ["Lagrange"]
+__all__ = ["Lagrange", "lagrange_loss"]
