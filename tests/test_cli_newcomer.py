@@ -170,6 +170,14 @@ def test_a_run_dir_that_never_trained_does_not_block_the_retry(
                         *TINY])[0] == 99  # fmt: skip
 
 
+def test_a_refused_run_prints_its_error_alone(capsys, tmp_path, tiny_run):
+    """Not the recipe it would have trained with first (stdout), then the refusal."""
+    trained = tmp_path / "trained"
+    shutil.copytree(tiny_run, trained)
+    code, out, err = run(capsys, ["train", "--preset", "easy", "--run-dir", str(trained), *TINY])
+    assert code == 2 and out == "" and "already holds a run" in one_error(err)
+
+
 def test_fly_never_suggests_overwriting_a_checkpoint(capsys, ckpt):
     before = ckpt.read_bytes()
     code, _, err = run(capsys, ["fly", "--policy", str(ckpt), "--goal", "1", "2", "1.5"])
@@ -248,12 +256,22 @@ def test_export_writes_the_opset_asked_for_or_refuses(capsys, tmp_path):
     assert json.loads(Path(f"{out}.json").read_text())["opset"] == 11
 
 
-def _reproduce_examples() -> list[str]:
-    """The ``safenav reproduce`` command lines of its --help and of docs/reproduce.md."""
-    from safenav.commands.reproduce import reproduce
+def _reproduce_help() -> str:
+    """``safenav reproduce --help`` as it prints."""
+    import contextlib
+    import io
 
-    doc = " ".join(reproduce.__doc__.split())
-    examples = [doc.split("Example: ")[1].split(" Args:")[0].strip()]
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf), contextlib.suppress(SystemExit):
+        main(["reproduce", "--help"])
+    return buf.getvalue()
+
+
+def _reproduce_examples() -> list[str]:
+    """The ``safenav reproduce`` command lines of its --help, each a printed line (what a reader
+    copies), and of docs/reproduce.md."""
+    examples = [line.removeprefix("Example: ") for line in _reproduce_help().splitlines()
+                if line.startswith("Example: ")]  # fmt: skip
     text = (ROOT / "docs" / "reproduce.md").read_text().replace("\\\n", " ")
     examples += [
         line.strip()
@@ -261,6 +279,19 @@ def _reproduce_examples() -> list[str]:
         if line.strip().startswith("safenav reproduce --")
     ]
     return examples
+
+
+def test_reproduce_help_prints_each_example_on_one_line():
+    """tyro starts a new line at a docstring line that does not start with a letter: an example
+    wrapped there would print as two lines, and the first alone would run something else."""
+    from safenav.commands.reproduce import reproduce
+
+    lines = _reproduce_help().splitlines()
+    starts = [i for i, line in enumerate(lines) if line.startswith("Example: ")]
+    assert len(starts) == reproduce.__doc__.count("Example: ") >= 2
+    for i in starts:  # each example is a paragraph of one line
+        assert lines[i + 1].strip() == "", lines[i : i + 2]
+        assert shlex.split(lines[i], comments=True)[1:3] == ["safenav", "reproduce"]
 
 
 @pytest.mark.parametrize("example", _reproduce_examples())
@@ -274,6 +305,57 @@ def test_reproduce_examples_run_as_written(example, capsys, tmp_path, monkeypatc
     assert code == 0 and len(seen) == 1, err
     code, _, err = run(capsys, ["reproduce", "--out", "x", "--variants", "a=csac --no-curriculum"])
     assert code == 2 and "--variants a" in one_error(err)  # an option train lacks, before Ray
+
+
+def test_reproduce_refuses_what_its_trials_would_refuse_before_ray(capsys, tmp_path, monkeypatch):
+    """A budget within the warm-up, or a trial too big for memory, fails every trial once Ray has
+    started them: refused before, in the words train uses, naming the trials."""
+    seen = []
+    monkeypatch.setattr("safenav.experiments.reproduce.run_sweep", seen.append)
+    out = tmp_path / "repro"
+    code, _, err = run(capsys, ["reproduce", "--out", str(out), "--algos", "csac", "ppo",
+                                "--total-steps", "1000", "ppo=1M"])  # fmt: skip
+    line = one_error(err)
+    assert code == 2 and "the csac trials: --total-steps 1,000" in line
+    assert "--csac.learning-starts" in line
+    code, _, err = run(capsys, ["reproduce", "--out", str(out), "--algos", "sac",
+                                "--train-args=--num-envs 1e7"])  # fmt: skip
+    line = one_error(err)
+    assert code == 1 and "the sac trials: training 10,000,000 envs" in line
+    assert "lower --num-envs" in line
+    assert not seen and not out.exists()
+    # within the budget: accepted
+    code, _, err = run(capsys, ["reproduce", "--out", str(out), "--algos", "csac", "--total-steps",
+                                "2000", "--train-args=--csac.learning-starts 500"])  # fmt: skip
+    assert code == 0 and len(seen) == 1, err
+
+
+def test_fly_reports_a_mistake_in_the_command_line_before_a_busy_port(capsys, tmp_path):
+    """A usage error (exit 2) is what to fix first; the port probe (exit 1) comes last."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
+        udp.bind(("127.0.0.1", 0))
+        port = udp.getsockname()[1]
+        connect = ["--connect", f"udpin://127.0.0.1:{port}"]
+        missing = tmp_path / "policy.onnx"
+        code, _, err = run(capsys, ["fly", "--policy", str(missing), "--goal", "1", "2", "1.5",
+                                    *connect])  # fmt: skip
+        assert code == 2 and f"--policy {missing} not found" in one_error(err)
+        code, _, err = run(capsys, ["fly", "--policy", str(missing), "--goal", "1", "2", "0",
+                                    *connect])  # fmt: skip
+        assert code == 2 and "--goal" in one_error(err)
+        missing.write_bytes(b"stands in for an export")
+        code, _, err = run(capsys, ["fly", "--policy", str(missing), "--goal", "1", "2", "1.5",
+                                    *connect])  # fmt: skip
+        assert code == 1 and f"port {port} is already in use" in one_error(err)
+
+
+@pytest.mark.parametrize("argv", [["--overwrite=yes"], ["--no-progress", "yes"],
+                                  ["--seed", "1", "--overwrite", "1"]])  # fmt: skip
+def test_a_switch_given_a_value_is_named(argv, capsys, tmp_path):
+    code, _, err = run(capsys, ["train", "--run-dir", str(tmp_path / "run"), *argv])
+    switch = next(a for a in reversed(argv) if a.startswith("--")).split("=")[0]
+    assert code == 2 and f"{switch} takes no value" in one_error(err)
+    assert not (tmp_path / "run").exists()
 
 
 @pytest.mark.parametrize("form", ["1000000", "1e6", "1_000_000", "1M", "1m", "1000k"])
@@ -388,6 +470,32 @@ def test_version_and_a_one_screen_help(capsys):
     assert set(VERBS) == set(app._subcommands)  # every registered verb is listed
     code, out, _ = run(capsys, ["eval", "--help"])  # the detail is in the verb's own help
     assert code == 0 and "--episodes" in out and "--json" in out
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["convert"], "missing CHECKPOINT:"),
+    (["bench"], "missing WHICH (one of env, update, latency, soak"),
+    (["bench", "nope"], "WHICH 'nope': choose one of env"),
+    (["average", "--out", "x.pt"], "no POLICIES given"),
+    (["plot"], "no directories given"),
+    (["eval"], "no checkpoint given"),
+])  # fmt: skip
+def test_a_missing_argument_is_named_as_the_help_names_it(argv, says, capsys, tmp_path,
+                                                          monkeypatch):  # fmt: skip
+    monkeypatch.chdir(tmp_path)
+    code, _, err = run(capsys, argv)
+    line = one_error(err)
+    assert code == 2 and says in line and "tyro" not in line
+    assert not list(tmp_path.iterdir())
+
+
+def test_help_as_a_verb(capsys):
+    """``safenav help`` and ``safenav help VERB``, as git and pip take them."""
+    assert run(capsys, ["help"])[1] == run(capsys, ["--help"])[1]
+    code, out, _ = run(capsys, ["help", "eval"])
+    assert code == 0 and out == run(capsys, ["eval", "--help"])[1] and "--episodes" in out
+    code, _, err = run(capsys, ["help", "evl"])
+    assert code == 2 and "did you mean 'eval'?" in one_error(err)
 
 
 def test_progress_line_fits_80_and_100_columns(monkeypatch):

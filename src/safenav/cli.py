@@ -59,6 +59,9 @@ def main(argv: list[str] | None = None) -> None:
         return
     if not args:
         _fail("no verb given: safenav VERB [options]; safenav --help lists the verbs", EXIT_USAGE)
+    if args[0] == "help" and len(args) <= 2:  # `safenav help [VERB]`, as git and pip take it
+        main(["--help"] if len(args) == 1 else [args[1], "--help"])
+        return
     if not args[0].startswith("-") and args[0] not in VERBS:
         close = difflib.get_close_matches(args[0], list(VERBS), n=1)
         hint = f"did you mean {close[0]!r}? " if close else ""
@@ -184,6 +187,8 @@ def _parse_errors_as_safenav_errors(verb: str | None = None) -> contextlib.Abstr
 def _flag(argument: object) -> str:
     lowered = getattr(argument, "lowered", None)
     names = getattr(lowered, "name_or_flags", None) or ()
+    if names and not str(names[0]).startswith("-"):  # a positional, named by tyro's inner path
+        return str(names[0]).rsplit(".", 1)[-1].upper()
     if names:
         return "/".join(names)
     metavar = getattr(lowered, "metavar", None)
@@ -232,6 +237,23 @@ def verb_flags(verb: str) -> list[str]:
         return []
 
 
+def _switch_given_a_value(tokens: list[str], args: tuple[str, ...]) -> tuple[str, str] | None:
+    """``(--switch, value)`` when a left-over token is the value given to an option that takes
+    none (``--overwrite=yes``, ``--no-progress yes``): tyro reports only the value, unnamed."""
+    for token in tokens:
+        if token.startswith("-"):
+            continue
+        for arg in args:
+            name, eq, value = arg.partition("=")
+            if eq and name.startswith("--") and value == token:
+                return name, token
+        # the last occurrence: ``--seed 1 --overwrite 1`` leaves the second 1
+        for i in reversed(range(1, len(args))):
+            if args[i] == token and args[i - 1].startswith("--") and "=" not in args[i - 1]:
+                return args[i - 1], token
+    return None
+
+
 def parse_error_message(event: object, verb: str | None = None) -> str:
     """One line for a tyro ``ParseErrorEvent`` (matched by class name: the module is private)."""
     kind = type(event).__name__
@@ -252,11 +274,20 @@ def parse_error_message(event: object, verb: str | None = None) -> str:
     if kind == "UnrecognizedArgs":
         tokens = [str(t) for t in getattr(event, "tokens", [])]
         flag = next((t.split("=")[0] for t in tokens if t.startswith("--")), None)
+        switch = None if flag else _switch_given_a_value(tokens, ARGS.get())
+        if switch:
+            return f"{switch[0]} takes no value ({switch[1]!r}): {_help_of(prog)}"
         close = difflib.get_close_matches(flag, verb_flags(verb), n=1) if flag and verb else []
         hint = f"did you mean {close[0]}? " if close else ""
         return f"unrecognized option(s) {' '.join(tokens)}: {hint}{_help_of(prog)}"
     if kind == "MissingArgs":
-        names = [_flag(getattr(a, "arg", a)) for a in getattr(event, "missing_arguments", [])]
+        names = []
+        for missing in getattr(event, "missing_arguments", []):
+            arg = getattr(missing, "arg", missing)
+            name, metavar = _flag(arg), str(getattr(getattr(arg, "lowered", None), "metavar", ""))
+            choices = metavar.strip("{}").replace(",", ", ") if metavar.startswith("{") else ""
+            names.append(f"{name} (one of {choices})" if choices and not name.startswith("-")
+                         else name)  # fmt: skip
         return f"missing {', '.join(names)}: {_help_of(prog)}"
     if kind == "BadValue":
         flag = _flag(getattr(event, "argument", None))

@@ -42,6 +42,9 @@ def average(
     from safenav.common.checks import at_least, check_output_file
     from safenav.errors import SafenavError
 
+    if not policies:
+        raise SafenavError("no POLICIES given: safenav average RUN/policies --steps LO HI --out "
+                           "policy.pt (files or directories of kept policies)")  # fmt: skip
     check_output_file(out, "--out", "average.pt")
     if any(out.exists() and out.resolve() == Path(p).resolve() for p in policies):
         raise SafenavError(f"--out {out} is one of the policies it averages: name another file")

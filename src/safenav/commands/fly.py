@@ -180,7 +180,6 @@ def check_fly_args(policy: Path | None, connect: str, perception: str, rate: flo
     if max(map(abs, origin)) > MAX_DISTANCE:
         raise SafenavError(f"--origin {' '.join(map(str, origin))}: more than {MAX_DISTANCE:g} m "
                            "from the world origin")  # fmt: skip
-    check_connect_url(connect)
     if perception:
         parse_hostport(perception, "--perception")
     if json_out is not None:
@@ -214,6 +213,8 @@ def check_fly_args(policy: Path | None, connect: str, perception: str, rate: flo
         check_output_file(gif, "--gif", "flight.gif")
         if gif.suffix.lower() != ".gif":
             raise SafenavError(f"--gif {gif}: name the GIF *.gif")
+    # Last: it probes the port (a busy one is exit 1), after every mistake in the command line.
+    check_connect_url(connect)
 
 
 def check_connect_url(url: str) -> None:

@@ -36,15 +36,16 @@ def reproduce(
     policy is chosen on validation maps only and reported on the held-out maps (env seeds 2-6).
 
     Rerunning the same command resumes: finished trials are skipped, interrupted ones resume from
-    their checkpoint. Without --address a local Ray instance starts with all cores (or the
-    --num-cpus given) and runs cores / --cpus-per-trial trials at once; --address joins an
+    their checkpoint. Without --address a local Ray instance starts with all cores (or
+    the --num-cpus given) and runs cores / --cpus-per-trial trials at once; --address joins an
     existing Ray cluster (OUT must then be on a file system every node sees). Every option,
     including each trial's train options, is checked before Ray starts.
 
     Example: safenav reproduce --algos csac --seeds 1-5  # writes results/csac/
+
     Example: safenav reproduce --out runs/repro-easy --algos csac ppo --seeds 2 --total-steps 300k
-    ppo=2M --preset easy --cpus-per-trial 1 --train-args="--num-envs 64 --csac.batch-size 512"
-    --variants "csac_nocurr=csac --csac.curriculum.no-enabled"
+    ppo=2M --cpus-per-trial 1 --variants "csac_nocurr=csac --csac.curriculum.no-enabled" --preset
+    easy --train-args="--num-envs 64 --csac.batch-size 512"
 
     Args:
         out: Output directory (runs/, logs/, trials/, results.json, results.md, figures/); default results/paper for the default algorithms, else results/<algos joined by +>.
@@ -117,9 +118,11 @@ def parse_seeds(text: str) -> tuple[int, tuple[int, ...]]:
 
 def check_sweep(cfg) -> None:
     """Everything a sweep's trials would refuse, refused before Ray starts: the counts, the device,
-    the preset, the output directory and every trial's ``safenav train`` options (its
-    --train-args and --variants, parsed as train parses them)."""
+    the preset, the output directory and every trial's ``safenav train`` command line (its
+    --train-args and --variants, parsed as train parses them, then train's own checks: a budget
+    within the warm-up, the memory of the run)."""
     from safenav.commands.train import parse_train_args
+    from safenav.commands.train import plan as train_plan
     from safenav.common.checks import (
         at_least,
         check_device,
@@ -160,9 +163,15 @@ def check_sweep(cfg) -> None:
     trials = plan(cfg)  # seeds, algorithms, --variants, --total-steps
     check_output_dir(cfg.out, "--out")
     variants = parse_variants(cfg.variants)
-    for trial in {t.label: t for t in trials}.values():
+    for trial in {t.label: t for t in trials}.values():  # the seeds of a label share the checks
+        args = trial.train_command(resume=False)[4:]  # after `python -m safenav train`
         try:
-            parse_train_args(["--algo", trial.algo, *trial.train_args])
+            parsed = parse_train_args(args)
         except SafenavError as err:
             where = f"--variants {trial.label}" if trial.label in variants else "--train-args"
             raise SafenavError(f"{where}: {err}") from None
+        try:  # what each trial's train would refuse after Ray started it
+            train_plan(parsed["algo"], parsed["run"], parsed["csac"], parsed["ppo"],
+                       trial.run_dir, None, False)  # fmt: skip
+        except SafenavError as err:
+            raise type(err)(f"the {trial.label} trials: {err}") from None

@@ -69,9 +69,9 @@ def train(
 
     algo, run, csac, ppo, recipe = apply_recipe(config, algo, run, csac, ppo, ARGS.get(), resume)
     run, cfg, run_dir = plan(algo, run, csac, ppo, run_dir, resume, overwrite)
-    if recipe is not None:
-        print(recipe_line(recipe, run.env, chosen=config is None))
     prepare_run_dir(run_dir, resume=resume is not None, overwrite=overwrite)
+    if recipe is not None:  # after every refusal: a refused command prints its error alone
+        print(recipe_line(recipe, run.env, chosen=config is None))
     if algo in ("ppo", "ppo_lag"):
         from safenav.algos import ppo as module
     else:
