@@ -1,9 +1,10 @@
 """``make demo``: the main job, end to end, in a few minutes on a laptop CPU.
 
-1. Evaluate the committed policy ``checkpoints/csac-paper.pt`` on the fixed test scenario of the
-   paper preset (env seed 1, 200 episodes) and render one of its flights to ``demo/flight.gif``
-   (``safenav eval`` notes when the policy was trained on another env version, as this one, of
-   SafeNav-v0, is). Without a committed policy, the scripted potential-field controller stands in.
+1. Evaluate the committed policy ``checkpoints/csac.pt`` (the default ``csac`` recipe trained on
+   SafeNav-v1, seed 1, its policy chosen on validation maps; results/csac-v1/) on the fixed test
+   scenario of the paper preset (env seed 1, 200 episodes) and render one of its flights to
+   ``demo/flight.gif``. Without a committed policy, the scripted potential-field controller
+   stands in.
 2. Start a short CSAC training run of its own (``demo/run``), when the trainer is installed.
 """
 
@@ -17,7 +18,7 @@ from pathlib import Path
 from rich.console import Console
 
 OUT = Path("demo")
-CHECKPOINT = Path("checkpoints/csac-paper.pt")
+CHECKPOINT = Path("checkpoints/csac.pt")
 
 
 def main() -> None:

@@ -15,7 +15,7 @@ Reported: ``pipeline`` (a whole 4-camera rig frame, 360 degrees, per step), ``pi
 policy, shield: what the control loop runs at its rate; the map update runs at the camera rate in
 the perception thread).
 
-The actor is the trained CSAC checkpoint if ``checkpoints/csac-paper.pt`` loads, else a
+The actor is the trained CSAC checkpoint if ``checkpoints/csac.pt`` loads, else a
 randomly initialised network of the paper's architecture (III-D: a 3-layer CNN on the range image
 -> 128, an MLP on the moving obstacles -> 64, with the state into an MLP head); weights do not
 change latency.
@@ -163,7 +163,7 @@ def bench_latency(
     repeats: int = 5,
     warmup: int = 200,
     frames: int = 40,
-    checkpoint: Path | None = Path("checkpoints/csac-paper.pt"),
+    checkpoint: Path | None = Path("checkpoints/csac.pt"),
     quiet: bool = False,
 ) -> dict[str, Any]:
     """Measure and return (and write to ``json_out``) p50/p99 latencies in milliseconds."""

@@ -31,7 +31,7 @@ def fly(
     land: bool = True,
     json_out: Annotated[Path | None, tyro.conf.arg(name="json")] = None,
     demo: bool = False,
-    checkpoint: Path = Path("checkpoints/csac-paper.pt"),
+    checkpoint: Path = Path("checkpoints/csac.pt"),
     scripted: bool = False,
     preset: str = "paper",
     episode: int = 0,

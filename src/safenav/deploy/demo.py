@@ -84,7 +84,7 @@ def resolve_onnx(
 
 def run_demo(
     policy: Path | None = None,
-    checkpoint: Path = Path("checkpoints/csac-paper.pt"),
+    checkpoint: Path = Path("checkpoints/csac.pt"),
     scripted: bool = False,
     preset: str = "paper",
     episode: int = 0,
