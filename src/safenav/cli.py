@@ -108,6 +108,42 @@ def _quiet_stdout() -> None:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
 
 
+_LIST_ITEM = re.compile(r"(\s|[-*•] |\d+[.)] )")
+
+
+def unwrap_help(text: str) -> str:
+    """A docstring as ``--help`` prints it: its wrapped lines joined into paragraphs. tyro's own
+    rule (``tyro._strings.remove_single_line_breaks``) also starts a new line wherever a wrapped
+    line begins with something other than a letter (a number, ``code``, a --flag, a quote), which
+    cut sentences and examples in two; here only blank lines, list items and indented lines
+    do. Attribute docstrings arrive with their continuation lines indented: dedented first."""
+    import inspect
+
+    parts: list[str] = []
+    for line in inspect.cleandoc(text).split("\n"):
+        line = line.rstrip()
+        if not line:
+            if not parts or parts[-1] != "\n":
+                parts.append("\n")
+            parts.append("\n")
+            continue
+        if parts and parts[-1] != "\n":
+            parts.append("\n" if _LIST_ITEM.match(line) else " ")
+        parts.append(line)
+    return "".join(parts).rstrip()
+
+
+def _use_unwrap_help() -> None:
+    """Install :func:`unwrap_help` in tyro (a private function of it, looked up by module
+    attribute at each use; with a tyro that lacks it, tyro's own rule stays)."""
+    strings = getattr(tyro, "_strings", None)
+    if strings is not None and hasattr(strings, "remove_single_line_breaks"):
+        strings.remove_single_line_breaks = unwrap_help
+
+
+_use_unwrap_help()  # at import: tyro caches help texts, and parse_train_args uses tyro too
+
+
 def _run(args: list[str]) -> None:
     from safenav import commands  # noqa: F401  (registers the verbs on ``app``)
     from safenav.common.checks import registry

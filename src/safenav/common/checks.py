@@ -143,6 +143,14 @@ def check_output_file(path: Path, flag: str, example: str) -> None:
         )
     if not parent.is_dir():
         raise SafenavError(f"{flag} {path}: {parent} is a file, not a directory")
+    if path.is_symlink():  # the rename would replace the link, not write where it points
+        raise SafenavError(f"{flag} {path} is a symbolic link (to {os.path.realpath(path)}): "
+                           "name the file itself, or another path")  # fmt: skip
+    if path.exists() and not path.is_file():
+        # Outputs are written beside and renamed over the target (common/atomic.py): over
+        # /dev/null or a FIFO that would replace the device itself (as root), not write into it.
+        raise SafenavError(f"{flag} {path} is not a regular file (a device, FIFO or socket): "
+                           f"name a file, e.g. {flag} {example}")  # fmt: skip
     if path.exists() and not os.access(path, os.W_OK):
         raise SafenavRuntimeError(f"{flag} {path}: the file exists and is not writable")
     _probe_writable(parent, flag, path)
