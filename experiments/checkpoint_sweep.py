@@ -38,10 +38,10 @@ from rich.table import Table
 from safenav.algos.averaging import average_policy_states, between_steps, policy_files
 from safenav.algos.policy import load_policy
 from safenav.common.checkpoint import load_checkpoint, save_checkpoint
-from safenav.common.evaluation import EVAL_SEED
 from safenav.experiments.evaluate import evaluate
 from safenav.experiments.flight import resolve_policy
 from safenav.experiments.soup import greedy_soup, validation_score
+from safenav.training.evaluation import EVAL_SEED
 
 KEYS = ("success_rate", "collision_rate", "timeout_rate")
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 
 from safenav.common.checkpoint import load_checkpoint
-from safenav.common.evaluation import BestPolicy
+from safenav.training.evaluation import BestPolicy
 
 
 def ev(success: float, collision: float) -> dict[str, float]:

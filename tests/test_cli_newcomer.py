@@ -107,27 +107,6 @@ def _writable(d: Path) -> bool:
         return False
 
 
-def test_an_output_over_a_device_fifo_or_link_is_refused(capsys, tmp_path, monkeypatch):
-    """Outputs are written beside the target and renamed over it: over /dev/null (as root) that
-    would replace the device, over a link the link. Refused before any work."""
-    import os
-    import stat
-
-    def reached(*args, **kwargs):  # were it accepted: stop before anything is written
-        raise Reached(99)
-
-    monkeypatch.setattr("safenav.experiments.evaluate.evaluate", reached)
-    fifo, link = tmp_path / "fifo", tmp_path / "link.json"
-    os.mkfifo(fifo)
-    link.symlink_to(tmp_path / "elsewhere.json")
-    for target, says in (("/dev/null", "is not a regular file"), (fifo, "is not a regular file"),
-                         (link, "is a symbolic link")):  # fmt: skip
-        code, _, err = run(capsys, ["eval", "--policy", "scripted", "--json", str(target)])
-        assert code == 2 and f"--json {target} {says}" in one_error(err)
-    assert stat.S_ISCHR(os.stat("/dev/null").st_mode) and stat.S_ISFIFO(os.stat(fifo).st_mode)
-    assert link.is_symlink() and sorted(p.name for p in tmp_path.iterdir()) == ["fifo", "link.json"]
-
-
 def test_sim_vehicle_port_in_use_and_fly_port_out_of_range(capsys):
     with socket.socket() as tcp:
         tcp.bind(("127.0.0.1", 0))
@@ -165,7 +144,7 @@ def test_train_device_and_out_of_memory_refused_with_the_figure(capsys, tmp_path
 def test_a_run_dir_that_never_trained_does_not_block_the_retry(
     capsys, tmp_path, monkeypatch, tiny_run
 ):
-    import safenav.algos.csac as csac
+    import safenav.training as training
 
     def crash(*args, **kwargs):
         raise SafenavError("the env broke down before the first step")
@@ -174,10 +153,10 @@ def test_a_run_dir_that_never_trained_does_not_block_the_retry(
         raise Reached(99)
 
     run_dir = tmp_path / "run"
-    monkeypatch.setattr(csac, "train", crash)
+    monkeypatch.setattr(training, "train", crash)
     code, _, err = run(capsys, ["train", "--preset", "easy", "--run-dir", str(run_dir), *TINY])
     assert code == 2 and (run_dir / "config.json").exists()  # what the failed attempt left
-    monkeypatch.setattr(csac, "train", accepted)
+    monkeypatch.setattr(training, "train", accepted)
     code, _, err = run(capsys, ["train", "--preset", "easy", "--run-dir", str(run_dir), *TINY])
     assert code == 99, err  # the retry is accepted
     # a run dir that trained keeps refusing, unless --resume or --overwrite
@@ -389,7 +368,7 @@ def test_step_counts_take_the_same_forms_everywhere(form, capsys, tmp_path, monk
         seen["total_steps"] = run_cfg.total_steps
         raise Reached(99)
 
-    monkeypatch.setattr("safenav.algos.csac.train", stub)
+    monkeypatch.setattr("safenav.training.train", stub)
     code, _, err = run(capsys, ["train", "--preset", "easy", "--total-steps", form, "--run-dir",
                                 str(tmp_path / "run"), "--no-progress"])  # fmt: skip
     assert code == 99 and seen["total_steps"] == 1_000_000, err
@@ -517,25 +496,6 @@ def test_help_as_a_verb(capsys):
     assert code == 0 and out == run(capsys, ["eval", "--help"])[1] and "--episodes" in out
     code, _, err = run(capsys, ["help", "evl"])
     assert code == 2 and "did you mean 'eval'?" in one_error(err)
-
-
-def test_help_keeps_sentences_whole(capsys, monkeypatch):
-    """A docstring line that starts with a number, ``code`` or a --flag continues its sentence
-    in --help (tyro alone starts a new line there); blank lines and list items still break."""
-    from safenav.cli import unwrap_help
-
-    text = "Steps: 1000000, 1e6,\n    1_000_000 or 1M; see\n    ``--x``.\n\n    - one\n    - two"
-    assert unwrap_help(text) == "Steps: 1000000, 1e6, 1_000_000 or 1M; see ``--x``.\n\n- one\n- two"
-    from tyro import _docstrings
-
-    from safenav.common.config import RunConfig
-
-    # an option's help (an attribute docstring, its lines indented) and a verb's description
-    doc = _docstrings.get_field_docstring(RunConfig, "cost_fn", ())
-    assert doc is not None and 'reports no ``info["cost"]``' in doc and "\n" not in doc
-    monkeypatch.setenv("COLUMNS", "80")
-    code, out, _ = run(capsys, ["bench", "--help"])
-    assert code == 0 and "soak: ``--env-steps`` env steps and ``--updates`` CSAC updates" in out
 
 
 def test_progress_line_fits_80_and_100_columns(monkeypatch):

@@ -15,11 +15,11 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from safenav.algos import csac, sac
 from safenav.algos.config import CSACConfig
 from safenav.common.config import RunConfig
 from safenav.common.curriculum import ConstraintCurriculumConfig
 from safenav.nn.config import NetConfig
+from safenav.training import train
 
 pytestmark = pytest.mark.slow
 
@@ -41,7 +41,7 @@ def last(run_dir, key: str, n: int = 1) -> float:
 def test_sac_solves_pendulum(tmp_path):
     run = RunConfig(env="Pendulum-v1", num_envs=1, seed=0, total_steps=12_000, log_every=1000,
                     eval_every=12_000, eval_episodes=10, torch_threads=1, tensorboard=False)  # fmt: skip
-    sac.train(run, FAST_SAC, tmp_path, progress=False)
+    train("sac", run, FAST_SAC, tmp_path, progress=False)
     ret = last(tmp_path, "eval/return")
     assert ret > -300, f"SAC on Pendulum-v1: deterministic return {ret:.0f} after 12k steps"
 
@@ -79,8 +79,8 @@ def test_csac_keeps_the_cost_budget_sac_does_not(tmp_path):
         FAST_SAC, learning_starts=500, net=NetConfig(hidden=(64, 64)), lambda_lr=3e-2, cost_horizon=ShortcutEnv.T,
         curriculum=ConstraintCurriculumConfig(enabled=False, d_init=budget, d_min=budget),
     )  # fmt: skip
-    csac.train("csac", run, cfg, tmp_path / "csac", progress=False)
-    sac.train(run, cfg, tmp_path / "sac", progress=False)
+    train("csac", run, cfg, tmp_path / "csac", progress=False)
+    train("sac", run, cfg, tmp_path / "sac", progress=False)
     csac_cost = last(tmp_path / "csac", "charts/episodic_cost", n=4)  # the last 2000 steps
     sac_cost = last(tmp_path / "sac", "charts/episodic_cost", n=4)
     lam = last(tmp_path / "csac", "constraint/lambda")

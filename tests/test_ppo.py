@@ -252,9 +252,9 @@ def test_ppo_learns_pendulum(tmp_path):
     one thread; measured -255 at 65k)."""
     import csv
 
-    from safenav.algos.ppo import train
     from safenav.common.config import RunConfig
     from safenav.common.logger import prepare_run_dir
+    from safenav.training import train
 
     prepare_run_dir(tmp_path, False, False)
     run = RunConfig(env="Pendulum-v1", num_envs=64, total_steps=150_000, seed=1, log_every=8192,

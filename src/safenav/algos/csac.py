@@ -5,26 +5,27 @@ Algorithm 1 <-> code (the equations are pure functions in :mod:`safenav.algos.lo
 
 1-2   actor, reward critics Q_R (min target), cost critics Q_C (mean target); targets hard-copied
       -> ``CSAC.__init__`` (``copy.deepcopy``)
-3     alpha (``log_alpha``), lambda (:class:`~safenav.common.lagrange.Lagrange`), replay buffer
-5-8   warm-up: ``learning_starts`` env steps of uniform random actions -> ``train`` (the loop)
-10    act with ``a ~ pi(.|s)``, store ``(s, a, r, c, s', terminated)``
-11    sample a minibatch -> ``ReplayBuffer.sample``
+3     alpha (``log_alpha``), lambda (:class:`~safenav.common.lagrange.Lagrange`); replay buffer
+      -> ``CSACLearner.__init__``
+5-8   warm-up: ``learning_starts`` env steps of uniform random actions -> ``CSACLearner.collect``
+10    act with ``a ~ pi(.|s)``, store ``(s, a, r, c, s', terminated)`` -> ``CSACLearner.collect``
+11    sample a minibatch -> ``CSACLearner.update`` (``ReplayBuffer.sample``)
 12    targets Eqs. 5-6, critic losses Eqs. 7-8 -> ``CSAC.update`` (first block)
 13    actor Eq. 9, alpha Eq. 10, lambda Eq. 11, in the same step -> ``CSAC.update`` (second block)
 14-15 Polyak averaging of every target parameter -> ``CSAC.update`` (last line)
 
-Around it (paper III-C, Fig. 2): the constraint curriculum sets ``d`` and the density curriculum
-the obstacle density, both in :mod:`safenav.common.curriculum`. docs/csac.md has the full
-equation table, every logged metric, and the measurements behind the defaults.
+:class:`CSACLearner` is what the shared training loop (:mod:`safenav.training`) calls: it owns the
+replay side (buffer, n-step window, warm-up, updates per env step, SAC-Lag's episode-cost lambda).
+Around it (paper III-C, Fig. 2) the loop runs the constraint curriculum, which sets ``d``, and the
+density curriculum, which sets the obstacle density (:mod:`safenav.common.curriculum`).
+docs/csac.md has the full equation table, every logged metric, and the measurements behind the
+defaults.
 """
 
 from __future__ import annotations
 
 import copy
 import math
-import time
-from collections import deque
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -39,30 +40,12 @@ from safenav.algos.losses import (
     n_step_cost_target,
     reward_target,
 )
-from safenav.algos.policy import POLICY_FORMAT_VERSION
 from safenav.common.buffer import Batch, ReplayBuffer
-from safenav.common.checkpoint import (
-    load_training_checkpoint,
-    restore_agent,
-    rng_state,
-    seed_everything,
-    set_rng_state,
-)
-from safenav.common.checkpoint import policy_state as checkpoint_policy_state
-from safenav.common.config import RunConfig, to_dict
-from safenav.common.curriculum import (
-    ConstraintCurriculum,
-    DensityCurriculum,
-    MeasuredCostScale,
-    episode_cost_to_q_scale,
-)
-from safenav.common.envs import TorchVecEnv, env_horizon, is_safenav, make_vec_env
-from safenav.common.evaluation import BestPolicy, periodic_evaluation
+from safenav.common.config import RunConfig
+from safenav.common.curriculum import MeasuredCostScale, episode_cost_to_q_scale
+from safenav.common.envs import TorchVecEnv, env_horizon
 from safenav.common.lagrange import Lagrange
-from safenav.common.logger import RunLogger
 from safenav.common.nstep import NStepWindow
-from safenav.common.runs import episode_charts, run_summary, write_run_config
-from safenav.common.stopping import RunGuard, enable_sigint
 from safenav.nn.networks import Actor, DeterministicActor, QEnsemble, input_order, make_extractor
 from safenav.nn.optim import adam
 
@@ -238,7 +221,7 @@ class CSAC(nn.Module):
             self.lagrange.optimizer.load_state_dict(state["lambda"])
 
 
-# ---------------------------------------------------------------------------------- training loop
+# ------------------------------------------------------------------ replay and update schedule
 COLUMNS = (
     "time/elapsed_s", "perf/sps", "perf/updates", "perf/updates_per_s",
     "charts/episodic_return", "charts/episodic_cost", "charts/episodic_length", "charts/success_rate",
@@ -249,272 +232,134 @@ COLUMNS = (
     "values/entropy", "eval/return", "eval/cost", "eval/length", "eval/success_rate",
     "eval/collision_rate", "eval/timeout_rate",
 )  # fmt: skip
+"""Every progress.csv column of CSAC, SAC and SAC-Lag (docs/algorithms.md)."""
 
 
-def policy_meta(
-    algo: str, run: RunConfig, cfg: CSACConfig, env: TorchVecEnv, global_step: int
-) -> dict[str, Any]:
-    """What :func:`safenav.algos.policy.load_policy` needs to rebuild and describe the actor."""
-    env_cfg = getattr(env.envs.unwrapped, "cfg", None)
-    return {"format_version": POLICY_FORMAT_VERSION, "algo": algo, "env_id": run.env,
-            "env_config": to_dict(env_cfg.replace(density=1.0)) if env_cfg is not None else None,
-            "obs_shapes": {k: list(v) for k, v in env.obs_shapes.items()}, "action_dim": env.action_dim,
-            "action_low": env._low.tolist(), "action_high": env._high.tolist(), "net": to_dict(cfg.net),
-            "global_step": int(global_step)}  # fmt: skip
+class CSACLearner:
+    """CSAC in the shared training loop (:class:`safenav.training.Trainer`): Algorithm 1's data
+    side around :meth:`CSAC.update` - the warm-up (lines 5-8), acting and storing (line 10) in a
+    replay buffer (with the n-step window), ``updates_per_step`` gradient updates per env step, the
+    threshold ``d_Q`` of Eq. 11, and SAC-Lag's lambda from episode costs."""
 
+    section = "csac"
+    columns = COLUMNS
+    policy_meta: dict[str, Any] = {}
 
-def train(algo: str, run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: bool = False,
-          progress: bool = True) -> dict[str, float]:  # fmt: skip
-    """Train ``algo`` (``"csac"`` or ``"sac"``) into ``run_dir`` (prepared by the caller; resumed
-    from its ``checkpoint.pt`` when ``resume``). Returns the final metrics row."""
-    from safenav.common.progress import ProgressDisplay
+    def __init__(self, env: TorchVecEnv, run: RunConfig, cfg: CSACConfig) -> None:
+        self.cfg, self.device, self.num_envs = cfg, env.device, env.num_envs
+        self.save_buffer = run.save_buffer
+        self.agent = CSAC(env.obs_shapes, env.action_dim, cfg).to(env.device)
+        n_step = cfg.constrained and cfg.cost_n_step > 1
+        self.buffer = ReplayBuffer(min(cfg.buffer_size, max(run.total_steps, cfg.batch_size)),
+                                   env.obs_shapes, env.action_dim, env.device, n_step=n_step)  # fmt: skip
+        self.nstep = NStepWindow(cfg.cost_n_step, cfg.gamma) if n_step else None
+        self.horizon = cfg.cost_horizon or env_horizon(env.envs)
+        self.measured_scale = (MeasuredCostScale(fallback=episode_cost_to_q_scale(1.0, cfg.gamma, self.horizon))
+                               if cfg.constrained and cfg.cost_scale == "measured" else None)  # fmt: skip
+        self.episode_lambda = cfg.constrained and cfg.lambda_from == "episode_cost"
+        self.lam_costs: list[float] = []  # episode costs since the last lambda update (SAC-Lag)
+        self.next_lambda = cfg.lambda_every
+        self.warmup_until, self.update_debt, self.resumed = cfg.learning_starts, 0.0, False
+        self.pending: dict[str, float] = {}  # SAC-Lag's lambda step, for the next progress row
 
-    run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    enable_sigint()
-    torch.set_num_threads(run.torch_threads or max(1, torch.get_num_threads()))
-    torch.set_float32_matmul_precision(run.matmul_precision)
-    device = torch.device(run.device)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        from safenav.errors import SafenavError
+    def d_q(self, d: float) -> float:
+        """The threshold of Eq. 11 on the Q_C scale for the curriculum's episode budget ``d``."""
+        if self.measured_scale is not None:
+            return self.measured_scale.d_q(d)
+        return episode_cost_to_q_scale(d, self.cfg.gamma, self.horizon)
 
-        raise SafenavError(
-            "--device cuda: CUDA is not available on this machine (use --device cpu)"
+    def collect(self, env: TorchVecEnv, obs: dict[str, torch.Tensor], global_step: int,
+                d: float) -> tuple[dict[str, torch.Tensor], list[dict[str, torch.Tensor]], int]:  # fmt: skip
+        """Lines 5-10: one vector step (``num_envs`` transitions) into the buffer, with uniform
+        random actions during the warm-up, then ``a ~ pi(.|s)``."""
+        if global_step < self.cfg.learning_starts and not self.resumed:
+            actions = torch.rand(env.num_envs, env.action_dim, device=self.device) * 2.0 - 1.0
+        else:
+            actions = self.agent.act(obs)
+        step = env.step(actions)
+        transition = Batch(
+            obs, actions, step.reward, step.cost, step.real_next_obs, step.terminated
         )
-    ckpt_path = run_dir / "checkpoint.pt"
-    ckpt = load_training_checkpoint(ckpt_path, algo, map_location=device) if resume else None
-    seed_everything(run.seed)
+        # with n-step cost targets a transition enters the buffer n vector steps later
+        released = (
+            (transition, step.valid)
+            if self.nstep is None
+            else self.nstep.push(transition, step.truncated, step.valid)
+        )
+        if released is not None:
+            batch, valid = released  # add() takes valid between the one- and n-step fields
+            self.buffer.add(*batch[:6], valid, *batch[6:])
+        return step.next_obs, [step.episodes] if step.episodes is not None else [], env.num_envs
 
-    # -- env, curricula, agent, buffer
-    density = DensityCurriculum(run.density, run.total_steps)
-    nav = is_safenav(run.env)
-    env_kwargs = {"density": density.density} if nav else {}
-    env = TorchVecEnv(
-        make_vec_env(run.env, run.num_envs, run.device, run.preset, **env_kwargs), device
-    )
-    eval_env = None
-    if run.eval_every > 0:
-        eval_kwargs = {"density": run.density.end} if nav else {}
-        eval_env = TorchVecEnv(make_vec_env(run.env, min(run.eval_episodes, 32), run.device, run.preset,
-                                            **eval_kwargs), device)  # fmt: skip
-    agent = CSAC(env.obs_shapes, env.action_dim, cfg).to(device)
-    n_step = cfg.constrained and cfg.cost_n_step > 1
-    buffer = ReplayBuffer(min(cfg.buffer_size, max(run.total_steps, cfg.batch_size)), env.obs_shapes,
-                          env.action_dim, device, n_step=n_step)  # fmt: skip
-    nstep = NStepWindow(cfg.cost_n_step, cfg.gamma) if n_step else None
-    curriculum = ConstraintCurriculum(cfg.curriculum)
-    horizon = cfg.cost_horizon or env_horizon(env.envs)
-    measured_scale = (MeasuredCostScale(fallback=episode_cost_to_q_scale(1.0, cfg.gamma, horizon))
-                      if cfg.constrained and cfg.cost_scale == "measured" else None)  # fmt: skip
+    def observe(self, episodes: dict[str, list[float]]) -> None:
+        if self.measured_scale is not None:
+            self.measured_scale.observe_episodes(episodes["cost"])
+        if self.episode_lambda:
+            self.lam_costs.extend(episodes["cost"])
 
-    def d_q_now() -> float:
-        """The threshold of Eq. 11 on the Q_C scale for the curriculum's current d."""
-        if measured_scale is not None:
-            return measured_scale.d_q(curriculum.d)
-        return episode_cost_to_q_scale(curriculum.d, cfg.gamma, horizon)
+    def maps_changed(self) -> None:
+        if self.nstep is not None:  # later steps must not count towards earlier ones
+            self.nstep.cut()
 
-    global_step, updates, elapsed0, update_debt = 0, 0, 0.0, 0.0
-    warmup_until = cfg.learning_starts
-    if ckpt is not None:
-        restore_agent(agent, ckpt, ckpt_path)
-        curriculum.load_state_dict(ckpt["curriculum"])
-        if measured_scale is not None and ckpt.get("cost_scale"):
-            measured_scale.load_state_dict(ckpt["cost_scale"])
-        density.load_state_dict(ckpt["density"])
-        global_step, updates, elapsed0 = ckpt["global_step"], ckpt["updates"], ckpt["elapsed_s"]
-        update_debt = ckpt.get("update_debt", 0.0)
-        set_rng_state(ckpt["rng"])
-        if "buffer" in ckpt:
-            buffer.load_state_dict(ckpt["buffer"])
-            if nstep is not None and ckpt.get("nstep_window"):
-                nstep.load_state_dict(ckpt["nstep_window"])
+    def update(self, global_step: int, d: float) -> tuple[int, list[dict[str, torch.Tensor]]]:
+        """SAC-Lag's lambda step when due, then lines 11-15 as often as ``updates_per_step`` asks."""
+        cfg = self.cfg
+        # SAC-Lag (OmniSafe): lambda from the mean episode cost J_c against d, every lambda_every
+        if self.episode_lambda and global_step >= self.next_lambda:
+            while self.next_lambda <= global_step:
+                self.next_lambda += cfg.lambda_every
+            if self.lam_costs and global_step >= self.warmup_until:  # else keep collecting
+                j_c = sum(self.lam_costs) / len(self.lam_costs)
+                loss = self.agent.lagrange.update(torch.tensor([j_c], device=self.device), d)
+                self.pending.update({"losses/lambda": float(loss), "constraint/episode_cost": j_c})
+                self.lam_costs = []
+        # lines 11-15 (len: an n-step window delays the first rows of the buffer)
+        metrics = []
+        if global_step >= self.warmup_until and len(self.buffer):
+            self.update_debt += self.num_envs * cfg.updates_per_step
+            d_q = self.d_q(d)
+            while self.update_debt >= 1.0:
+                self.update_debt -= 1.0
+                m = self.agent.update(self.buffer.sample(cfg.batch_size), d_q)
+                if self.measured_scale is not None:
+                    self.measured_scale.observe_q(float(m["constraint/qc_pi"]))
+                metrics.append(m)
+        return len(metrics), metrics
+
+    def act(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        return self.agent.act(obs, deterministic=True)
+
+    def log_items(self, d: float) -> dict[str, float]:
+        row = {**self.pending, "charts/alpha": float(self.agent.log_alpha.detach().exp())}
+        if self.cfg.constrained:
+            row["constraint/d_q"] = self.d_q(d)
+        self.pending = {}
+        return row
+
+    def state_dict(self) -> dict[str, Any]:
+        state: dict[str, Any] = {"update_debt": self.update_debt}
+        if self.measured_scale is not None:
+            state["cost_scale"] = self.measured_scale.state_dict()
+        if self.save_buffer:
+            state["buffer"] = self.buffer.state_dict()
+            if self.nstep is not None:
+                state["nstep_window"] = self.nstep.state_dict()
+        return state
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        cfg, global_step = self.cfg, state["global_step"]
+        self.resumed = True
+        if self.measured_scale is not None and state.get("cost_scale"):
+            self.measured_scale.load_state_dict(state["cost_scale"])
+        self.update_debt = state.get("update_debt", 0.0)
+        if "buffer" in state:
+            self.buffer.load_state_dict(state["buffer"])
+            if self.nstep is not None and state.get("nstep_window"):
+                self.nstep.load_state_dict(state["nstep_window"])
+        self.next_lambda = (global_step // cfg.lambda_every + 1) * cfg.lambda_every
         # without the buffer: refill it with the current policy before updating again
-        warmup_until = (
-            global_step
-            if len(buffer) >= cfg.batch_size
-            else global_step + max(cfg.learning_starts, cfg.batch_size)
-        )
-    env.set_density(density.density)
-    logger = RunLogger(
-        run_dir, COLUMNS, run.tensorboard, resume_step=global_step if resume else None
-    )
-    logger.event(
-        global_step,
-        "resume" if resume else "start",
-        algo=algo,
-        density=density.density,
-        d=curriculum.d,
-    )
-    guard = RunGuard(run_dir, logger, agent, last_saved=global_step if ckpt is not None else None)
-    best = BestPolicy.for_run(run_dir, run.keep_policies, ckpt)
-
-    def policy_state() -> dict[str, Any]:
-        return checkpoint_policy_state(algo, global_step, updates, elapsed0 + time.perf_counter() - t0,
-                                       {"algo": algo, "run": to_dict(run), "csac": to_dict(cfg)},
-                                       policy_meta(algo, run, cfg, env, global_step), agent.policy_module())  # fmt: skip
-
-    def checkpoint() -> None:
-        state = policy_state() | {
-            "update_debt": update_debt, "agent": agent.state_dict(), "optimizers": agent.optimizer_state(),
-            "curriculum": curriculum.state_dict(), "density": density.state_dict(), "rng": rng_state(),
-            "best": best.state_dict()}  # fmt: skip
-        if measured_scale is not None:
-            state["cost_scale"] = measured_scale.state_dict()
-        if run.save_buffer:
-            state["buffer"] = buffer.state_dict()
-            if nstep is not None:
-                state["nstep_window"] = nstep.state_dict()
-        guard.save(global_step, state)  # refuses non-finite weights: keeps the last good file
-
-    # -- the loop (Algorithm 1): one vector step = num_envs transitions
-    window: dict[str, list[float]] = {}
-    recent: dict[str, deque] = {k: deque(maxlen=100) for k in ("success", "collision", "return")}
-    sums: dict[str, torch.Tensor] = {}
-    n_sums = 0
-    t0 = time.perf_counter()
-    t_log, step_log, upd_log = t0, global_step, updates
-    next_log = (global_step // run.log_every + 1) * run.log_every
-    next_eval = (global_step // run.eval_every + 1) * run.eval_every if run.eval_every else math.inf
-    next_ckpt = (global_step // run.checkpoint_every + 1) * run.checkpoint_every
-    refresh_every = run.map_refresh_every if nav else 0
-    refresh = global_step // refresh_every if refresh_every else 0
-    obs = env.reset(seed=run.train_env_seed(refresh) if nav else run.seed + global_step)
-    display = ProgressDisplay(
-        run.total_steps, global_step, enabled=progress, title=f"{algo} {run.env}"
-    )
-    row: dict[str, float] = {}
-    episode_lambda = cfg.constrained and cfg.lambda_from == "episode_cost"
-    lam_costs: list[float] = []  # episode costs since the last lambda update (SAC-Lag)
-    next_lambda = (global_step // cfg.lambda_every + 1) * cfg.lambda_every
-    try:
-        while global_step < run.total_steps:
-            # lines 5-10: warm-up with uniform random actions, then a ~ pi(.|s)
-            if global_step < cfg.learning_starts and not resume:
-                actions = torch.rand(env.num_envs, env.action_dim, device=device) * 2.0 - 1.0
-            else:
-                actions = agent.act(obs)
-            step = env.step(actions)
-            transition = Batch(
-                obs, actions, step.reward, step.cost, step.real_next_obs, step.terminated
-            )
-            # with n-step cost targets a transition enters the buffer n vector steps later
-            released = (
-                (transition, step.valid)
-                if nstep is None
-                else nstep.push(transition, step.truncated, step.valid)
-            )
-            if released is not None:
-                batch, valid = released  # add() takes valid between the one- and n-step fields
-                buffer.add(*batch[:6], valid, *batch[6:])
-            obs = step.next_obs
-            global_step += env.num_envs
-
-            if step.episodes is not None:
-                ep = {k: v.tolist() for k, v in step.episodes.items()}
-                for k, vs in ep.items():
-                    window.setdefault(k, []).extend(vs)
-                for k in recent:
-                    recent[k].extend(ep[k])
-                curriculum.observe(ep["cost"])
-                if measured_scale is not None:
-                    measured_scale.observe_episodes(ep["cost"])
-                if episode_lambda:
-                    lam_costs.extend(ep["cost"])
-                density.observe(ep["success"])
-            change = curriculum.step(global_step)
-            if change is not None:
-                logger.event(global_step, "curriculum", **change)
-                display.note(
-                    f"step {global_step}: d {change['d_old']:.3g} -> {change['d']:.3g} ({change['stage']})"
-                )
-            if refresh_every and global_step // refresh_every > refresh:  # new maps, new episodes
-                refresh = global_step // refresh_every
-                obs = env.reset(seed=run.train_env_seed(refresh))
-                if nstep is not None:
-                    nstep.cut()
-            new_density = density.step(global_step)
-            if new_density is not None and env.set_density(new_density):
-                logger.event(global_step, "density", density=new_density)
-
-            # SAC-Lag (OmniSafe): lambda from the mean episode cost J_c against d, every lambda_every
-            if episode_lambda and global_step >= next_lambda:
-                while next_lambda <= global_step:
-                    next_lambda += cfg.lambda_every
-                if lam_costs and global_step >= warmup_until:  # else keep collecting
-                    j_c = sum(lam_costs) / len(lam_costs)
-                    loss = agent.lagrange.update(torch.tensor([j_c], device=device), curriculum.d)
-                    row.update({"losses/lambda": float(loss), "constraint/episode_cost": j_c})
-                    lam_costs = []
-
-            # lines 11-15: gradient updates
-            # (len: an n-step window delays the first rows of the buffer)
-            if global_step >= warmup_until and len(buffer):
-                update_debt += env.num_envs * cfg.updates_per_step
-                d_q = d_q_now()
-                while update_debt >= 1.0:
-                    update_debt -= 1.0
-                    metrics = agent.update(buffer.sample(cfg.batch_size), d_q)
-                    updates += 1
-                    if measured_scale is not None:
-                        measured_scale.observe_q(float(metrics["constraint/qc_pi"]))
-                    for k, v in metrics.items():
-                        sums[k] = sums[k] + v if k in sums else v.clone()
-                    n_sums += 1
-
-            if global_step >= next_eval and eval_env is not None:
-                next_eval += run.eval_every
-                ev, note = periodic_evaluation(eval_env, lambda o: agent.act(o, deterministic=True),
-                                               run.eval_episodes, global_step, logger, best, policy_state)  # fmt: skip
-                row.update(ev)
-                display.note(note)
-
-            if global_step >= next_log or global_step >= run.total_steps:
-                next_log += run.log_every
-                now = time.perf_counter()
-                row.update({
-                    "time/elapsed_s": elapsed0 + now - t0,
-                    "perf/sps": (global_step - step_log) / max(now - t_log, 1e-9),
-                    "perf/updates": updates,
-                    "perf/updates_per_s": (updates - upd_log) / max(now - t_log, 1e-9),
-                    **episode_charts(window),
-                    "charts/density": density.density if nav else math.nan,
-                    "charts/alpha": float(agent.log_alpha.detach().exp()),
-                })  # fmt: skip
-                if cfg.constrained:
-                    row.update({"constraint/lambda": float(agent.lam), "constraint/d": curriculum.d,
-                                "constraint/d_q": d_q_now(),
-                                "constraint/stage": curriculum.stage})  # fmt: skip
-                update_metrics = {k: float(v) / n_sums for k, v in sums.items()} if n_sums else {}
-                row.update(update_metrics)
-                logger.log(global_step, row)
-                guard.check(global_step, update_metrics)  # NaN/Inf: stop, keep checkpoint.pt
-                display.metrics(global_step, row, recent, curriculum.d if cfg.constrained else None)
-                window, sums, n_sums, row = {}, {}, 0, {}
-                t_log, step_log, upd_log = now, global_step, updates
-            display.advance(global_step)
-
-            if global_step >= next_ckpt:
-                next_ckpt += run.checkpoint_every
-                checkpoint()
-    except BaseException as err:  # Ctrl-C: checkpoint; divergence, errors: an event (stopping.py)
-        guard.stopped(err, global_step, checkpoint)
-        raise
-    finally:
-        display.close()
-    checkpoint()
-    logger.event(global_step, "end", updates=updates)
-    logger.close()
-    env.close()
-    if eval_env is not None:
-        eval_env.close()
-    return run_summary(global_step, updates, recent)
+        self.warmup_until = (global_step if len(self.buffer) >= cfg.batch_size
+                             else global_step + max(cfg.learning_starts, cfg.batch_size))  # fmt: skip
 
 
-def write_config(
-    run_dir: Path, algo: str, run: RunConfig, cfg: CSACConfig, recipe: dict | None = None
-) -> None:
-    """``config.json`` of a csac run (see :func:`safenav.common.runs.write_run_config`)."""
-    write_run_config(run_dir, algo, run, "csac", cfg, recipe)
-
-
-__all__ = ["CSAC", "COLUMNS", "CSACConfig", "train", "write_config"]
+__all__ = ["CSAC", "COLUMNS", "CSACConfig", "CSACLearner"]

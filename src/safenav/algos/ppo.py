@@ -7,7 +7,8 @@ One iteration (the pure pieces are in :mod:`safenav.algos.ppo_losses`):
    ``log pi(a|s)`` and ``V(s)``; where an episode is *truncated* the value of its true final
    observation ``V(final_obs)`` is stored too -> :func:`collect_rollout`
 2. (PPO-Lag) ``lambda <- max(0, lambda + Adam step on (J_c - d))`` with ``J_c`` the mean cost of the
-   episodes that ended in the rollout -> :class:`~safenav.common.lagrange.Lagrange`, in :func:`train`
+   episodes that ended in the rollout -> :class:`~safenav.common.lagrange.Lagrange`, in
+   :meth:`PPOLearner.update`
 3. GAE of reward (and cost): ``delta_t = r_t + gamma (1 - term_t) V(s'_t) - V(s_t)``,
    ``A_t = delta_t + gamma lam (1 - done_t) A_{t+1}`` -> :func:`~safenav.algos.ppo_losses.gae`
 4. value targets ``R = A + V`` normalised by running return statistics (NavRL's ValueNorm)
@@ -22,16 +23,11 @@ docs/algorithms.md has the equations, every logged metric and where each default
 
 from __future__ import annotations
 
-import math
-import time
-from collections import deque
-from pathlib import Path
 from typing import Any
 
 import torch
 from torch import nn
 
-from safenav.algos.csac import policy_meta as csac_policy_meta
 from safenav.algos.ppo_config import PPOConfig
 from safenav.algos.ppo_losses import (
     beta_entropy,
@@ -44,23 +40,10 @@ from safenav.algos.ppo_losses import (
     normalize,
     sample_beta_action,
 )
-from safenav.common.checkpoint import (
-    load_training_checkpoint,
-    restore_agent,
-    rng_state,
-    seed_everything,
-    set_rng_state,
-)
-from safenav.common.checkpoint import policy_state as checkpoint_policy_state
-from safenav.common.config import RunConfig, to_dict
-from safenav.common.curriculum import ConstraintCurriculum, DensityCurriculum
-from safenav.common.envs import TorchVecEnv, is_safenav, make_vec_env
-from safenav.common.evaluation import BestPolicy, periodic_evaluation
+from safenav.common.config import RunConfig
+from safenav.common.envs import TorchVecEnv
 from safenav.common.lagrange import Lagrange
-from safenav.common.logger import RunLogger
 from safenav.common.rollout import Rollout, ValueNorm
-from safenav.common.runs import episode_charts, run_summary, write_run_config
-from safenav.common.stopping import RunGuard, enable_sigint
 from safenav.errors import SafenavError
 from safenav.nn.beta import POLICY_HEAD, BetaActorCritic, BetaDeterministicActor
 from safenav.nn.networks import input_order
@@ -228,7 +211,7 @@ def collect_rollout(env: TorchVecEnv, agent: PPO, rollout: Rollout,
     return obs, episodes
 
 
-# ------------------------------------------------------------------------------ training loop
+# ------------------------------------------------------------------------- the loop's view
 COLUMNS = (
     "time/elapsed_s", "perf/sps", "perf/updates", "perf/updates_per_s", "perf/rollouts",
     "charts/episodic_return", "charts/episodic_cost", "charts/episodic_length", "charts/success_rate",
@@ -239,194 +222,68 @@ COLUMNS = (
     "values/explained_variance", "eval/return", "eval/cost", "eval/length", "eval/success_rate",
     "eval/collision_rate", "eval/timeout_rate",
 )  # fmt: skip
+"""Every progress.csv column of PPO and PPO-Lag (docs/algorithms.md)."""
 
 
-def policy_meta(algo: str, run: RunConfig, cfg: PPOConfig, env: TorchVecEnv,
-                global_step: int) -> dict[str, Any]:  # fmt: skip
-    """CSAC's policy metadata plus ``policy_head: "beta"`` (what ``load_policy`` dispatches on)."""
-    return {**csac_policy_meta(algo, run, cfg, env, global_step), "policy_head": POLICY_HEAD}
+class PPOLearner:
+    """PPO in the shared training loop (:class:`safenav.training.Trainer`): one rollout per
+    iteration (step 1), PPO-Lag's lambda from its episodes (step 2), then :meth:`PPO.update`."""
+
+    section = "ppo"
+    columns = COLUMNS
+    policy_meta: dict[str, Any] = {"policy_head": POLICY_HEAD}  # what load_policy dispatches on
+
+    def __init__(self, env: TorchVecEnv, run: RunConfig, cfg: PPOConfig) -> None:
+        self.device = env.device
+        self.agent = PPO(env.obs_shapes, env.action_dim, cfg).to(env.device)
+        self.rollout = Rollout(cfg.rollout_steps, env.num_envs, env.obs_shapes, env.action_dim,
+                               self.agent.num_values, env.device)  # fmt: skip
+        self.rollouts = 0
+        self.ep_costs: list[float] = []  # the costs of the episodes that ended in this rollout
+        self.rollout_d = 0.0  # the budget those episodes ran under
+        self.lam_sums, self.lam_n = {"losses/lambda": 0.0, "constraint/episode_cost": 0.0}, 0
+
+    def collect(self, env: TorchVecEnv, obs: dict[str, torch.Tensor], global_step: int,
+                d: float) -> tuple[dict[str, torch.Tensor], list[dict[str, torch.Tensor]], int]:  # fmt: skip
+        """Step 1: a rollout of ``rollout_steps`` vector steps."""
+        obs, episodes = collect_rollout(env, self.agent, self.rollout, obs)
+        self.rollouts += 1
+        self.rollout_d = d
+        return obs, episodes, self.rollout.steps * env.num_envs
+
+    def observe(self, episodes: dict[str, list[float]]) -> None:
+        self.ep_costs.extend(episodes["cost"])
+
+    def maps_changed(self) -> None:
+        """Nothing to do: the next rollout starts from the new observation."""
+
+    def update(self, global_step: int, d: float) -> tuple[int, list[dict[str, torch.Tensor]]]:
+        """Step 2 (PPO-Lag) and steps 3-6 on the rollout just collected."""
+        # 2. lambda from the mean episode cost J_c of this rollout against the d it ran under
+        if self.agent.lagrange is not None and self.ep_costs:
+            j_c = torch.tensor([sum(self.ep_costs) / len(self.ep_costs)], device=self.device)
+            self.lam_sums["losses/lambda"] += float(self.agent.lagrange.update(j_c, self.rollout_d))
+            self.lam_sums["constraint/episode_cost"] += float(j_c[0])
+            self.lam_n += 1
+        self.ep_costs = []
+        # 3-6. the update
+        metrics = self.agent.update(self.rollout)
+        return int(metrics.pop("perf/gradient_steps")), [metrics]
+
+    def act(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        return self.agent.act(obs, deterministic=True)[0]
+
+    def log_items(self, d: float) -> dict[str, float]:
+        row = {"perf/rollouts": self.rollouts}
+        row.update({k: v / self.lam_n for k, v in self.lam_sums.items()} if self.lam_n else {})
+        self.lam_sums, self.lam_n = dict.fromkeys(self.lam_sums, 0.0), 0
+        return row
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"rollouts": self.rollouts}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.rollouts = state.get("rollouts", 0)
 
 
-def train(algo: str, run: RunConfig, cfg: PPOConfig, run_dir: Path, resume: bool = False,
-          progress: bool = True) -> dict[str, float]:  # fmt: skip
-    """Train ``algo`` (``"ppo"`` or ``"ppo_lag"``) into ``run_dir`` (prepared by the caller;
-    resumed from its ``checkpoint.pt`` when ``resume``). Returns the final metrics."""
-    from safenav.common.progress import ProgressDisplay
-
-    run_dir = Path(run_dir)
-    enable_sigint()
-    torch.set_num_threads(run.torch_threads or max(1, torch.get_num_threads()))
-    torch.set_float32_matmul_precision(run.matmul_precision)
-    device = torch.device(run.device)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise SafenavError(
-            "--device cuda: CUDA is not available on this machine (use --device cpu)"
-        )
-    ckpt_path = run_dir / "checkpoint.pt"
-    ckpt = load_training_checkpoint(ckpt_path, algo, map_location=device) if resume else None
-    seed_everything(run.seed)
-
-    # -- env, curricula, agent, rollout storage
-    density = DensityCurriculum(run.density, run.total_steps)
-    nav = is_safenav(run.env)
-    env_kwargs = {"density": density.density} if nav else {}
-    env = TorchVecEnv(
-        make_vec_env(run.env, run.num_envs, run.device, run.preset, **env_kwargs), device
-    )
-    eval_env = None
-    if run.eval_every > 0:
-        eval_kwargs = {"density": run.density.end} if nav else {}
-        eval_env = TorchVecEnv(make_vec_env(run.env, min(run.eval_episodes, 32), run.device, run.preset,
-                                            **eval_kwargs), device)  # fmt: skip
-    agent = PPO(env.obs_shapes, env.action_dim, cfg).to(device)
-    rollout = Rollout(cfg.rollout_steps, env.num_envs, env.obs_shapes, env.action_dim,
-                      agent.num_values, device)  # fmt: skip
-    curriculum = ConstraintCurriculum(cfg.curriculum)
-
-    global_step, updates, rollouts, elapsed0 = 0, 0, 0, 0.0
-    if ckpt is not None:
-        restore_agent(agent, ckpt, ckpt_path)
-        curriculum.load_state_dict(ckpt["curriculum"])
-        density.load_state_dict(ckpt["density"])
-        global_step, updates, elapsed0 = ckpt["global_step"], ckpt["updates"], ckpt["elapsed_s"]
-        rollouts = ckpt.get("rollouts", 0)
-        set_rng_state(ckpt["rng"])
-    env.set_density(density.density)
-    logger = RunLogger(
-        run_dir, COLUMNS, run.tensorboard, resume_step=global_step if resume else None
-    )
-    logger.event(global_step, "resume" if resume else "start", algo=algo, density=density.density,
-                 d=curriculum.d)  # fmt: skip
-    guard = RunGuard(run_dir, logger, agent, last_saved=global_step if ckpt is not None else None)
-    best = BestPolicy.for_run(run_dir, run.keep_policies, ckpt)
-
-    def policy_state() -> dict[str, Any]:
-        return checkpoint_policy_state(algo, global_step, updates, elapsed0 + time.perf_counter() - t0,
-                                       {"algo": algo, "run": to_dict(run), "ppo": to_dict(cfg)},
-                                       policy_meta(algo, run, cfg, env, global_step), agent.policy_module())  # fmt: skip
-
-    def checkpoint() -> None:
-        state = policy_state() | {
-            "rollouts": rollouts, "agent": agent.state_dict(), "optimizers": agent.optimizer_state(),
-            "curriculum": curriculum.state_dict(), "density": density.state_dict(), "rng": rng_state(),
-            "best": best.state_dict()}  # fmt: skip
-        guard.save(global_step, state)  # refuses non-finite weights: keeps the last good file
-
-    # -- the loop: rollout, lambda, update; curricula, map refreshes and density at rollout edges
-    window: dict[str, list[float]] = {}
-    recent: dict[str, deque] = {k: deque(maxlen=100) for k in ("success", "collision", "return")}
-    sums: dict[str, torch.Tensor] = {}
-    n_sums, row = 0, {}
-    lam_sums, lam_n = {"losses/lambda": 0.0, "constraint/episode_cost": 0.0}, 0
-    t0 = time.perf_counter()
-    t_log, step_log, upd_log = t0, global_step, updates
-    next_log = (global_step // run.log_every + 1) * run.log_every
-    next_eval = (global_step // run.eval_every + 1) * run.eval_every if run.eval_every else math.inf
-    next_ckpt = (global_step // run.checkpoint_every + 1) * run.checkpoint_every
-    refresh_every = run.map_refresh_every if nav else 0
-    refresh = global_step // refresh_every if refresh_every else 0
-    obs = env.reset(seed=run.train_env_seed(refresh) if nav else run.seed + global_step)
-    display = ProgressDisplay(
-        run.total_steps, global_step, enabled=progress, title=f"{algo} {run.env}"
-    )
-    try:
-        while global_step < run.total_steps:
-            # 1. rollout
-            obs, episodes = collect_rollout(env, agent, rollout, obs)
-            global_step += rollout.steps * env.num_envs
-            rollouts += 1
-            ep_costs: list[float] = []
-            for e in episodes:
-                ep = {k: v.tolist() for k, v in e.items()}
-                for k, vs in ep.items():
-                    window.setdefault(k, []).extend(vs)
-                for k in recent:
-                    recent[k].extend(ep[k])
-                ep_costs.extend(ep["cost"])
-                curriculum.observe(ep["cost"])
-                density.observe(ep["success"])
-            # 2. lambda from the mean episode cost J_c of this rollout against d
-            if agent.lagrange is not None and ep_costs:
-                j_c = torch.tensor([sum(ep_costs) / len(ep_costs)], device=device)
-                lam_sums["losses/lambda"] += float(agent.lagrange.update(j_c, curriculum.d))
-                lam_sums["constraint/episode_cost"] += float(j_c[0])
-                lam_n += 1
-            # 3-6. the update
-            metrics = agent.update(rollout)
-            updates += int(metrics.pop("perf/gradient_steps"))
-            for k, v in metrics.items():
-                sums[k] = sums[k] + v if k in sums else v.clone()
-            n_sums += 1
-
-            change = curriculum.step(global_step)
-            if change is not None:
-                logger.event(global_step, "curriculum", **change)
-                display.note(f"step {global_step}: d {change['d_old']:.3g} -> {change['d']:.3g} ({change['stage']})")  # fmt: skip
-            if refresh_every and global_step // refresh_every > refresh:  # new maps, new episodes
-                refresh = global_step // refresh_every
-                obs = env.reset(seed=run.train_env_seed(refresh))
-            new_density = density.step(global_step)
-            if new_density is not None and env.set_density(new_density):
-                logger.event(global_step, "density", density=new_density)
-
-            if global_step >= next_eval and eval_env is not None:
-                while next_eval <= global_step:
-                    next_eval += run.eval_every
-                ev, note = periodic_evaluation(eval_env, lambda o: agent.act(o, deterministic=True)[0],
-                                               run.eval_episodes, global_step, logger, best, policy_state)  # fmt: skip
-                row.update(ev)
-                display.note(note)
-
-            if global_step >= next_log or global_step >= run.total_steps:
-                while next_log <= global_step:
-                    next_log += run.log_every
-                now = time.perf_counter()
-                row.update({
-                    "time/elapsed_s": elapsed0 + now - t0,
-                    "perf/sps": (global_step - step_log) / max(now - t_log, 1e-9),
-                    "perf/updates": updates,
-                    "perf/updates_per_s": (updates - upd_log) / max(now - t_log, 1e-9),
-                    "perf/rollouts": rollouts,
-                    **episode_charts(window),
-                    "charts/density": density.density if nav else math.nan,
-                })  # fmt: skip
-                if cfg.constrained:
-                    row.update({"constraint/lambda": float(agent.lam), "constraint/d": curriculum.d,
-                                "constraint/stage": curriculum.stage})  # fmt: skip
-                update_metrics = {k: float(v) / n_sums for k, v in sums.items()} if n_sums else {}
-                row.update(update_metrics)
-                row.update({k: v / lam_n for k, v in lam_sums.items()} if lam_n else {})
-                logger.log(global_step, row)
-                guard.check(global_step, update_metrics)  # NaN/Inf: stop, keep checkpoint.pt
-                display.metrics(global_step, row, recent, curriculum.d if cfg.constrained else None)
-                window, sums, n_sums, row = {}, {}, 0, {}
-                lam_sums, lam_n = dict.fromkeys(lam_sums, 0.0), 0
-                t_log, step_log, upd_log = now, global_step, updates
-            display.advance(global_step)
-
-            if global_step >= next_ckpt:
-                while next_ckpt <= global_step:
-                    next_ckpt += run.checkpoint_every
-                checkpoint()
-    except BaseException as err:  # Ctrl-C: checkpoint; divergence, errors: an event (stopping.py)
-        guard.stopped(err, global_step, checkpoint)
-        raise
-    finally:
-        display.close()
-    checkpoint()
-    logger.event(global_step, "end", updates=updates)
-    logger.close()
-    env.close()
-    if eval_env is not None:
-        eval_env.close()
-    return run_summary(global_step, updates, recent)
-
-
-def write_config(
-    run_dir: Path, algo: str, run: RunConfig, cfg: PPOConfig, recipe: dict | None = None
-) -> None:
-    """``config.json`` of a ppo run (see :func:`safenav.common.runs.write_run_config`)."""
-    write_run_config(run_dir, algo, run, "ppo", cfg, recipe)
-
-
-__all__ = ["COLUMNS", "PPO", "PPOConfig", "collect_rollout", "train", "write_config"]
+__all__ = ["COLUMNS", "PPO", "PPOConfig", "PPOLearner", "collect_rollout"]

@@ -1,6 +1,6 @@
 """SAC-Lag as OmniSafe does it: CSAC's code path with OmniSafe's Lagrangian mechanics.
 
-No copy of the algorithm: :func:`train` runs :func:`safenav.algos.csac.train` with
+No copy of the algorithm: ``safenav.training.train("sac_lag", ...)`` trains CSAC's code with
 :func:`sac_lag_config`, which switches three things relative to CSAC (everything else - reward
 critics, entropy tuning, warm-up, replay, target networks, the constraint curriculum on ``d`` -
 is shared, so ``csac`` vs ``sac_lag`` isolates the Lagrangian design):
@@ -13,18 +13,16 @@ is shared, so ``csac`` vs ``sac_lag`` isolates the Lagrangian design):
 - the actor loss divided by ``1 + lambda`` (``scale_actor_loss``):
   ``L(phi) = E[alpha log pi - min_j Q_R_j + lambda Q_C] / (1 + lambda)``.
 
-OmniSafe's ``SACLag._update`` reads ``J_c`` back from its logger; here the loop passes it to the
-:class:`~safenav.common.lagrange.Lagrange` object directly.
+OmniSafe's ``SACLag._update`` reads ``J_c`` back from its logger; here the learner passes it to the
+:class:`~safenav.common.lagrange.Lagrange` object directly
+(:meth:`safenav.algos.csac.CSACLearner.update`).
 """
 
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
-from safenav.algos import csac
 from safenav.algos.config import CSACConfig
-from safenav.common.config import RunConfig
 
 
 def sac_lag_config(cfg: CSACConfig) -> CSACConfig:
@@ -33,12 +31,4 @@ def sac_lag_config(cfg: CSACConfig) -> CSACConfig:
                                scale_actor_loss=True)  # fmt: skip
 
 
-def train(run: RunConfig, cfg: CSACConfig, run_dir: Path, resume: bool = False,
-          progress: bool = True) -> dict[str, float]:  # fmt: skip
-    """Train SAC-Lag into ``run_dir``; see :func:`safenav.algos.csac.train`."""
-    return csac.train(
-        "sac_lag", run, sac_lag_config(cfg), run_dir, resume=resume, progress=progress
-    )
-
-
-__all__ = ["sac_lag_config", "train"]
+__all__ = ["sac_lag_config"]

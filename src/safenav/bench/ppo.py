@@ -1,11 +1,12 @@
 """PPO's training throughput: env steps consumed per second, rollout collection plus update.
 
-One iteration is what :func:`safenav.algos.ppo.train` does per rollout: ``rollout_steps`` vector
-steps of the ``paper`` scenario with the Beta policy sampling actions and the critic valuing each
-observation (and the final observation of every truncated episode), then GAE and ``epochs`` x
-``num_minibatches`` Adam steps on the default :class:`~safenav.algos.ppo_config.PPOConfig` (the
-paper architecture: range-image CNN + dynamic MLP + state -> 256x256 trunk). Logging,
-checkpoints and curricula are left out: they cost nothing measurable per rollout.
+One iteration is what training does per rollout (:class:`safenav.algos.ppo.PPOLearner`):
+``rollout_steps`` vector steps of the ``paper`` scenario with the Beta policy sampling actions and
+the critic valuing each observation (and the final observation of every truncated episode), then
+GAE and ``epochs`` x ``num_minibatches`` Adam steps on the default
+:class:`~safenav.algos.ppo_config.PPOConfig` (the paper architecture: range-image CNN + dynamic
+MLP + state -> 256x256 trunk). Logging, checkpoints and curricula are left out: they cost nothing
+measurable per rollout.
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ Two phases in one process, resident memory (RSS) sampled by a background thread:
    density curriculum's map refreshes included); RSS must stay flat after the first 10 % (one-time
    allocations): ``env_growth_after_warmup_mb``.
 2. **train**: CSAC trains for ``updates`` gradient updates through the real trainer
-   (``safenav.algos.csac.train``: replay buffer, logging, TensorBoard, periodic evaluation and
+   (``safenav.training.train``: replay buffer, logging, TensorBoard, periodic evaluation and
    atomic checkpoints), with a replay buffer of ``buffer_size`` transitions that fills in the first
    half and then wraps around. RSS may grow while the buffer fills (its pages are touched then),
    and must be flat afterwards: ``train_growth_after_buffer_full_mb`` is the median RSS over the
@@ -120,7 +120,7 @@ def soak_env(env_steps: int, num_envs: int, preset: str) -> dict[str, Any]:
 
 def soak_train(updates: int, preset: str, hidden: tuple[int, ...], batch_size: int,
                buffer_size: int, num_envs: int) -> dict[str, Any]:  # fmt: skip
-    from safenav.algos import csac
+    from safenav import training
     from safenav.algos.config import CSACConfig
     from safenav.common.config import RunConfig
 
@@ -135,7 +135,7 @@ def soak_train(updates: int, preset: str, hidden: tuple[int, ...], batch_size: i
     start = rss_mb()
     with tempfile.TemporaryDirectory() as tmp, RssSampler() as rss:  # sampled while training
         t0 = time.perf_counter()
-        final = csac.train("csac", run, cfg, Path(tmp) / "run", progress=True)
+        final = training.train("csac", run, cfg, Path(tmp) / "run", progress=True)
         seconds = time.perf_counter() - t0
     # The buffer is full after buffer_size env steps: at that fraction of the run (env steps are
     # ~uniform in time, one update each). Compare the median RSS just after it with the last 10 %.

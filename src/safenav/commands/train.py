@@ -62,7 +62,7 @@ def train(
     Step counts take 1000000, 1e6, 1_000_000 or 1M. Everything is checked before the run
     directory is written, including the memory the run needs (refused with the estimate).
     """
-    from safenav.algos import csac as csac_module
+    from safenav import training
     from safenav.cli import ARGS
     from safenav.common.envs import cost_function
     from safenav.common.logger import prepare_run_dir
@@ -72,14 +72,12 @@ def train(
     prepare_run_dir(run_dir, resume=resume is not None, overwrite=overwrite)
     if recipe is not None:  # after every refusal: a refused command prints its error alone
         print(recipe_line(recipe, run.env, chosen=config is None))
-    if algo in ("ppo", "ppo_lag"):
-        from safenav.algos import ppo as module
-    else:
-        module = csac_module
     if resume is None:
-        module.write_config(run_dir, algo, run, cfg, recipe_record(recipe))
+        training.write_config(run_dir, algo, run, cfg, recipe_record(recipe))
     with cost_function(run.cost_fn):
-        result = module.train(algo, run, cfg, run_dir, resume=resume is not None, progress=progress)
+        result = training.train(
+            algo, run, cfg, run_dir, resume=resume is not None, progress=progress
+        )
     print(f"safenav train: {algo} finished at step {result['global_step']} ({result['updates']} updates); "
           f"last 100 episodes: success {result['success_rate']:.3f}, collision {result['collision_rate']:.3f}, "
           f"return {result['return']:.2f}; run dir {run_dir}")  # fmt: skip
@@ -199,6 +197,7 @@ def plan(algo: str, run: RunConfig, csac: CSACConfig, ppo: PPOConfig, run_dir: P
     from safenav.common.config import from_dict
     from safenav.common.envs import env_spaces
     from safenav.errors import SafenavError
+    from safenav.training import algo_config
 
     if algo not in ALGOS:
         raise SafenavError(f"unknown algorithm {algo!r} (--algo): choose one of {', '.join(ALGOS)}")
@@ -235,16 +234,7 @@ def plan(algo: str, run: RunConfig, csac: CSACConfig, ppo: PPOConfig, run_dir: P
     elif run_dir is None:
         env_name = run.env.split(":")[-1]
         run_dir = Path("runs") / f"{algo}-{env_name}-s{run.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
-    if algo == "sac":
-        from safenav.algos.sac import sac_config
-
-        cfg = sac_config(cfg)
-    elif algo == "sac_lag":
-        from safenav.algos.sac_lag import sac_lag_config
-
-        cfg = sac_lag_config(cfg)
-    elif family == "ppo":
-        cfg = dataclasses.replace(cfg, constrained=algo == "ppo_lag")
+    cfg = algo_config(algo, cfg)
     check_device(run.device)
     obs_shapes, action_dim, env_cfg = env_spaces(run.env, run.preset)
     if "lidar" in obs_shapes:  # each stride divides the range image's columns (36 -> 18 -> 9)

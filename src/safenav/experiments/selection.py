@@ -26,9 +26,9 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from safenav.common.evaluation import EVAL_SEED
 from safenav.common.jsonout import write_json
 from safenav.errors import SafenavError
+from safenav.training.evaluation import EVAL_SEED
 
 TEST_SEED = 1
 HELDOUT_SEEDS = (2, 3, 4, 5, 6)

@@ -93,8 +93,8 @@ def policy_from_state(state: dict[str, Any], device: str = "cpu"):
 def validation_score(episodes: int, device: str = "cpu") -> Score:
     """Success rate of a policy state on ``episodes`` episodes of the evaluation map
     (``EVAL_SEED``; deterministic actions, the scenario of ``safenav eval``)."""
-    from safenav.common.evaluation import EVAL_SEED
     from safenav.experiments.evaluate import evaluate
+    from safenav.training.evaluation import EVAL_SEED
 
     def score(state: dict[str, Any]) -> float:
         fn, cfg = policy_from_state(state, device)

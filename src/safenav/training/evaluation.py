@@ -65,20 +65,26 @@ class BestPolicy:
             self.score = (float(state["score"][0]), float(state["score"][1]))
 
     @classmethod
-    def for_run(cls, run_dir: Path, keep_policies: bool, checkpoint: dict[str, Any] | None) -> BestPolicy:
+    def for_run(
+        cls, run_dir: Path, keep_policies: bool, checkpoint: dict[str, Any] | None
+    ) -> BestPolicy:
         """A trainer's: ``run_dir/best.pt``, the score carried by a resumed ``checkpoint``, and
         ``run_dir/policies`` when ``--keep-policies``."""
         return cls(run_dir / "best.pt", checkpoint.get("best") if checkpoint is not None else None,
                    keep_dir=run_dir / "policies" if keep_policies else None)  # fmt: skip
 
-    def offer(self, evaluation: dict[str, float], policy_state: Callable[[], dict[str, Any]]) -> bool:
+    def offer(
+        self, evaluation: dict[str, float], policy_state: Callable[[], dict[str, Any]]
+    ) -> bool:
         """Save ``policy_state()`` (called only when needed) if ``evaluation`` (``eval/*`` keys) beats
         the best so far; True if it did."""
         from safenav.common.checkpoint import save_checkpoint
 
         success, collision = evaluation["eval/success_rate"], evaluation["eval/collision_rate"]
         score = (success, -collision)
-        wins = not (math.isnan(success) or math.isnan(collision)) and (self.score is None or score > self.score)
+        wins = not (math.isnan(success) or math.isnan(collision)) and (
+            self.score is None or score > self.score
+        )
         if not wins and self.keep_dir is None:
             return False
         state = policy_state() | {"policy_only": True, "evaluation": dict(evaluation)}
@@ -94,9 +100,15 @@ class BestPolicy:
         return {"score": list(self.score) if self.score is not None else None}
 
 
-def periodic_evaluation(env: TorchVecEnv, act: Callable[[dict[str, torch.Tensor]], torch.Tensor],
-                        episodes: int, global_step: int, logger: Any, best: BestPolicy,
-                        policy_state: Callable[[], dict[str, Any]]) -> tuple[dict[str, float], str]:
+def periodic_evaluation(
+    env: TorchVecEnv,
+    act: Callable[[dict[str, torch.Tensor]], torch.Tensor],
+    episodes: int,
+    global_step: int,
+    logger: Any,
+    best: BestPolicy,
+    policy_state: Callable[[], dict[str, Any]],
+) -> tuple[dict[str, float], str]:
     """A trainer's periodic evaluation: run it (:func:`evaluate_episodes` on :data:`EVAL_SEED`),
     log it as an ``eval`` event, offer it to ``best`` (a ``best`` event when it wins). Returns the
     ``eval/*`` row entries and a one-line note for the console."""
@@ -106,8 +118,10 @@ def periodic_evaluation(env: TorchVecEnv, act: Callable[[dict[str, torch.Tensor]
     logger.event(global_step, "eval", **ev)
     if best.offer(ev, policy_state):
         logger.event(global_step, "best", path=str(best.path), **ev)
-    note = (f"step {global_step}: eval success {ev['eval/success_rate']:.2f} "
-            f"collision {ev['eval/collision_rate']:.2f} return {ev['eval/return']:.1f}")
+    note = (
+        f"step {global_step}: eval success {ev['eval/success_rate']:.2f} "
+        f"collision {ev['eval/collision_rate']:.2f} return {ev['eval/return']:.1f}"
+    )
     return ev, note
 
 

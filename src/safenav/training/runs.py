@@ -1,6 +1,6 @@
-"""Pieces of a training run shared by every trainer: episode charts, the final summary, config.json.
+"""Pieces of a training run: episode charts, the final summary, config.json.
 
-Kept in one place so that CSAC/SAC and PPO log the same columns the same way.
+Kept apart from the loop (:mod:`safenav.training.trainer`) as plain functions of plain values.
 """
 
 from __future__ import annotations
