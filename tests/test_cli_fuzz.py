@@ -16,6 +16,7 @@ sweeps, benchmarks) replaced by a stub that exits with :data:`ACCEPTED`. Each ca
 from __future__ import annotations
 
 import hashlib
+import os
 import re
 import shutil
 import socket
@@ -73,6 +74,8 @@ def ws(tmp_path_factory) -> Path:
     (ws / "afile").write_text("a file, not a directory\n")
     (ws / "garbage.pt").write_bytes(b"not a checkpoint at all")
     (ws / "adir").mkdir()
+    os.mkfifo(ws / "fifo")  # what a rename over it would replace, not write into
+    (ws / "alink").symlink_to(ws / "afile")
     run = ws / "runs" / "csac" / "seed1"
     run.mkdir(parents=True)
     (run / "config.json").write_text('{"algo": "csac", "run": {"seed": 1}}\n')
@@ -99,7 +102,13 @@ def unwritable_dir(ws: Path) -> Path | None:
 def snapshot(ws: Path) -> dict[str, str]:
     files = {}
     for p in sorted(ws.rglob("*")):
-        if p.is_file() and "scratch" not in p.relative_to(ws).parts:
+        if "scratch" in p.relative_to(ws).parts:
+            continue
+        if p.is_symlink():
+            files[str(p.relative_to(ws))] = f"a link to {os.readlink(p)}"
+        elif p.is_fifo():  # never opened: that would block
+            files[str(p.relative_to(ws))] = "a FIFO"
+        elif p.is_file():
             files[str(p.relative_to(ws))] = hashlib.sha256(p.read_bytes()).hexdigest()
     return files
 
@@ -272,7 +281,7 @@ def path_cases(ws: Path) -> dict[str, list[tuple[str, int]]]:
 
     def out_file(name: str) -> list[tuple[str, int]]:
         return [(adir, 2), (f"{missing}/sub/{name}", 2), (f"{afile}/{name}", 2),
-                ("{W}/" + name, 1)]  # fmt: skip
+                ("{W}/" + name, 1), (str(ws / "fifo"), 2), (str(ws / "alink"), 2)]  # fmt: skip
 
     def out_dir(name: str) -> list[tuple[str, int]]:
         return [(afile, 2), (f"{afile}/{name}", 2), ("{W}/" + name, 1)]

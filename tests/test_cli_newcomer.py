@@ -107,6 +107,27 @@ def _writable(d: Path) -> bool:
         return False
 
 
+def test_an_output_over_a_device_fifo_or_link_is_refused(capsys, tmp_path, monkeypatch):
+    """Outputs are written beside the target and renamed over it: over /dev/null (as root) that
+    would replace the device, over a link the link. Refused before any work."""
+    import os
+    import stat
+
+    def reached(*args, **kwargs):  # were it accepted: stop before anything is written
+        raise Reached(99)
+
+    monkeypatch.setattr("safenav.experiments.evaluate.evaluate", reached)
+    fifo, link = tmp_path / "fifo", tmp_path / "link.json"
+    os.mkfifo(fifo)
+    link.symlink_to(tmp_path / "elsewhere.json")
+    for target, says in (("/dev/null", "is not a regular file"), (fifo, "is not a regular file"),
+                         (link, "is a symbolic link")):  # fmt: skip
+        code, _, err = run(capsys, ["eval", "--policy", "scripted", "--json", str(target)])
+        assert code == 2 and f"--json {target} {says}" in one_error(err)
+    assert stat.S_ISCHR(os.stat("/dev/null").st_mode) and stat.S_ISFIFO(os.stat(fifo).st_mode)
+    assert link.is_symlink() and sorted(p.name for p in tmp_path.iterdir()) == ["fifo", "link.json"]
+
+
 def test_sim_vehicle_port_in_use_and_fly_port_out_of_range(capsys):
     with socket.socket() as tcp:
         tcp.bind(("127.0.0.1", 0))
@@ -496,6 +517,25 @@ def test_help_as_a_verb(capsys):
     assert code == 0 and out == run(capsys, ["eval", "--help"])[1] and "--episodes" in out
     code, _, err = run(capsys, ["help", "evl"])
     assert code == 2 and "did you mean 'eval'?" in one_error(err)
+
+
+def test_help_keeps_sentences_whole(capsys, monkeypatch):
+    """A docstring line that starts with a number, ``code`` or a --flag continues its sentence
+    in --help (tyro alone starts a new line there); blank lines and list items still break."""
+    from safenav.cli import unwrap_help
+
+    text = "Steps: 1000000, 1e6,\n    1_000_000 or 1M; see\n    ``--x``.\n\n    - one\n    - two"
+    assert unwrap_help(text) == "Steps: 1000000, 1e6, 1_000_000 or 1M; see ``--x``.\n\n- one\n- two"
+    from tyro import _docstrings
+
+    from safenav.common.config import RunConfig
+
+    # an option's help (an attribute docstring, its lines indented) and a verb's description
+    doc = _docstrings.get_field_docstring(RunConfig, "cost_fn", ())
+    assert doc is not None and 'reports no ``info["cost"]``' in doc and "\n" not in doc
+    monkeypatch.setenv("COLUMNS", "80")
+    code, out, _ = run(capsys, ["bench", "--help"])
+    assert code == 0 and "soak: ``--env-steps`` env steps and ``--updates`` CSAC updates" in out
 
 
 def test_progress_line_fits_80_and_100_columns(monkeypatch):
