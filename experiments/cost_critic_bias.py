@@ -30,7 +30,7 @@ from safenav.algos.config import CSACConfig
 from safenav.algos.csac import CSAC
 from safenav.common.checkpoint import load_checkpoint, restore_agent
 from safenav.common.config import RunConfig, from_dict
-from safenav.common.envs import TorchVecEnv, make_vec_env
+from safenav.envs.vector import TorchVecEnv, make_vec_env
 
 
 @torch.no_grad()

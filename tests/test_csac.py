@@ -16,7 +16,7 @@ from safenav.algos.config import CSACConfig
 from safenav.algos.csac import CSAC
 from safenav.algos.losses import reward_target
 from safenav.common.buffer import ReplayBuffer
-from safenav.common.envs import TorchVecEnv, make_vec_env
+from safenav.envs.vector import TorchVecEnv, make_vec_env
 from safenav.nn.config import NetConfig
 
 NAV = {"state": (8,), "lidar": (4, 36), "dynamic": (5, 10)}

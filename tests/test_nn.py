@@ -8,11 +8,12 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from safenav.envs.vector import obs_layout
 from safenav.errors import SafenavError
 from safenav.nn.config import NetConfig
 from safenav.nn.extractors import FlattenExtractor, NavExtractor
 from safenav.nn.layers import CircularConv1d, EnsembleLinear, EnsembleMLP
-from safenav.nn.networks import Actor, DeterministicActor, QEnsemble, make_extractor, obs_layout
+from safenav.nn.networks import Actor, DeterministicActor, QEnsemble, make_extractor
 
 NAV = {"state": (8,), "lidar": (4, 36), "dynamic": (5, 10)}
 

@@ -27,9 +27,9 @@ from safenav.algos.ppo_losses import (
     sample_beta_action,
     unit_to_action,
 )
-from safenav.common.envs import TorchVecEnv
 from safenav.common.lagrange import Lagrange
 from safenav.common.rollout import Rollout, ValueNorm
+from safenav.envs.vector import TorchVecEnv
 from safenav.nn.config import NetConfig
 
 SMALL = NetConfig(hidden=(16, 16))

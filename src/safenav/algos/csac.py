@@ -43,9 +43,9 @@ from safenav.algos.losses import (
 from safenav.common.buffer import Batch, ReplayBuffer
 from safenav.common.config import RunConfig
 from safenav.common.curriculum import MeasuredCostScale, episode_cost_to_q_scale
-from safenav.common.envs import TorchVecEnv, env_horizon
 from safenav.common.lagrange import Lagrange
 from safenav.common.nstep import NStepWindow
+from safenav.envs.vector import TorchVecEnv, env_horizon
 from safenav.nn.networks import Actor, DeterministicActor, QEnsemble, input_order, make_extractor
 from safenav.nn.optim import adam
 

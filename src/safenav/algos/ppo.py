@@ -41,9 +41,9 @@ from safenav.algos.ppo_losses import (
     sample_beta_action,
 )
 from safenav.common.config import RunConfig
-from safenav.common.envs import TorchVecEnv
 from safenav.common.lagrange import Lagrange
 from safenav.common.rollout import Rollout, ValueNorm
+from safenav.envs.vector import TorchVecEnv
 from safenav.errors import SafenavError
 from safenav.nn.beta import POLICY_HEAD, BetaActorCritic, BetaDeterministicActor
 from safenav.nn.networks import input_order

@@ -25,8 +25,8 @@ def bench_ppo(num_envs: int = 256, rollouts: int = 3, preset: str = "paper", dev
 
     from safenav.algos.ppo import PPO, collect_rollout
     from safenav.algos.ppo_config import PPOConfig
-    from safenav.common.envs import TorchVecEnv, make_vec_env
     from safenav.common.rollout import Rollout
+    from safenav.envs.vector import TorchVecEnv, make_vec_env
 
     if threads is not None:
         torch.set_num_threads(threads)

@@ -99,7 +99,7 @@ def run_trial(env_id: str, algo: str, seed: int, steps: int, eval_every: int, ep
     from stable_baselines3.common.vec_env import VecNormalize, sync_envs_normalization
 
     import safenav  # noqa: F401  (registers the velocity tasks)
-    from safenav.common.envs import quiet_mujoco
+    from safenav.envs.vector import quiet_mujoco
 
     quiet_mujoco()
     torch.set_num_threads(1)

@@ -64,8 +64,8 @@ def train(
     """
     from safenav import training
     from safenav.cli import ARGS
-    from safenav.common.envs import cost_function
     from safenav.common.logger import prepare_run_dir
+    from safenav.envs.vector import cost_function
 
     algo, run, csac, ppo, recipe = apply_recipe(config, algo, run, csac, ppo, ARGS.get(), resume)
     run, cfg, run_dir = plan(algo, run, csac, ppo, run_dir, resume, overwrite)
@@ -195,7 +195,7 @@ def plan(algo: str, run: RunConfig, csac: CSACConfig, ppo: PPOConfig, run_dir: P
     spaces, memory. ``SafenavError`` (exit 2) or ``SafenavRuntimeError`` (exit 1) otherwise."""
     from safenav.common.checks import check_device
     from safenav.common.config import from_dict
-    from safenav.common.envs import env_spaces
+    from safenav.envs.vector import env_spaces
     from safenav.errors import SafenavError
     from safenav.training import algo_config
 
@@ -270,7 +270,7 @@ def check_cost(algo: str, run: RunConfig) -> None:
     trains its unconstrained form."""
     import sys
 
-    from safenav.common.envs import is_safenav, reports_cost
+    from safenav.envs.vector import is_safenav, reports_cost
     from safenav.errors import SafenavError
 
     if run.cost_fn is not None:

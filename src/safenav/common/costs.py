@@ -1,7 +1,7 @@
 """Costs for Gymnasium envs that report none: ``--cost-fn module:function`` and the velocity tasks.
 
 Constrained algorithms (CSAC, SAC-Lag, PPO-Lag) read the cost of a step from ``info["cost"]``
-(:mod:`safenav.common.envs`); an env without one makes them their unconstrained forms. Two ways
+(:mod:`safenav.envs.vector`); an env without one makes them their unconstrained forms. Two ways
 to give an env a cost:
 
 - ``safenav train --env ID --cost-fn module:function``: :class:`CostFn` wraps every env of the run

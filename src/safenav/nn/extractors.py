@@ -1,7 +1,7 @@
 """Feature extractors: observation (a dict of tensors) -> one feature vector per sample.
 
 Observations are always dicts of ``(N, ...)`` tensors inside the algorithms; a ``Box`` observation
-is the dict ``{"obs": x}`` (see :func:`safenav.nn.obs_layout`). Two extractors:
+is the dict ``{"obs": x}`` (see :func:`safenav.envs.vector.obs_layout`). Two extractors:
 
 - :class:`NavExtractor` for the SafeNav ``Dict`` (paper III-D): a 3-layer CNN on the ``lidar``
   range image -> 128, an MLP on the flattened ``dynamic`` matrix -> 64, concatenated with the

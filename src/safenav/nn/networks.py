@@ -16,30 +16,16 @@ from __future__ import annotations
 
 import math
 
-import gymnasium as gym
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from safenav.errors import SafenavError
 from safenav.nn.config import NetConfig
 from safenav.nn.extractors import FlattenExtractor, NavExtractor
 from safenav.nn.layers import EnsembleMLP
 
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
 NAV_KEYS = ("state", "lidar", "dynamic")
-
-
-def obs_layout(space: gym.Space) -> dict[str, tuple[int, ...]]:
-    """Observation space -> ``{key: shape}`` of the observation dict the networks read
-    (``{"obs": shape}`` for a ``Box``); ``SafenavError`` for anything else."""
-    if isinstance(space, gym.spaces.Box):
-        return {"obs": tuple(int(s) for s in space.shape)}
-    if isinstance(space, gym.spaces.Dict) and all(
-        isinstance(s, gym.spaces.Box) for s in space.spaces.values()
-    ):
-        return {k: tuple(int(d) for d in s.shape) for k, s in space.spaces.items()}
-    raise SafenavError(f"observation space {space} is not supported: use a Box or a Dict of Boxes")
 
 
 def is_nav_layout(shapes: dict[str, tuple[int, ...]]) -> bool:
@@ -146,4 +132,4 @@ class DeterministicActor(nn.Module):
 
 
 __all__ = ["NAV_KEYS", "Actor", "DeterministicActor", "NetConfig", "QEnsemble", "is_nav_layout",
-           "make_extractor", "obs_layout", "squashed_gaussian"]  # fmt: skip
+           "make_extractor", "squashed_gaussian"]  # fmt: skip

@@ -9,7 +9,7 @@ from typing import Any
 
 import torch
 
-from safenav.common.envs import TorchVecEnv
+from safenav.envs.vector import TorchVecEnv
 
 EVAL_SEED = 12345
 """Seed of the evaluation env: fixed, so that successive evaluations (and runs) see the same maps

@@ -11,8 +11,8 @@ from pathlib import Path
 from typing import Any
 
 from safenav.common.config import RunConfig, to_dict
-from safenav.common.envs import is_safenav
 from safenav.common.logger import write_json_atomic
+from safenav.envs.vector import is_safenav
 
 
 def nanmean(values: Iterable[float]) -> float:

@@ -47,10 +47,10 @@ from safenav.common.checkpoint import (
 )
 from safenav.common.config import RunConfig, to_dict
 from safenav.common.curriculum import ConstraintCurriculum, DensityCurriculum
-from safenav.common.envs import TorchVecEnv, is_safenav, make_vec_env
 from safenav.common.logger import RunLogger
 from safenav.common.progress import ProgressDisplay  # here, not lazily: its import draws `random`
 from safenav.common.stopping import RunGuard, enable_sigint
+from safenav.envs.vector import TorchVecEnv, is_safenav, make_vec_env
 from safenav.errors import SafenavError
 from safenav.training.evaluation import BestPolicy, periodic_evaluation
 from safenav.training.runs import episode_charts, run_summary, write_run_config

@@ -28,7 +28,6 @@ import torch
 from gymnasium.vector import AutoresetMode
 
 from safenav.errors import SafenavError, SafenavRuntimeError
-from safenav.nn.networks import obs_layout
 
 _COST_FN: ContextVar[str | None] = ContextVar("safenav_cost_fn", default=None)
 
@@ -88,6 +87,18 @@ def _make(env_id: str, **kwargs: Any) -> gym.Env:
     if task_family(env_id)[0] == "mujoco":
         quiet_mujoco()
     return gym.make(env_id, **kwargs)
+
+
+def obs_layout(space: gym.Space) -> dict[str, tuple[int, ...]]:
+    """Observation space -> ``{key: shape}`` of the observation dict the networks read
+    (``{"obs": shape}`` for a ``Box``); ``SafenavError`` for anything else."""
+    if isinstance(space, gym.spaces.Box):
+        return {"obs": tuple(int(s) for s in space.shape)}
+    if isinstance(space, gym.spaces.Dict) and all(
+        isinstance(s, gym.spaces.Box) for s in space.spaces.values()
+    ):
+        return {k: tuple(int(d) for d in s.shape) for k, s in space.spaces.items()}
+    raise SafenavError(f"observation space {space} is not supported: use a Box or a Dict of Boxes")
 
 
 def is_safenav(env_id: str) -> bool:
@@ -358,4 +369,4 @@ def env_horizon(envs: gym.vector.VectorEnv, default: int = 1000) -> int:
 
 
 __all__ = ["Step", "TorchVecEnv", "check_action_space", "check_env", "cost_function", "env_horizon",
-           "env_spaces", "is_safenav", "is_safenav_vector", "make_vec_env", "reports_cost"]  # fmt: skip
+           "env_spaces", "is_safenav", "is_safenav_vector", "make_vec_env", "obs_layout", "reports_cost"]  # fmt: skip
