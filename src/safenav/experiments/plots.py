@@ -213,27 +213,32 @@ def _curve_panel(ax, groups, column, ylabel, title, percent, window, hold=False)
     return drew
 
 
+def _curves(groups: dict[str, list[Run]], out: Path, window: int, title: str,
+            panels: tuple[tuple[str, str, str, bool], ...]) -> Path | None:  # fmt: skip
+    """One row of :func:`_curve_panel` figures, one per ``(column, ylabel, title, percent)``."""
+    fig, axes = plt.subplots(1, len(panels), figsize=(13, 4.8), constrained_layout=True)
+    drew = [
+        _curve_panel(ax, groups, *panel, window) for ax, panel in zip(axes, panels, strict=True)
+    ]
+    fig.suptitle(title, fontsize=13)
+    return _save(fig, out) if any(drew) else _discard(fig)
+
+
 def plot_learning_curves(groups: dict[str, list[Run]], out: Path, window: int = 1) -> Path | None:
     """Fig. 3: training success rate and collision rate vs env steps, mean ± std over seeds."""
-    fig, axes = plt.subplots(1, 2, figsize=(13, 4.8), constrained_layout=True)
-    ok = _curve_panel(axes[0], groups, "charts/success_rate", "success rate (% of episodes)",
-                      "Success rate during training", True, window)  # fmt: skip
-    ok |= _curve_panel(axes[1], groups, "charts/collision_rate", "collision rate (% of episodes)",
-                       "Collision rate during training", True, window)  # fmt: skip
-    fig.suptitle("Learning curves (cf. paper Fig. 3): mean over seeds, shading ± 1 std",
-                 fontsize=13)  # fmt: skip
-    return _save(fig, out) if ok else _discard(fig)
+    return _curves(groups, out, window, "Learning curves (cf. paper Fig. 3): mean over seeds, "
+                   "shading ± 1 std", (
+        ("charts/success_rate", "success rate (% of episodes)", "Success rate during training", True),
+        ("charts/collision_rate", "collision rate (% of episodes)", "Collision rate during training",
+         True)))  # fmt: skip
 
 
 def plot_return_cost(groups: dict[str, list[Run]], out: Path, window: int = 1) -> Path | None:
     """Episodic return and episodic cost (collisions per episode) during training."""
-    fig, axes = plt.subplots(1, 2, figsize=(13, 4.8), constrained_layout=True)
-    ok = _curve_panel(axes[0], groups, "charts/episodic_return", "return per episode",
-                      "Episodic return during training", False, window)  # fmt: skip
-    ok |= _curve_panel(axes[1], groups, "charts/episodic_cost", "cost per episode (collisions)",
-                       "Episodic cost during training", False, window)  # fmt: skip
-    fig.suptitle("Return and cost: mean over seeds, shading ± 1 std", fontsize=13)
-    return _save(fig, out) if ok else _discard(fig)
+    return _curves(groups, out, window, "Return and cost: mean over seeds, shading ± 1 std", (
+        ("charts/episodic_return", "return per episode", "Episodic return during training", False),
+        ("charts/episodic_cost", "cost per episode (collisions)", "Episodic cost during training",
+         False)))  # fmt: skip
 
 
 def plot_constraint(groups: dict[str, list[Run]], out: Path) -> Path | None:
