@@ -132,8 +132,8 @@ def test_train_default_recipe_per_algo_and_none():
     assert ppo["run"].num_envs == load_recipe("ppo").section("run")["num_envs"]
     builtin = parse_train_args(["--algo", "csac", "--config", "none"])
     assert builtin["run"] == RunConfig() and builtin["csac"].cost_target == "mean"
-    gym = parse_train_args(["--algo", "sac", "--env", "Pendulum-v1"])  # no SafeNav recipe there
-    assert gym["run"].num_envs == RunConfig().num_envs
+    gym = parse_train_args(["--algo", "sac", "--env", "Pendulum-v1"])  # its family's, not SafeNav's
+    assert gym["run"].num_envs == 1 != load_recipe("csac").section("run")["num_envs"]
 
 
 def test_train_config_from_a_users_file(tmp_path):

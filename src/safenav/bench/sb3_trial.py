@@ -7,7 +7,6 @@ number of episodes), written as ``RESULT.json``. Run by :mod:`safenav.bench.gym`
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from pathlib import Path
@@ -148,7 +147,9 @@ def run_trial(env_id: str, algo: str, seed: int, steps: int, eval_every: int, ep
     result = {"steps": int(model.num_timesteps), "wall_clock_s": wall, "curve": curve,
               "train_curve": train_curve, "hyperparameters": {k: repr(v) for k, v in kwargs.items()},
               "n_envs": n_envs, "normalize": normalize}  # fmt: skip
-    (out / "result.json").write_text(json.dumps(result))
+    from safenav.common.jsonout import write_json
+
+    write_json(out / "result.json", result)  # atomic: a killed trial leaves no half-written result
     return result
 
 
