@@ -163,7 +163,7 @@ def test_each_recipe_is_chosen_from_the_env_and_trains(algo, env, recipe, extra,
                                   "--run-dir", str(run_dir), *QUIET, *small, *extra])  # fmt: skip
     assert code == 0, err
     first = out.splitlines()[0]
-    assert first.startswith(f"safenav train: recipe {recipe} ") and f"chosen for {env}" in first
+    assert first.startswith(f"safenav train: recipe {recipe},") and f"chosen for {env}" in first
     config = json.loads((run_dir / "config.json").read_text())
     assert config["recipe"]["name"] == recipe
     last = rows(run_dir / "progress.csv")[-1]

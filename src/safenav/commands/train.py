@@ -78,9 +78,9 @@ def train(
         result = training.train(
             algo, run, cfg, run_dir, resume=resume is not None, progress=progress
         )
-    print(f"safenav train: {algo} finished at step {result['global_step']} ({result['updates']} updates); "
-          f"last 100 episodes: success {result['success_rate']:.3f}, collision {result['collision_rate']:.3f}, "
-          f"return {result['return']:.2f}; run dir {run_dir}")  # fmt: skip
+    print(f"safenav train: {algo} finished at step {result['global_step']} ({result['updates']} updates)\n"
+          f"  last 100 episodes: success {result['success_rate']:.3f}, collision "
+          f"{result['collision_rate']:.3f}, return {result['return']:.2f}\n  run dir {run_dir}")  # fmt: skip
     if run.select:
         finish_run(run_dir, run.device)
 
@@ -100,9 +100,9 @@ def finish_run(run_dir: Path, device: str = "cpu") -> dict:
     write_json(run_dir / "final.json", final)
     test, held = report["test"], report["heldout"]
     print(f"safenav train: policy chosen on validation ({selection['method']}, steps "
-          f"{selection['chosen_steps']}) -> {run_dir / 'policy.pt'}; test success "
-          f"{test['success_rate']:.3f} collision {test['collision_rate']:.3f}; held-out success "
-          f"{held['success_rate']:.3f} collision {held['collision_rate']:.3f}")  # fmt: skip
+          f"{selection['chosen_steps']})\n  -> {run_dir / 'policy.pt'}\n"
+          f"  test success {test['success_rate']:.3f} collision {test['collision_rate']:.3f}; "
+          f"held-out success {held['success_rate']:.3f} collision {held['collision_rate']:.3f}")  # fmt: skip
     return final
 
 
@@ -172,13 +172,14 @@ def apply_recipe(config: str | None, algo: str, run: RunConfig, csac: CSACConfig
 
 def recipe_line(recipe, env_id: str, chosen: bool) -> str:
     """The line ``safenav train`` prints first: the recipe it starts from, and why."""
-    why = ""
+    # Short lines: each fits 80 columns for the usual recipe and env names.
+    first, second = f"safenav train: recipe {recipe.name}", f"  {recipe.source}"
     if chosen:
         from safenav.common.families import task_family
 
-        why = f", chosen for {env_id} ({task_family(env_id)[1]})"
-    return (f"safenav train: recipe {recipe.name} ({recipe.source}){why}; options given here "
-            "override it")  # fmt: skip
+        first += f", chosen for {env_id}"
+        second += f" ({task_family(env_id)[1]})"
+    return f"{first}\n{second}\n  options given on the command line override it"
 
 
 def recipe_record(recipe) -> dict | None:
