@@ -47,3 +47,17 @@ class CounterEnv(gym.Env):
             (not self.terminal) and end,
             info,
         )
+
+
+def run_cli(capsys, argv: list[str]) -> tuple[int, str, str]:
+    """``safenav ARGV`` in-process: ``(exit code, stdout, stderr)`` (``from conftest import run_cli``)."""
+    from safenav.cli import main
+
+    capsys.readouterr()
+    try:
+        main(argv)
+        code = 0
+    except SystemExit as err:
+        code = err.code if isinstance(err.code, int) else 1
+    out, err = capsys.readouterr()
+    return code, out, err

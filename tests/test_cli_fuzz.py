@@ -25,7 +25,8 @@ from pathlib import Path
 import pytest
 
 import safenav.commands  # noqa: F401  (registers the verbs)
-from safenav.cli import VERBS, main
+from conftest import run_cli
+from safenav.cli import VERBS
 from safenav.deploy.sim_vehicle import SimVehicle as REAL_SIM_VEHICLE
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -124,15 +125,7 @@ def stubbed(monkeypatch, ws):
     return ws
 
 
-def run(capsys, argv: list[str]) -> tuple[int, str, str]:
-    capsys.readouterr()
-    try:
-        main(argv)
-        code = 0
-    except SystemExit as err:
-        code = err.code if isinstance(err.code, int) else 1
-    out, err = capsys.readouterr()
-    return code, out, err
+run = run_cli
 
 
 # --------------------------------------------------------------------------- the options

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pytest
 
+from conftest import run_cli
 from safenav.cli import VERBS, app, main
 from safenav.common.checks import parse_count
 from safenav.errors import SafenavError
@@ -35,13 +36,7 @@ class Reached(SystemExit):
 
 
 def run(capsys, argv: list[str]) -> tuple[int, str, str]:
-    capsys.readouterr()
-    try:
-        main(argv)
-        code = 0
-    except SystemExit as err:
-        code = err.code if isinstance(err.code, int) else 1
-    out, err = capsys.readouterr()
+    code, out, err = run_cli(capsys, argv)
     assert "Traceback" not in out + err
     return code, out, err
 

@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 import safenav  # noqa: F401  (registers the velocity tasks)
+from conftest import run_cli
 from safenav.algos.config import CSACConfig
 from safenav.algos.ppo_config import PPOConfig
-from safenav.cli import main
 from safenav.common.config import RunConfig
 from safenav.common.costs import (
     VELOCITY_THRESHOLDS,
@@ -69,15 +69,7 @@ if "TinyBox-v0" not in gym.registry:
     gym.register("TinyBox-v0", entry_point=Tiny)
 
 
-def run(capsys, argv: list[str]) -> tuple[int, str, str]:
-    capsys.readouterr()
-    try:
-        main(argv)
-        code = 0
-    except SystemExit as err:
-        code = err.code if isinstance(err.code, int) else 1
-    out, err = capsys.readouterr()
-    return code, out, err
+run = run_cli
 
 
 def rows(path: Path) -> list[dict[str, str]]:
