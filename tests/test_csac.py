@@ -190,3 +190,23 @@ def test_dict_observation_env_final_obs_and_agent():
     buf = ReplayBuffer(8, env.obs_shapes, 1)
     buf.add(obs, torch.zeros(2, 1), step.reward, step.cost, step.real_next_obs, step.terminated)
     assert all(torch.isfinite(v) for v in agent.update(buf.sample(4), 0.1).values())
+
+
+def test_balanced_critic_losses_weigh_each_by_its_own_rms():
+    """balance_critic_losses: L_R / sqrt(m_R) + L_C / sqrt(m_C) with running means m (first call:
+    the losses themselves), kept in a checkpointed buffer; absent without the option."""
+    assert not hasattr(CSAC(NAV, 3, CSACConfig(net=SMALL)), "critic_loss_scale")
+    agent = CSAC(NAV, 3, CSACConfig(balance_critic_losses=True, net=SMALL))
+    w = torch.tensor([1.0, 2.0], requires_grad=True)
+    l_r, l_c = 400.0 * w[0] ** 2, 0.01 * w[1] ** 2  # losses 400 and 0.04: a 10^4 ratio
+    agent._balanced(l_r, l_c).backward()
+    expected = torch.tensor([800.0 / 20.0, 0.04 / 0.2])  # grad L / sqrt(L) at the first call
+    torch.testing.assert_close(w.grad, expected)
+    torch.testing.assert_close(agent.critic_loss_scale, torch.tensor([400.0, 0.04]))
+    agent._balanced(torch.tensor(500.0), torch.tensor(0.14))
+    torch.testing.assert_close(agent.critic_loss_scale, torch.tensor([401.0, 0.041]))
+    metrics = agent.update(random_batch(), d_q=0.1)
+    assert all(torch.isfinite(v) for v in metrics.values())
+    clone = CSAC(NAV, 3, CSACConfig(balance_critic_losses=True, net=SMALL))
+    clone.load_state_dict(agent.state_dict())
+    assert torch.equal(clone.critic_loss_scale, agent.critic_loss_scale)

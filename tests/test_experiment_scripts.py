@@ -1,5 +1,6 @@
-"""The diagnostic scripts of ``experiments/`` that docs/csac.md quotes run on a tiny CSAC run:
-``checkpoint_sweep.py`` (with ``--sampled``), ``cost_critic_bias.py`` and ``timeout_paths.py``."""
+"""The diagnostic scripts of ``experiments/`` that docs/csac.md and docs/csac-v1.md quote run on a
+tiny CSAC run: ``checkpoint_sweep.py`` (with ``--sampled``), ``cost_critic_bias.py``,
+``speed_profile.py`` and ``timeout_paths.py``."""
 
 from __future__ import annotations
 
@@ -73,3 +74,18 @@ def test_timeout_paths_splits_the_eval_episodes_by_outcome(tiny_run, tmp_path):
     data["per_episode"] = {k: v[:3] for k, v in per.items()}
     with pytest.raises(SystemExit, match="differ in length"):
         script("timeout_paths").summarise(data)
+
+
+def test_speed_profile_bins_every_step_and_probes_the_critics(tiny_run):
+    prof = script("speed_profile")
+    res = prof.profile(tiny_run / "checkpoint.pt", env_seed=12345, episodes=3)
+    bins = res["speed_by_clearance"]
+    assert res["critics"] and sum(b["steps"] for b in bins) == res["steps"] > 0
+    for b in bins:
+        assert (b["mean_speed"] is None) == (b["steps"] == 0)
+        assert b["steps"] == 0 or all(math.isfinite(b[k]) for k in ("qc", "dqc_half", "dqr_half"))
+    assert len(res["saturated"]) == 3 and all(0.0 <= s <= 1.0 for s in res["saturated"])
+    policy_only = prof.profile(tiny_run / "best.pt", env_seed=12345, episodes=3)
+    assert not policy_only["critics"] and "dqc_half" not in policy_only["speed_by_clearance"][0]
+    with pytest.raises(SystemExit, match="test or held-out"):
+        prof.profile(tiny_run / "best.pt", env_seed=1, episodes=3)

@@ -60,6 +60,12 @@ class CSACConfig:
     """``episode_cost``: Adam learning rate of lambda, one step per update (OmniSafe SAC-Lag)."""
     scale_actor_loss: bool = False
     """Divide the actor loss (Eq. 9) by ``1 + lambda`` (OmniSafe SAC-Lag)."""
+    balance_critic_losses: bool = False
+    """Beyond the paper: the shared extractor learns from Eq. 7 and Eq. 8 in equal measure, each
+    critic loss divided by the square root of its running mean (``CSAC.update``). With the summed
+    losses (paper) the reward critics' loss, ~10^4 times the cost critics' on SafeNav, alone
+    shapes the features the cost critics read (docs/csac-v1.md). The critic heads are unaffected
+    (Adam is invariant to a slowly varying loss scale)."""
     cost_target: Literal["mean", "min", "max"] = "mean"
     """Reduction of the target cost critics in Eq. 6: mean (paper); min/max are ablations."""
     cost_n_step: int = 1

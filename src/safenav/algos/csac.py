@@ -105,6 +105,9 @@ class CSAC(nn.Module):
         self.actor_optimizer = adam([{"params": self.actor_params, "lr": cfg.actor_lr},
                                      {"params": [self.log_alpha], "lr": cfg.alpha_lr}])  # fmt: skip
         self._policy_params = [*self.actor_params, self.log_alpha]
+        if cfg.balance_critic_losses and self.qc is not None and self.encoder is not None:
+            # running means of the two critic losses (0 = not seen yet), checkpointed with the agent
+            self.register_buffer("critic_loss_scale", torch.zeros(2))
         online = [m for m in (self.encoder, self.qr, self.qc) if m is not None]
         target = [m for m in (self.encoder_target, self.qr_target, self.qc_target) if m is not None]
         self._online = [p for m in online for p in m.parameters()]
@@ -161,7 +164,10 @@ class CSAC(nn.Module):
         loss_critic = loss_qr
         if self.qc is not None:
             loss_qc = critic_loss(self.qc(x, actions), y_c)
-            loss_critic = loss_critic + loss_qc
+            if hasattr(self, "critic_loss_scale"):  # beyond the paper: balanced extractor gradients
+                loss_critic = self._balanced(loss_qr, loss_qc)
+            else:
+                loss_critic = loss_critic + loss_qc
         self.critic_optimizer.zero_grad(set_to_none=True)
         loss_critic.backward()
         self.critic_optimizer.step()
@@ -194,6 +200,16 @@ class CSAC(nn.Module):
         with torch.no_grad():
             torch._foreach_lerp_(self._target, self._online, cfg.tau)
         return metrics
+
+    def _balanced(self, loss_qr: torch.Tensor, loss_qc: torch.Tensor) -> torch.Tensor:
+        """``L_R / sqrt(m_R) + L_C / sqrt(m_C)``, ``m`` running means (rate 0.01) of the detached
+        losses (``balance_critic_losses``): each critic's TD errors reach the shared extractor in
+        units of their own RMS, so neither critic's value scale decides what the features encode."""
+        scale = self.critic_loss_scale
+        losses = torch.stack([loss_qr.detach(), loss_qc.detach()])
+        scale.copy_(torch.where(scale > 0, 0.99 * scale + 0.01 * losses, losses))
+        rms = scale.clamp(min=1e-12).sqrt()
+        return loss_qr / rms[0] + loss_qc / rms[1]
 
     def policy_module(self) -> DeterministicActor:
         """The deterministic actor (shares parameters with this agent)."""
