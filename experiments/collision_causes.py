@@ -1,7 +1,8 @@
 """Why does a policy collide on the fixed test scenario? (docs/csac.md, "Where the collisions come from")
 
-Flies the 200 test episodes (env seed 1, full density, deterministic actions, as ``safenav eval``)
-and sorts every collision:
+Flies the 200 test episodes (env seed 1, full density, deterministic actions, as ``safenav eval``;
+``--env-seed`` another map, e.g. a validation map to diagnose before a choice) and sorts every
+collision:
 
 - ``pillar, in view``: the struck pillar was in the range image at one of the last two steps (a
   beam within one column of its bearing returned its distance, +-0.3 m): the policy saw it and
@@ -15,7 +16,8 @@ and sorts every collision:
   (within 4 m, the 5 nearest) at the step before the collision;
 - ``altitude band``: ground or ceiling.
 
-Run: ``.venv/bin/python experiments/collision_causes.py checkpoints/csac-paper.pt [--json OUT]``.
+Run: ``.venv/bin/python experiments/collision_causes.py checkpoints/csac-paper.pt [--env-seed N]
+[--json OUT]``.
 """
 
 from __future__ import annotations
@@ -38,11 +40,11 @@ LOOKBACK = 10  # steps = 1 s at 10 Hz
 
 
 @torch.no_grad()
-def classify(checkpoint: str, episodes: int = 200) -> dict:
+def classify(checkpoint: str, episodes: int = 200, env_seed: int = 1) -> dict:
     policy, cfg = resolve_policy(Path(checkpoint), "checkpoint", "cpu")
-    cfg, starts, goals = fixed_test_scenario(cfg, 1, episodes)
+    cfg, starts, goals = fixed_test_scenario(cfg, env_seed, episodes)
     env = SafeNavVectorEnv(episodes, config=cfg, output="torch", autoreset_mode="Disabled")
-    obs, _ = env.reset(seed=1, options={"starts": starts, "goals": goals})
+    obs, _ = env.reset(seed=env_seed, options={"starts": starts, "goals": goals})
     p = env.n_static
     pxy, phalf, ph = env.pillar_xy[0, :p], env.pillar_half[0, :p], env.pillar_height[0, :p]
     history: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []  # (pos, yaw, ranges)
@@ -70,7 +72,7 @@ def classify(checkpoint: str, episodes: int = 200) -> dict:
         if bool(done.all()):
             break
     counts = Counter(causes.values())
-    return {"checkpoint": checkpoint, "episodes": episodes, "collisions": len(causes),
+    return {"checkpoint": checkpoint, "episodes": episodes, "env_seed": env_seed, "collisions": len(causes),
             "causes": dict(counts.most_common()), "per_episode": {str(k): v for k, v in sorted(causes.items())}}  # fmt: skip
 
 
@@ -116,10 +118,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("checkpoint")
     ap.add_argument("--episodes", type=int, default=200)
+    ap.add_argument("--env-seed", type=int, default=1,
+                    help="1 = the test scenario (a final report); a validation map (12345-12348) to "
+                         "diagnose before a choice")  # fmt: skip
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     torch.set_num_threads(1)
-    result = classify(args.checkpoint, args.episodes)
+    result = classify(args.checkpoint, args.episodes, args.env_seed)
     print(f"{args.checkpoint}: {result['collisions']} collisions in {result['episodes']} episodes")
     for cause, n in result["causes"].items():
         print(f"  {cause:22s} {n:4d}  ({n / result['episodes']:.1%} of episodes)")
