@@ -89,3 +89,27 @@ def test_speed_profile_bins_every_step_and_probes_the_critics(tiny_run):
     assert not policy_only["critics"] and "dqc_half" not in policy_only["speed_by_clearance"][0]
     with pytest.raises(SystemExit, match="test or held-out"):
         prof.profile(tiny_run / "best.pt", env_seed=1, episodes=3)
+
+
+def test_train_profile_splits_a_run_into_disjoint_parts(tmp_path):
+    from tests.test_train_cli import FAST
+
+    prof = script("train_profile")
+    total, parts = prof.profile(["--algo", "csac", "--preset", "easy", "--seed", "2", "--total-steps",
+                                 "400", "--run-dir", str(tmp_path / "run"), *FAST])  # fmt: skip
+    assert (tmp_path / "run" / "checkpoint.pt").exists()
+    disjoint = sum(v for k, v in parts.items() if k != "of which sensing")
+    assert disjoint == pytest.approx(total) and all(v >= 0 for v in parts.values())
+    for part in (
+        "env step",
+        "actor forward",
+        "gradient updates",
+        "periodic evaluation",
+        "checkpoints",
+    ):
+        assert parts[part] > 0, part
+    assert 0 < parts["of which sensing"] < parts["env step"]
+    assert parts["selection (validation)"] == parts["report (test, held-out)"] == 0
+    from safenav.algos.csac import CSAC
+
+    assert not hasattr(CSAC.update, "__wrapped__")  # the timers are gone after the run
