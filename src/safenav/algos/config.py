@@ -65,7 +65,8 @@ class CSACConfig:
     critic loss divided by the square root of its running mean (``CSAC.update``). With the summed
     losses (paper) the reward critics' loss, ~10^4 times the cost critics' on SafeNav, alone
     shapes the features the cost critics read (docs/csac-v1.md). The critic heads are unaffected
-    (Adam is invariant to a slowly varying loss scale)."""
+    (Adam is invariant to a slowly varying loss scale). Only with cost critics and the shared
+    extractor; elsewhere it changes nothing."""
     cost_target: Literal["mean", "min", "max"] = "mean"
     """Reduction of the target cost critics in Eq. 6: mean (paper); min/max are ablations."""
     cost_n_step: int = 1
