@@ -32,7 +32,7 @@ import torch
 
 from safenav.algos.config import CSACConfig
 from safenav.algos.csac import CSAC
-from safenav.algos.policy import load_policy
+from safenav.algos.policy import policy_from_state
 from safenav.common.checkpoint import load_checkpoint, restore_agent
 from safenav.common.config import from_dict
 from safenav.envs.nav import SafeNavVectorEnv
@@ -46,7 +46,7 @@ BINS = (0.0, 0.5, 1.0, 2.0, 4.0, float("inf"))
 def _networks(path: Path):
     """(encoder, actor, qr or None, qc or None, env config) of a training checkpoint or a policy."""
     state = load_checkpoint(path)
-    policy = load_policy(path)  # also checks that it is a SafeNav policy with a Gaussian actor
+    policy = policy_from_state(state, path)  # the file read once, for the policy and the critics
     if not hasattr(policy.actor.actor, "sample"):
         raise SystemExit(f"{path}: not a CSAC/SAC policy (tanh-Gaussian actor)")
     if "agent" not in state:
