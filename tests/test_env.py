@@ -148,7 +148,11 @@ def test_pillar_collision_geometry(start, collides):
     assert float(info["cost"][0]) == (1.0 if collides else 0.0)
     if collides:  # the episode record says what was hit
         ep = info["episode"]
-        assert (bool(ep["hit_static"][0]), bool(ep["hit_dynamic"][0]), bool(ep["out_of_bounds"][0])) == (True, False, False)
+        assert (
+            bool(ep["hit_static"][0]),
+            bool(ep["hit_dynamic"][0]),
+            bool(ep["out_of_bounds"][0]),
+        ) == (True, False, False)
 
 
 @pytest.mark.parametrize(
@@ -166,7 +170,11 @@ def test_standing_cylinder_geometry(start, collides):
     assert bool(info["collision"][0]) is collides
     if collides:
         ep = info["episode"]
-        assert (bool(ep["hit_static"][0]), bool(ep["hit_dynamic"][0]), bool(ep["out_of_bounds"][0])) == (False, True, False)
+        assert (
+            bool(ep["hit_static"][0]),
+            bool(ep["hit_dynamic"][0]),
+            bool(ep["out_of_bounds"][0]),
+        ) == (False, True, False)
 
 
 @pytest.mark.parametrize(
@@ -194,7 +202,11 @@ def test_ground_and_ceiling_are_collisions():
         info = hover_step(env)[4]
         assert bool(info["collision"][0])
         ep = info["episode"]
-        assert (bool(ep["hit_static"][0]), bool(ep["hit_dynamic"][0]), bool(ep["out_of_bounds"][0])) == (False, False, True)
+        assert (
+            bool(ep["hit_static"][0]),
+            bool(ep["hit_dynamic"][0]),
+            bool(ep["out_of_bounds"][0]),
+        ) == (False, False, True)
     place(env, (0.0, 0.0, 2.0))
     assert not bool(hover_step(env)[4]["collision"][0])
 
@@ -310,6 +322,24 @@ def test_cost_is_one_exactly_at_collision_steps():
         collided.append(float(info["clearance"][0]) <= 0.0)
     assert costs == [1.0 if c else 0.0 for c in collided]
     assert 0 < sum(costs) < 60
+
+
+def test_reward_collision_is_paid_at_collision_steps_only():
+    """``reward_collision`` changes the reward of the collision step by exactly its value and
+    leaves every other step (and the cost) as it was."""
+    runs = []
+    for penalty in (0.0, -100.0):
+        env = hand_env(pillars=[(0.0, 0.0, 0.8, 5.0)], terminate_on_collision=False,
+                       reward_collision=penalty)  # fmt: skip
+        place(env, (-3.0, 0.0, 1.5), goal=(8.0, 0.0, 1.5))
+        steps = [env.step(torch.tensor([[0.5, 0.0, 0.0]])) for _ in range(60)]
+        runs.append([(float(r[0]), float(i["cost"][0])) for _, r, _, _, i in steps])
+    plain, penalised = runs
+    assert [c for _, c in plain] == [c for _, c in penalised] and sum(c for _, c in plain) > 0
+    for (r0, c), (r1, _) in zip(plain, penalised, strict=True):
+        assert r1 == pytest.approx(r0 - 100.0 * c, abs=1e-4)
+    with pytest.raises(ValueError, match="reward_collision"):
+        make_config("easy", reward_collision=1.0)
 
 
 def test_truncation_is_not_termination():

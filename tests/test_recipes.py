@@ -171,3 +171,35 @@ def test_train_records_the_recipe_in_config_json(tmp_path, capsys):
     config = json.loads((run_dir / "config.json").read_text())
     assert config["recipe"]["name"] == "csac-paper" and config["csac"]["cost_target"] == "mean"
     assert "recipe csac-paper" in capsys.readouterr().out
+
+
+def test_env_kwargs_from_the_command_line_and_a_recipe(tmp_path, capsys):
+    import json
+
+    from safenav.cli import main
+    from safenav.commands.train import parse_train_args
+
+    parsed = parse_train_args(["--algo", "csac", "--env-kwargs", "reward_collision", "-100"])
+    assert parsed["run"].env_kwargs == {"reward_collision": -100.0}
+    path = tmp_path / "mine.toml"
+    path.write_text(
+        '[recipe]\nalgo = "sac"\nbase = "sac"\n[run.env_kwargs]\nreward_collision = -50.0\n'
+    )
+    assert parse_train_args(["--config", str(path)])["run"].env_kwargs == {
+        "reward_collision": -50.0
+    }
+    with pytest.raises(ValueError, match="density is the curriculum's"):
+        RunConfig(env_kwargs={"density": 0.5})
+    common = ["--preset", "easy", "--num-envs", "4", "--eval-every", "0", "--no-progress",
+              "--no-tensorboard", "--csac.learning-starts", "32", "--csac.batch-size", "16"]  # fmt: skip
+    with pytest.raises(SystemExit) as exit_:
+        main(["train", "--algo", "sac", "--total-steps", "64", *common, "--env-kwargs", "nonesuch",
+              "1", "--run-dir", str(tmp_path / "bad")])  # fmt: skip
+    assert exit_.value.code == 2
+    assert "--env-kwargs: unknown EnvConfig field(s) ['nonesuch']" in capsys.readouterr().err
+    run_dir = tmp_path / "run"
+    main(["train", "--algo", "sac", "--total-steps", "64", *common, "--env-kwargs",
+          "reward_collision", "-100", "--run-dir", str(run_dir)])  # fmt: skip
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["run"]["env_kwargs"] == {"reward_collision": -100.0}
+    assert config["env_config"]["reward_collision"] == -100.0

@@ -78,6 +78,12 @@ class CSACConfig:
     """How d maps onto the Q_C scale of Eq. 11: ``horizon`` = cost spread evenly over T steps
     (``cost_horizon``); ``measured`` = d times the measured ratio E[Q_C] / episode cost, so that
     the constraint holds the episode cost at d (``common.curriculum.MeasuredCostScale``)."""
+    action_noise_beta: float = 0.0
+    """Exponent of the colored noise of the rollout actions: the standard-normal sample of
+    ``a = tanh(mu + sigma * eps)`` becomes, per env and action dimension, a Gaussian sequence with
+    power spectrum 1/f^beta over the episode (``common.colored_noise``); the updates are unchanged.
+    0 = white noise (SAC as published, the default), 1 = pink (Eberhard et al. 2023), 2 = red.
+    Beyond the paper."""
     net: NetConfig = field(default_factory=NetConfig)
     """Network sizes and extractor sharing."""
     curriculum: ConstraintCurriculumConfig = field(default_factory=ConstraintCurriculumConfig)
@@ -104,6 +110,9 @@ class CSACConfig:
             raise ValueError(f"lambda-max={self.lambda_max} must be >= 0 (or None: no cap)")
         if self.updates_per_step > 1000:
             raise ValueError(f"updates-per-step={self.updates_per_step} must be <= 1000")
+        if not (math.isfinite(self.action_noise_beta) and 0 <= self.action_noise_beta <= 2):
+            raise ValueError(f"action-noise-beta={self.action_noise_beta} must be a finite number "
+                             "in [0, 2] (0 = white noise, 1 = pink)")  # fmt: skip
         if self.cost_horizon < 0:
             raise ValueError(f"cost-horizon={self.cost_horizon} must be >= 0 (0 = the env's limit)")
         # 0 is allowed: it freezes that part (tests freeze the critics that way)

@@ -9,6 +9,7 @@ Algorithm 1 <-> code (the equations are pure functions in :mod:`safenav.algos.lo
       -> ``CSACLearner.__init__``
 5-8   warm-up: ``learning_starts`` env steps of uniform random actions -> ``CSACLearner.collect``
 10    act with ``a ~ pi(.|s)``, store ``(s, a, r, c, s', terminated)`` -> ``CSACLearner.collect``
+      (beyond the paper: ``action_noise_beta`` > 0 samples with colored noise, ``common.colored_noise``)
 11    sample a minibatch -> ``CSACLearner.update`` (``ReplayBuffer.sample``)
 12    targets Eqs. 5-6, critic losses Eqs. 7-8 -> ``CSAC.update`` (first block)
 13    actor Eq. 9, alpha Eq. 10, lambda Eq. 11, in the same step -> ``CSAC.update`` (second block)
@@ -41,6 +42,7 @@ from safenav.algos.losses import (
     reward_target,
 )
 from safenav.common.buffer import Batch, ReplayBuffer
+from safenav.common.colored_noise import ColoredNoise
 from safenav.common.config import RunConfig
 from safenav.common.curriculum import MeasuredCostScale, episode_cost_to_q_scale
 from safenav.common.lagrange import Lagrange
@@ -118,9 +120,12 @@ class CSAC(nn.Module):
         return self.lagrange.value if self.lagrange is not None else torch.zeros(())
 
     @torch.no_grad()
-    def act(self, obs: dict[str, torch.Tensor], deterministic: bool = False) -> torch.Tensor:
+    def act(self, obs: dict[str, torch.Tensor], deterministic: bool = False,
+            noise: torch.Tensor | None = None) -> torch.Tensor:  # fmt: skip
+        """Actions ``a ~ pi(.|s)`` (``noise``: the ``eps`` of the reparameterised sample, e.g.
+        colored noise; None = standard normal), or ``tanh(mean)`` when ``deterministic``."""
         x = self.encoder(obs) if self.encoder is not None else obs
-        action, _, mean_action = self.actor.sample(x)
+        action, _, mean_action = self.actor.sample(x, noise)
         return mean_action if deterministic else action
 
     def update(self, batch: Batch, d_q: float = 0.0) -> dict[str, torch.Tensor]:
@@ -277,6 +282,10 @@ class CSACLearner:
         self.next_lambda = cfg.lambda_every
         self.warmup_until, self.update_debt, self.resumed = cfg.learning_starts, 0.0, False
         self.pending: dict[str, float] = {}  # SAC-Lag's lambda step, for the next progress row
+        # beyond the paper: colored noise in the rollout actions (Eberhard et al. 2023); 0 = white
+        self.noise = (ColoredNoise(cfg.action_noise_beta, env.num_envs, env.action_dim,
+                                   env_horizon(env.envs), env.device)
+                      if cfg.action_noise_beta > 0 else None)  # fmt: skip
 
     def d_q(self, d: float) -> float:
         """The threshold of Eq. 11 on the Q_C scale for the curriculum's episode budget ``d``."""
@@ -291,8 +300,11 @@ class CSACLearner:
         if global_step < self.cfg.learning_starts and not self.resumed:
             actions = torch.rand(env.num_envs, env.action_dim, device=self.device) * 2.0 - 1.0
         else:
-            actions = self.agent.act(obs)
+            noise = self.noise.sample() if self.noise is not None else None
+            actions = self.agent.act(obs, noise=noise)
         step = env.step(actions)
+        if self.noise is not None:  # a new episode, a new noise sequence
+            self.noise.reset(step.terminated | step.truncated)
         transition = Batch(
             obs, actions, step.reward, step.cost, step.real_next_obs, step.terminated
         )
@@ -316,6 +328,8 @@ class CSACLearner:
     def maps_changed(self) -> None:
         if self.nstep is not None:  # later steps must not count towards earlier ones
             self.nstep.cut()
+        if self.noise is not None:
+            self.noise.reset()
 
     def update(self, global_step: int, d: float) -> tuple[int, list[dict[str, torch.Tensor]]]:
         """SAC-Lag's lambda step when due, then lines 11-15 as often as ``updates_per_step`` asks."""
@@ -365,6 +379,10 @@ class CSACLearner:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         cfg, global_step = self.cfg, state["global_step"]
         self.resumed = True
+        if self.noise is not None:
+            # not checkpointed: the trainer resets every env on resume, so every episode - and
+            # its noise sequence - starts anew, drawn from the restored RNG at the first step
+            self.noise.reset()
         if self.measured_scale is not None and state.get("cost_scale"):
             self.measured_scale.load_state_dict(state["cost_scale"])
         self.update_debt = state.get("update_debt", 0.0)

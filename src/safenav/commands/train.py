@@ -237,7 +237,7 @@ def plan(algo: str, run: RunConfig, csac: CSACConfig, ppo: PPOConfig, run_dir: P
         run_dir = Path("runs") / f"{algo}-{env_name}-s{run.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
     cfg = algo_config(algo, cfg)
     check_device(run.device)
-    obs_shapes, action_dim, env_cfg = env_spaces(run.env, run.preset)
+    obs_shapes, action_dim, env_cfg = env_spaces(run.env, run.preset, run.env_kwargs)
     if "lidar" in obs_shapes:  # each stride divides the range image's columns (36 -> 18 -> 9)
         columns, prefix = obs_shapes["lidar"][-1], f"--{family}.net.lidar-strides"
         if math.prod(cfg.net.lidar_strides) > columns:

@@ -28,6 +28,11 @@ class RunConfig:
     """Gymnasium env id: SafeNav-v1 or any registered id (Box actions; Box or Dict observations)."""
     preset: str | None = None
     """SafeNav-v1 preset (easy, medium, paper); None = paper. Only for SafeNav-v1."""
+    env_kwargs: dict[str, float | int | bool | str] = field(default_factory=dict)
+    """Keyword arguments of the env: SafeNav-v1 EnvConfig fields (e.g. ``reward_collision -100``;
+    the density is the curriculum's, --density.*), else ``gymnasium.make`` kwargs of the env id.
+    On the command line: ``--env-kwargs NAME VALUE [NAME VALUE ...]``; in a recipe:
+    ``[run.env_kwargs]``."""
     cost_fn: str | None = None
     """``module:function`` that gives the cost of each step of an env that reports no
     ``info["cost"]`` (:class:`safenav.common.costs.CostFn`); None = the env's own cost, or 0."""
@@ -77,6 +82,11 @@ class RunConfig:
             raise ValueError("eval-every, torch-threads and map-refresh-every must be >= 0")
         if not 0 <= self.seed <= MAX_SEED:
             raise ValueError(f"seed={self.seed} must lie in [0, {MAX_SEED}]")
+        if "density" in self.env_kwargs:
+            raise ValueError(
+                "env-kwargs density: the density is the curriculum's; set it with "
+                "--density.start / --density.end (or --density.no-enabled)"
+            )
         if self.select and not self.keep_policies:
             object.__setattr__(self, "keep_policies", True)  # the candidates of the selection
         if self.torch_threads > 1024:

@@ -94,6 +94,11 @@ class EnvConfig:
     """Weight of the penalty on the change of velocity between steps (NavRL)."""
     w_height: float = 8.0
     """Weight of the penalty on leaving the start-goal altitude band (NavRL)."""
+    reward_collision: float = 0.0
+    """Reward at a collision step (<= 0). 0 = none (the paper: collisions are the cost's, never the
+    reward's). NavRL's +1 per step survival bonus, dropped here, made a crash cost the rest of
+    that stream, about 1 / (1 - gamma) = 100 at gamma 0.99; -100 restores that loss in terminal
+    form without paying loitering."""
 
     num_worlds: int = 0
     """Independent maps in a vector env (env i flies in map i % num_worlds); 0 = min(num_envs, 16)."""
@@ -150,7 +155,7 @@ class EnvConfig:
             "control_hz", "velocity_time_constant", "max_acceleration", "lidar_range",
             "grid_resolution", "dyn_speed_period", "dyn_local_range", "goal_tolerance",
             "min_goal_distance", "max_episode_seconds", "reward_goal", "w_velocity", "w_static",
-            "w_dynamic", "w_smooth", "w_height",
+            "w_dynamic", "w_smooth", "w_height", "reward_collision",
         ):  # fmt: skip
             finite(name)
         for name in ("num_static", "num_dynamic", "physics_substeps", "lidar_h_beams",
@@ -168,6 +173,8 @@ class EnvConfig:
         for name in ("physics_substeps", "lidar_h_beams", "num_tracked", "start_sites"):
             if getattr(self, name) < 1:
                 bad(name, "must be >= 1")
+        if self.reward_collision > 0:
+            bad("reward_collision", "must be <= 0 (a penalty; a positive value pays crashes)")
         if not 0.0 <= self.density <= 1.0:
             bad("density", "must lie in [0, 1]")
         if not 0.0 <= self.z_min < self.z_max:

@@ -187,7 +187,9 @@ class SafeNavVectorEnv(VectorEnv):
     NavRL's shaping: velocity toward the goal (m/s) + mean log(beam distance / range) + mean
     log(clearance / range) of the tracked obstacles - 0.1 |v_t - v_{t-1}| - 8 x squared excursion
     outside the start-goal altitude band (+-0.2 m) + 20 on reaching the goal. NavRL's +1 per
-    step is dropped: with success ending the episode it would pay loitering.
+    step is dropped: with success ending the episode it would pay loitering. ``reward_collision``
+    (default 0) adds a reward at a collision step: -100 is the survival stream a crash loses in
+    NavRL (about 1 / (1 - 0.99)), in terminal form.
 
     ## Cost
     ``info["cost"]`` (paper Eq. 3): 1 at a step with a collision (pillar, moving obstacle, the
@@ -662,7 +664,8 @@ class SafeNavVectorEnv(VectorEnv):
         below = (self.band[:, 0] - z).clamp(min=0)
         p_height = above * above + below * below
         reward = (cfg.w_velocity * r_vel + cfg.w_static * r_static + cfg.w_dynamic * r_dyn
-                  - cfg.w_smooth * p_smooth - cfg.w_height * p_height + cfg.reward_goal * success.float())  # fmt: skip
+                  - cfg.w_smooth * p_smooth - cfg.w_height * p_height + cfg.reward_goal * success.float()
+                  + cfg.reward_collision * collision.float())  # fmt: skip
         cost = collision.float()
 
         self.steps += 1

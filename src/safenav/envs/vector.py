@@ -123,7 +123,7 @@ def check_env(env_id: str, preset: str | None = None) -> None:
 
 
 def env_spaces(
-    env_id: str, preset: str | None = None
+    env_id: str, preset: str | None = None, env_kwargs: dict[str, Any] | None = None
 ) -> tuple[dict[str, tuple[int, ...]], int, Any]:
     """``(observation shapes, action dimension, SafeNav EnvConfig or None)`` of ``env_id``, checked
     before a run directory exists: ``SafenavError`` for an env that cannot be made (missing
@@ -133,10 +133,13 @@ def env_spaces(
     if is_safenav(env_id):
         from safenav.envs.config import make_config, observation_shapes
 
-        cfg = make_config(preset or "paper")
+        try:
+            cfg = make_config(preset or "paper", **(env_kwargs or {}))
+        except (TypeError, ValueError) as err:
+            raise SafenavError(f"--env-kwargs: {err}") from None
         return observation_shapes(cfg), 3, cfg
     try:
-        env = _make(env_id)
+        env = _make(env_id, **(env_kwargs or {}))
     except Exception as err:  # noqa: BLE001 -- a missing extra (box2d, mujoco), a bad kwarg, ...
         missing = isinstance(err, ImportError) or type(err).__name__ == "DependencyNotInstalled"
         kind = SafenavRuntimeError if missing else SafenavError  # install it vs. fix the command

@@ -86,10 +86,14 @@ class Actor(nn.Module):
         log_std = LOG_STD_MIN + 0.5 * (LOG_STD_MAX - LOG_STD_MIN) * (torch.tanh(log_std) + 1.0)
         return mean, log_std
 
-    def sample(self, x) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """``(action, log_prob, deterministic action)``; the action is reparameterised."""
+    def sample(
+        self, x, noise: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(action, log_prob, deterministic action)``; the action is reparameterised with
+        ``noise`` (``(N, A)``; None = a standard-normal draw)."""
         mean, log_std = self(x)
-        action, logp = squashed_gaussian(mean, log_std, torch.randn_like(mean))
+        noise = torch.randn_like(mean) if noise is None else noise
+        action, logp = squashed_gaussian(mean, log_std, noise)
         return action, logp, torch.tanh(mean)
 
 

@@ -56,7 +56,7 @@ def write_run_config(
     if is_safenav(run.env):
         from safenav.envs.config import make_config
 
-        data["env_config"] = to_dict(make_config(run.preset or "paper"))
+        data["env_config"] = to_dict(make_config(run.preset or "paper", **run.env_kwargs))
     write_json_atomic(Path(run_dir) / "config.json", data)
 
 

@@ -154,12 +154,14 @@ class Trainer:
         # -- envs, learner, curricula (in this order: the agent's initial weights draw from the RNG)
         self.density = DensityCurriculum(run.density, run.total_steps)
         self.nav = is_safenav(run.env)
-        env_kwargs = {"density": self.density.density} if self.nav else {}
+        env_kwargs = dict(run.env_kwargs)
+        if self.nav:  # the curriculum's density
+            env_kwargs["density"] = self.density.density
         self.env = TorchVecEnv(make_vec_env(run.env, run.num_envs, run.device, run.preset,
                                             **env_kwargs), self.device)  # fmt: skip
         self.eval_env = None
         if run.eval_every > 0:
-            eval_kwargs = {"density": run.density.end} if self.nav else {}
+            eval_kwargs = {**env_kwargs, "density": run.density.end} if self.nav else env_kwargs
             self.eval_env = TorchVecEnv(make_vec_env(run.env, min(run.eval_episodes, 32), run.device,
                                                      run.preset, **eval_kwargs), self.device)  # fmt: skip
         self.learner: Learner = LEARNERS[algo](self.env, run, cfg)
