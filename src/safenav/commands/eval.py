@@ -44,14 +44,12 @@ def eval_(
     from rich.table import Table
 
     from safenav import ENV_ID
-    from safenav.envs.config import make_config
     from safenav.experiments.evaluate import evaluate
-    from safenav.experiments.flight import resolve_policy
+    from safenav.experiments.flight import resolve_policy, scenario_config
 
     check_eval_args(env_seed, episodes, json_out, device, preset)
     fn, cfg = resolve_policy(checkpoint, policy, device)
-    if preset is not None or cfg is None:
-        cfg = make_config(preset or "paper")
+    cfg = scenario_config(cfg, preset)
     if policy == "checkpoint":
         from safenav.algos.policy import check_fits_safenav
 

@@ -28,7 +28,7 @@ class RunConfig:
     """Gymnasium env id: SafeNav-v1 or any registered id (Box actions; Box or Dict observations)."""
     preset: str | None = None
     """SafeNav-v1 preset (easy, medium, paper); None = paper. Only for SafeNav-v1."""
-    env_kwargs: dict[str, float | int | bool | str] = field(default_factory=dict)
+    env_kwargs: dict[str, int | float | bool | str] = field(default_factory=dict)
     """Keyword arguments of the env: SafeNav-v1 EnvConfig fields (e.g. ``reward_collision -100``;
     the density is the curriculum's, --density.*), else ``gymnasium.make`` kwargs of the env id.
     On the command line: ``--env-kwargs NAME VALUE [NAME VALUE ...]``; in a recipe:

@@ -86,6 +86,16 @@ def policy_conventions(cfg: EnvConfig) -> dict[str, Any]:
     }  # fmt: skip
 
 
+def check_deployable(cfg: EnvConfig, where: str | Path) -> None:
+    """``SafenavError`` unless the onboard runtime can build the observations of a policy of env
+    configuration ``cfg`` (``where`` names it): not for a range-image history yet."""
+    if cfg.lidar_history > 1:
+        raise SafenavError(f"{where}: policies trained with lidar_history > 1 cannot be deployed "
+                           f"yet: this one reads the range images of the last {cfg.lidar_history} "
+                           "control steps, and the onboard runtime (safenav export / fly) builds "
+                           "the current one only; evaluate it in simulation (safenav eval)")  # fmt: skip
+
+
 def call_actor(
     actor: nn.Module, state: torch.Tensor, lidar: torch.Tensor, dynamic: torch.Tensor
 ) -> torch.Tensor:
@@ -147,6 +157,7 @@ def export_onnx(
     """
     import onnx
 
+    check_deployable(cfg, checkpoint or onnx_path)
     onnx_path = Path(onnx_path)
     newest = onnx.defs.onnx_opset_version()
     if not 1 <= opset <= newest:
@@ -271,7 +282,9 @@ def load_sidecar(onnx_path: str | Path) -> tuple[dict[str, Any], EnvConfig]:
         raise SafenavError(
             f"{path} is not a {SIDECAR_FORMAT} sidecar (format={meta.get('format')!r})"
         )
-    return meta, env_config_from_dict(meta["env_config"])
+    cfg = env_config_from_dict(meta["env_config"])
+    check_deployable(cfg, onnx_path)
+    return meta, cfg
 
 
 def is_torch_file(path: str | Path) -> bool:
@@ -366,6 +379,7 @@ def load_actor(checkpoint: str | Path, device: str = "cpu") -> tuple[nn.Module, 
         cfg = _meta_env_config(getattr(policy, "meta", None))
     if cfg is None:
         raise SafenavError(f"{path}: the checkpoint's metadata carries no env configuration")
+    check_deployable(cfg, path)
     return policy.actor, cfg
 
 
@@ -373,6 +387,7 @@ __all__ = [
     "INPUT_NAMES",
     "NamedInputActor",
     "call_actor",
+    "check_deployable",
     "OUTPUT_NAME",
     "SIDECAR_FORMAT",
     "OnnxPolicy",

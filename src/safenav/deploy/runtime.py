@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from safenav.deploy.export import check_deployable
 from safenav.deploy.frames import enu_to_ned, goal_frame_yaw, yaw_enu_to_ned
 from safenav.deploy.mapping import HeightMap
 from safenav.deploy.perception_link import DepthImage, PerceptionFrame, TrackedObstacle
@@ -127,6 +128,7 @@ class OnboardRuntime:
         grid: GridSpec | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
+        check_deployable(env_config, "the onboard runtime's policy")
         self.policy = policy
         self.cfg = env_config
         self.config = config or RuntimeConfig()

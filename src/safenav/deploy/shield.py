@@ -369,7 +369,8 @@ def _shield_action_compiled(lidar, dyn, action, cfg: ShieldConfig, spec: RangeIm
 def env_shield(env, obs: dict[str, torch.Tensor], action: torch.Tensor) -> torch.Tensor:
     """The shield as evaluation calls it: ``action = env_shield(env, obs, action)`` for a
     :class:`~safenav.envs.nav.SafeNavVectorEnv` with torch output (its ``cfg`` sets radii, v_max
-    and the beam layout)."""
+    and the beam layout). With a range-image history it reads the current image (the first rows)."""
+    obs = {**obs, "lidar": obs["lidar"][:, : len(env.cfg.lidar_v_angles)]}
     out, _ = shield_action(obs, action, ShieldConfig.for_env(env.cfg))
     return out
 

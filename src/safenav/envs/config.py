@@ -61,6 +61,18 @@ class EnvConfig:
     """Elevations of the vertical beams in degrees (NavRL)."""
     grid_resolution: float = 0.1
     """Cell side of the occupancy grid map in metres."""
+    lidar_history: int = 1
+    """Range images in the observation: the current one and those of the previous
+    ``lidar_history - 1`` control steps, stacked as extra rows, newest first (rows
+    ``[i * E, (i + 1) * E)`` are the image of ``i`` steps ago, ``E`` = elevations); an episode
+    starts with copies of its first image. 1 = the paper's memoryless observation (the default).
+    Beyond the paper: a short memory of obstacles that left the field of view or fell between
+    beams. Extra rows, not a new axis, keep the observation's rank: the range-image encoder reads
+    the rows as the input channels of its circular convolution over azimuth, so the images of
+    successive steps become channels (frame stacking) and every code path that handles the
+    ``(rows, beams)`` image (replay buffer, networks, checkpoints) works unchanged; readers of the
+    current image (the shield) take its first ``E`` rows. Not deployable yet (``safenav export`` /
+    ``fly`` refuse it: the onboard runtime builds memoryless observations)."""
 
     num_tracked: int = 5
     """Number of nearest moving obstacles in the observation (NavRL)."""
@@ -173,6 +185,9 @@ class EnvConfig:
         for name in ("physics_substeps", "lidar_h_beams", "num_tracked", "start_sites"):
             if getattr(self, name) < 1:
                 bad(name, "must be >= 1")
+        history = self.lidar_history
+        if isinstance(history, bool) or not isinstance(history, int) or not 1 <= history <= 8:
+            bad("lidar_history", "must be an integer from 1 to 8 (range images in the observation)")
         if self.reward_collision > 0:
             bad("reward_collision", "must be <= 0 (a penalty; a positive value pays crashes)")
         if not 0.0 <= self.density <= 1.0:
@@ -229,20 +244,27 @@ PRESETS: dict[str, dict] = {
 
 def observation_shapes(cfg: EnvConfig | Mapping[str, Any]) -> dict[str, tuple[int, ...]]:
     """SafeNav's observation layout under ``cfg`` (an EnvConfig, or one as a dict, e.g. from
-    a checkpoint): ``state`` (8,), ``lidar`` (elevations, beams), ``dynamic`` (tracked, 10)."""
+    a checkpoint): ``state`` (8,), ``lidar`` (elevations x lidar_history, beams), ``dynamic``
+    (tracked, 10). A dict without ``lidar_history`` (older checkpoints) has 1."""
     c = cfg if isinstance(cfg, Mapping) else dataclasses.asdict(cfg)
-    return {"state": (8,), "lidar": (len(c["lidar_v_angles"]), int(c["lidar_h_beams"])),
+    rows = len(c["lidar_v_angles"]) * int(c.get("lidar_history", 1))
+    return {"state": (8,), "lidar": (rows, int(c["lidar_h_beams"])),
             "dynamic": (int(c["num_tracked"]), 10)}  # fmt: skip
 
 
 def make_config(preset: str = "paper", **overrides) -> EnvConfig:
-    """The named preset with ``overrides`` applied; ``ValueError`` for unknown names or fields."""
+    """The named preset with ``overrides`` applied; ``ValueError`` for unknown names or fields.
+    A whole float for an integer field is taken as that integer (``--env-kwargs lidar_history 3``
+    arrives as 3.0)."""
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}: choose one of {sorted(PRESETS)}")
-    known = {f.name for f in dataclasses.fields(EnvConfig)}
-    unknown = sorted(set(overrides) - known)
+    types = {f.name: f.type for f in dataclasses.fields(EnvConfig)}
+    unknown = sorted(set(overrides) - set(types))
     if unknown:
-        raise ValueError(f"unknown EnvConfig field(s) {unknown}; known fields: {sorted(known)}")
+        raise ValueError(f"unknown EnvConfig field(s) {unknown}; known fields: {sorted(types)}")
+    for name, value in overrides.items():
+        if types[name] in (int, "int") and isinstance(value, float) and value.is_integer():
+            overrides[name] = int(value)
     return EnvConfig(**{**PRESETS[preset], **overrides})
 
 

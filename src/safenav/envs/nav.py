@@ -178,7 +178,10 @@ class SafeNavVectorEnv(VectorEnv):
     goal / 20 m (1), z distance to goal / 4 m (1), velocity in the goal frame / v_max (3).
     ``lidar`` (4, 36): ``(4 - d) / 4`` for beam distances ``d`` ray-cast from the occupancy grid
     (pillars and the border wall), rows at elevations -10, 0, 10, 20 degrees, columns every 10
-    degrees from the goal direction.
+    degrees from the goal direction. With ``lidar_history`` k > 1 (beyond the paper; default 1):
+    ``(4 k, 36)``, the images of the last k control steps stacked as rows, newest first (rows
+    ``4 i`` to ``4 i + 3`` are the image of ``i`` steps ago); an episode starts with k copies of
+    its first image.
     ``dynamic`` (5, 10): the 5 nearest moving obstacles within 4 m (zeros beyond), each: unit
     relative position in the goal frame (3), horizontal distance / 4 (1), z distance / 4 (1),
     velocity in the goal frame / v_max (3), width class / 3 (1), 1 for floating cuboids (1).
@@ -339,6 +342,9 @@ class SafeNavVectorEnv(VectorEnv):
         self._trail: list[np.ndarray] = []
         self.render_env_index = 0
         self._last_ranges: torch.Tensor | None = None
+        # Range-image history (lidar_history > 1): the stacked lidar rows of the last step,
+        # newest image first; observations get copies (a caller may change them in place).
+        self._lidar_hist: torch.Tensor | None = None
 
     # ------------------------------------------------------------------ worlds and density
     def _build_worlds(self, base_seed: int) -> None:
@@ -502,12 +508,23 @@ class SafeNavVectorEnv(VectorEnv):
         # All envs: an env outside the mask gets the observation of its unchanged state again.
         obs, aux = self._sense()
         self._last_ranges = aux["ranges"]
+        if self.cfg.lidar_history > 1:  # a fresh episode remembers copies of its first image
+            fresh = self._first_history(obs["lidar"])
+            if mask is not None:  # the others keep their history
+                fresh = torch.where(mask[:, None, None], fresh, self._lidar_hist)
+            self._lidar_hist, obs["lidar"] = fresh, fresh.clone()
         if self.render_mode is not None and bool((ids == self.render_env_index).any()):
             self._trail = [self.pos[self.render_env_index].cpu().numpy().copy()]
         info: dict[str, Any] = {"episode_id": self.episode_counter.clone()}
         if mask is not None:
             info["_episode_id"] = mask.clone()
         return self._out(obs), self._out(info)
+
+    def _first_history(self, lidar: torch.Tensor) -> torch.Tensor:
+        """The range-image history of episodes that start with image ``lidar`` ``(N, E, C)``:
+        ``lidar_history`` copies of it, ``(N, E * lidar_history, C)`` (no zeros: a zero beam
+        means free space, which a new episode has not seen)."""
+        return lidar.repeat(1, self.cfg.lidar_history, 1)
 
     def _reset_mask(self, mask, seed: int | None) -> torch.Tensor | None:
         """The ``reset_mask`` option as a bool tensor on the device (``None``: reset all)."""
@@ -642,6 +659,10 @@ class SafeNavVectorEnv(VectorEnv):
                                               cfg.velocity_time_constant, cfg.max_acceleration)  # fmt: skip
         self._step_obstacles()
         obs, aux = self._sense()
+        if cfg.lidar_history > 1:  # shift the history by one image, newest first
+            older = self._lidar_hist[:, : -len(cfg.lidar_v_angles)]
+            self._lidar_hist = torch.cat([obs["lidar"], older], 1)
+            obs["lidar"] = self._lidar_hist.clone()
 
         z = self.pos[:, 2]
         border_clear = border_clearance(self.pos, cfg.half)
@@ -715,6 +736,9 @@ class SafeNavVectorEnv(VectorEnv):
                 self.episode_counter[ids] += 1
                 self._start_episodes(ids)
                 new_obs, new_aux = self._sense(ids)
+                if cfg.lidar_history > 1:
+                    new_obs["lidar"] = self._first_history(new_obs["lidar"])
+                    self._lidar_hist[ids] = new_obs["lidar"]
                 for key in obs:
                     obs[key][ids] = new_obs[key]
                 self._last_ranges[ids] = new_aux["ranges"]

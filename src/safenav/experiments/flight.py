@@ -7,7 +7,7 @@ from pathlib import Path
 
 import torch
 
-from safenav.envs.config import make_config
+from safenav.envs.config import EnvConfig, make_config
 from safenav.envs.nav import SafeNavVectorEnv
 from safenav.envs.render import render_topdown, write_gif
 from safenav.envs.scripted import BorderFollower, go_to_goal, potential_field
@@ -40,6 +40,16 @@ def resolve_policy(checkpoint: Path | None, policy: str, device: str = "cpu"):
     raise SafenavError(f"unknown policy {policy!r}: choose one of {', '.join(POLICIES)}")
 
 
+def scenario_config(cfg: EnvConfig | None, preset: str | None) -> EnvConfig:
+    """The env config a policy flies in: the ``preset``'s scenario when one is given, else the
+    policy's own ``cfg`` (else the paper's). A preset keeps what the policy reads beyond the
+    scenario, its range-image history (``lidar_history``)."""
+    if preset is None and cfg is not None:
+        return cfg
+    scenario = make_config(preset or "paper")
+    return scenario if cfg is None else scenario.replace(lidar_history=cfg.lidar_history)
+
+
 @torch.no_grad()
 def render_episode(
     out: Path,
@@ -55,9 +65,7 @@ def render_episode(
     """Fly episode ``episode`` of the fixed scenario and write ``out`` (GIF), and ``record``
     (MCAP, stamped with the simulation time) when given; returns its stats."""
     fn, cfg = resolve_policy(checkpoint, policy)
-    if preset is not None or cfg is None:
-        cfg = make_config(preset or "paper")
-    cfg, starts, goals = fixed_test_scenario(cfg, env_seed, episode + 1)
+    cfg, starts, goals = fixed_test_scenario(scenario_config(cfg, preset), env_seed, episode + 1)
     env = SafeNavVectorEnv(1, config=cfg, output="torch", autoreset_mode="Disabled",
                            render_mode="rgb_array")  # fmt: skip
     obs, _ = env.reset(

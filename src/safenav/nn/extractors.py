@@ -30,6 +30,8 @@ class NavExtractor(nn.Module):
     channels of three circular 1-D convolutions along azimuth (kernel 5, channels 8/16/16,
     strides 2/2/1: 36 -> 18 -> 9 columns, a receptive field of 29 columns = 290 degrees), then
     ``Linear(9 * 16 -> 128)``. Dynamic obstacles ``(5, 10)``: ``50 -> 128 -> 64``. ReLU throughout.
+    A range-image history (``EnvConfig.lidar_history`` k) is ``k * R`` rows: ``k * R`` input
+    channels of the first convolution (frame stacking), nothing else changes.
     """
 
     def __init__(
