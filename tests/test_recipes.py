@@ -203,3 +203,16 @@ def test_env_kwargs_from_the_command_line_and_a_recipe(tmp_path, capsys):
     config = json.loads((run_dir / "config.json").read_text())
     assert config["run"]["env_kwargs"] == {"reward_collision": -100.0}
     assert config["env_config"]["reward_collision"] == -100.0
+
+
+def test_the_comparison_recipes_share_one_env_reward():
+    """csac, sac, sac-lag, ppo and ppo-lag train on the same env reward (issue 21 compares them);
+    csac-paper keeps the env's own."""
+    from safenav.commands.train import parse_train_args
+
+    kwargs = {name: parse_train_args(["--config", name])["run"].env_kwargs
+              for name in ("csac", "sac", "sac-lag", "ppo", "ppo-lag")}  # fmt: skip
+    assert all(k == {"reward_collision": -100} for k in kwargs.values()), kwargs
+    assert parse_train_args(["--config", "csac-paper"])["run"].env_kwargs == {}
+    mine = parse_train_args(["--algo", "csac", "--env-kwargs", "reward_collision", "0"])
+    assert mine["run"].env_kwargs == {"reward_collision": 0}
