@@ -220,6 +220,7 @@ VERDICTS: dict[str, dict[str, int]] = {
     **{f"train --csac.{lr}": NONNEG for lr in ("actor-lr", "reward-critic-lr", "cost-critic-lr",
                                                 "alpha-lr", "lambda-lr")},
     "train --csac.init-alpha": POSITIVE, "train --csac.target-entropy": ANY,
+    "train --csac.action-noise-beta": {"0": ACCEPTED},  # in [0, 2]
     "train --csac.init-lambda": NONNEG, "train --csac.lambda-max": NONNEG,
     "train --csac.num-critics": MEMORY, "train --csac.num-cost-critics": {"0": ACCEPTED, "huge": 1},
     "train --csac.lambda-every": POSITIVE, "train --csac.episode-lambda-lr": POSITIVE,
@@ -336,6 +337,7 @@ STR_CASES: dict[str, list[tuple[str, int]]] = {
     "bench --sb3": [("NoSuchEnv-v0", 2)],
     "bench --train-args": [("--nope 1", 2)],
     "train --cost-fn": [("nomodule:cost", 2), ("math", 2), ("math:nosuch", 2), ("math:sqrt", 2)],
+    "train --env-kwargs": [("nonesuch", 2)],  # a name without its value
 }
 
 
