@@ -225,6 +225,7 @@ VERDICTS: dict[str, dict[str, int]] = {
     "train --csac.num-critics": MEMORY, "train --csac.num-cost-critics": {"0": ACCEPTED, "huge": 1},
     "train --csac.lambda-every": POSITIVE, "train --csac.episode-lambda-lr": POSITIVE,
     "train --csac.cost-n-step": MEMORY, "train --csac.cost-horizon": NONNEG,
+    "train --csac.cost-gamma": {},  # in (0, 1]
     **{f"train --{a}.net.{n}": MEMORY for a in ("csac", "ppo")
        for n in ("hidden", "lidar-kernel", "lidar-embed", "dynamic-hidden", "dynamic-embed",
                  "flatten-hidden")},
@@ -243,6 +244,8 @@ VERDICTS: dict[str, dict[str, int]] = {
     "train --ppo.value-norm-beta": {}, "train --ppo.target-kl": POSITIVE,
     "train --ppo.lambda-lr": POSITIVE, "train --ppo.init-lambda": NONNEG,
     "train --ppo.lambda-max": NONNEG,
+    "train --ppo.sde-sample-freq": ANY,  # <= 0: once per rollout; read only with --ppo.use-sde
+    "train --ppo.log-std-init": {"-1": ACCEPTED, "0": ACCEPTED},  # in [-20, 20]
     # the other verbs
     "eval --env-seed": {"0": ACCEPTED}, "eval --episodes": MEMORY,
     "render --env-seed": {"0": ACCEPTED}, "render --episode": {"0": ACCEPTED}, "render --fps": {},
@@ -339,6 +342,10 @@ STR_CASES: dict[str, list[tuple[str, int]]] = {
     "train --cost-fn": [("nomodule:cost", 2), ("math", 2), ("math:nosuch", 2), ("math:sqrt", 2)],
     "train --env-kwargs": [("nonesuch", 2)],  # a name without its value
 }
+SWITCH_CASES: dict[str, int] = {
+    # the switch alone on the base command line, which trains SafeNav: refused, naming it
+    "train --normalize-obs": 2, "train --normalize-reward": 2,
+}  # fmt: skip
 
 
 def generic_values(kind_: str, n: int) -> list[list[str]]:
@@ -368,6 +375,8 @@ def cases(verb: str, opts: dict[str, str], ws: Path) -> list[tuple[list[str], in
             out.append(([*base(verb, flag, ws), flag, *values], 2, name))
         if k == "bool":  # a switch given a value
             out.append(([*base(verb, flag, ws), f"{flag}=maybe"], 2, name))
+        if key in SWITCH_CASES:
+            out.append(([*base(verb, flag, ws), flag], SWITCH_CASES[key], name))
         if k in ("int", "float") and key in VERDICTS:
             for label, value in (("-1", "-1"), ("0", "0"),
                                  ("huge", HUGE_INT if k == "int" else HUGE_FLOAT)):  # fmt: skip

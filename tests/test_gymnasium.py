@@ -89,8 +89,8 @@ def test_family_recipes_ship_cite_their_sources_and_build_valid_configs():
         assert "Departures" in text and "Measured" in text, name
         ppo = name.endswith("-ppo")
         assert recipe.algos == (("ppo", "ppo_lag") if ppo else ("sac", "csac", "sac_lag"))
-        for env in (None, *recipe.envs):
-            apply(RunConfig(), recipe.section("run", env))
+        for env in (None, *recipe.envs):  # on a Gymnasium task (--normalize-* refuse SafeNav)
+            apply(RunConfig(env="Pendulum-v1"), recipe.section("run", env))
             cfg = apply(
                 PPOConfig() if ppo else CSACConfig(), recipe.section("ppo" if ppo else "csac", env)
             )

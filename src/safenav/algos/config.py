@@ -72,6 +72,10 @@ class CSACConfig:
     cost_n_step: int = 1
     """Steps of the cost target: 1 = Eq. 6; n > 1 = the n-step return of the behaviour policy's
     costs, then the target critics (beyond the paper, ``common.nstep``); reward stays one-step."""
+    cost_gamma: float | None = None
+    """Discount of the cost critics (Eq. 6, the n-step cost target and the mapping of d onto the
+    Q_C scale); None = ``gamma`` (paper). Beyond the paper: a shorter cost horizon makes Q_C the
+    risk of the next seconds, which one action changes more than the risk of the whole episode."""
     cost_horizon: int = 0
     """Horizon T mapping the episode budget d onto the Q_C scale; 0 = the env's time limit."""
     cost_scale: Literal["horizon", "measured"] = "horizon"
@@ -102,6 +106,8 @@ class CSACConfig:
             )
         if self.cost_n_step < 1:
             raise ValueError(f"cost-n-step={self.cost_n_step} must be >= 1")
+        if self.cost_gamma is not None and not 0 < self.cost_gamma <= 1:
+            raise ValueError(f"cost-gamma={self.cost_gamma} must lie in (0, 1] (or None: gamma)")
         if self.num_cost_critics < 0 or self.lambda_every < 1 or self.episode_lambda_lr <= 0:
             raise ValueError("num-cost-critics >= 0, lambda-every >= 1, episode-lambda-lr > 0")
         if self.init_alpha <= 0 or self.init_lambda < 0:
@@ -120,6 +126,11 @@ class CSACConfig:
             lr = getattr(self, name)
             if not (math.isfinite(lr) and lr >= 0):
                 raise ValueError(f"{name.replace('_', '-')}={lr} must be a finite number >= 0")
+
+    @property
+    def cost_discount(self) -> float:
+        """The discount of the cost critics: ``cost_gamma``, else ``gamma`` (paper)."""
+        return self.gamma if self.cost_gamma is None else self.cost_gamma
 
 
 __all__ = ["CSACConfig"]

@@ -163,7 +163,7 @@ class CSAC(nn.Module):
                                          self.qc_target(x_n_target, actions_n), cfg.cost_target)  # fmt: skip
             elif self.qc is not None:
                 y_c = cost_target(costs, terminated, self.qc_target(x_next_target, next_actions),
-                                  cfg.gamma, cfg.cost_target)  # fmt: skip
+                                  cfg.cost_discount, cfg.cost_target)  # fmt: skip
         q_r = self.qr(x, actions)
         loss_qr = critic_loss(q_r, y_r)
         loss_critic = loss_qr
@@ -273,9 +273,9 @@ class CSACLearner:
         n_step = cfg.constrained and cfg.cost_n_step > 1
         self.buffer = ReplayBuffer(min(cfg.buffer_size, max(run.total_steps, cfg.batch_size)),
                                    env.obs_shapes, env.action_dim, env.device, n_step=n_step)  # fmt: skip
-        self.nstep = NStepWindow(cfg.cost_n_step, cfg.gamma) if n_step else None
+        self.nstep = NStepWindow(cfg.cost_n_step, cfg.cost_discount) if n_step else None
         self.horizon = cfg.cost_horizon or env_horizon(env.envs)
-        self.measured_scale = (MeasuredCostScale(fallback=episode_cost_to_q_scale(1.0, cfg.gamma, self.horizon))
+        self.measured_scale = (MeasuredCostScale(fallback=episode_cost_to_q_scale(1.0, cfg.cost_discount, self.horizon))
                                if cfg.constrained and cfg.cost_scale == "measured" else None)  # fmt: skip
         self.episode_lambda = cfg.constrained and cfg.lambda_from == "episode_cost"
         self.lam_costs: list[float] = []  # episode costs since the last lambda update (SAC-Lag)
@@ -291,7 +291,7 @@ class CSACLearner:
         """The threshold of Eq. 11 on the Q_C scale for the curriculum's episode budget ``d``."""
         if self.measured_scale is not None:
             return self.measured_scale.d_q(d)
-        return episode_cost_to_q_scale(d, self.cfg.gamma, self.horizon)
+        return episode_cost_to_q_scale(d, self.cfg.cost_discount, self.horizon)
 
     def collect(self, env: TorchVecEnv, obs: dict[str, torch.Tensor], global_step: int,
                 d: float) -> tuple[dict[str, torch.Tensor], list[dict[str, torch.Tensor]], int]:  # fmt: skip

@@ -1,11 +1,15 @@
 """Load a trained policy from a checkpoint: ``load_policy(path) -> Policy``.
 
 ``Policy(obs)`` maps a batch of observations (a dict of tensors, or one tensor for ``Box``
-observations) to deterministic actions ``tanh(mean)`` in ``[-1, 1]`` as a ``(B, A)`` tensor.
+observations) to deterministic actions in ``[-1, 1]`` as a ``(B, A)`` tensor (SAC's ``tanh(mean)``,
+PPO's Beta mean or clipped Gaussian mean).
 ``Policy.actor`` is the underlying :class:`~safenav.nn.networks.DeterministicActor`, an
 ``nn.Module`` taking the observation tensors positionally (``state, lidar, dynamic`` for SafeNav)
 - what ``safenav export`` traces to ONNX. ``Policy.meta`` says what the policy is: algorithm, env
-id, env configuration, observation shapes, network sizes, training step.
+id, env configuration, observation shapes, network sizes, training step. A policy trained with
+``--normalize-obs`` takes the env's own observations too: its actor is a
+:class:`~safenav.common.normalize.NormalizedActor`, the observation statistics of its training
+in front of the network (``meta["obs_normalization"]``).
 """
 
 from __future__ import annotations
@@ -93,11 +97,30 @@ class Policy:
 
 def build_actor(meta: dict[str, Any]) -> DeterministicActor:
     """An untrained :class:`DeterministicActor` with the architecture ``meta`` describes (for PPO
-    checkpoints, ``policy_head: "beta"``, the Beta-mean actor of :mod:`safenav.nn.beta`)."""
+    checkpoints, ``policy_head: "beta"``, the Beta-mean actor of :mod:`safenav.nn.beta`, or
+    ``"gaussian"``, the clipped Gaussian mean of :mod:`safenav.nn.gaussian`), behind an
+    observation normaliser if ``meta`` has ``obs_normalization`` (``--normalize-obs``)."""
+    actor = _build_network(meta)
+    norm = meta.get("obs_normalization")
+    if norm is None:
+        return actor
+    from safenav.common.normalize import NormalizedActor, ObsNormalizer
+
+    shapes = {k: tuple(v) for k, v in meta["obs_shapes"].items()}
+    return NormalizedActor(
+        ObsNormalizer(shapes, float(norm["clip"]), float(norm["epsilon"])), actor
+    )
+
+
+def _build_network(meta: dict[str, Any]) -> DeterministicActor:
     if meta.get("policy_head") == "beta":
         from safenav.nn.beta import build_beta_actor
 
         return build_beta_actor(meta)
+    if meta.get("policy_head") == "gaussian":
+        from safenav.nn.gaussian import build_gaussian_actor
+
+        return build_gaussian_actor(meta)
     from safenav.common.config import from_dict
 
     net: NetConfig = from_dict(NetConfig, meta["net"])

@@ -5,7 +5,11 @@ One iteration (the pure pieces are in :mod:`safenav.algos.ppo_losses`):
 
 1. rollout: ``rollout_steps`` vector steps with ``a ~ Beta`` mapped to ``[-1, 1]``, storing
    ``log pi(a|s)`` and ``V(s)``; where an episode is *truncated* the value of its true final
-   observation ``V(final_obs)`` is stored too -> :func:`collect_rollout`
+   observation ``V(final_obs)`` is stored too -> :func:`collect_rollout`. (Beyond NavRL,
+   ``distribution="gaussian"``: ``a ~ N(mu, sigma^2)``, the env gets ``clip(a, -1, 1)`` and the
+   rollout stores ``a`` and its log-density (SB3's PPO); with ``use_sde`` the noise is gSDE's,
+   its exploration matrices drawn at the rollout's start and every ``sde_sample_freq`` steps
+   (Raffin et al., CoRL 2021) -> :mod:`safenav.nn.gaussian`.)
 2. (PPO-Lag) ``lambda <- max(0, lambda + Adam step on (J_c - d))`` with ``J_c`` the mean cost of the
    episodes that ended in the rollout -> :class:`~safenav.common.lagrange.Lagrange`, in
    :meth:`PPOLearner.update`
@@ -46,13 +50,22 @@ from safenav.common.rollout import Rollout, ValueNorm
 from safenav.envs.vector import TorchVecEnv
 from safenav.errors import SafenavError
 from safenav.nn.beta import POLICY_HEAD, BetaActorCritic, BetaDeterministicActor
+from safenav.nn.gaussian import POLICY_HEAD as GAUSSIAN_HEAD
+from safenav.nn.gaussian import (
+    GaussianActorCritic,
+    GaussianDeterministicActor,
+    gaussian_entropy,
+    gaussian_log_prob,
+)
 from safenav.nn.networks import input_order
 from safenav.nn.optim import adam
 
 
 class PPO(nn.Module):
     """Actor-critic, value normalisation, optimiser and the PPO update (PPO-Lag when
-    ``cfg.constrained``: a second value head for cost and a Lagrange multiplier)."""
+    ``cfg.constrained``: a second value head for cost and a Lagrange multiplier). The policy is
+    NavRL's Beta or, with ``cfg.distribution == "gaussian"``, SB3's Gaussian (gSDE with
+    ``cfg.use_sde``)."""
 
     def __init__(
         self, obs_shapes: dict[str, tuple[int, ...]], action_dim: int, cfg: PPOConfig
@@ -60,7 +73,12 @@ class PPO(nn.Module):
         super().__init__()
         self.cfg, self.obs_shapes, self.action_dim = cfg, dict(obs_shapes), action_dim
         self.num_values = 2 if cfg.constrained else 1  # column 0 reward, column 1 cost
-        self.model = BetaActorCritic(obs_shapes, action_dim, cfg.net, self.num_values)
+        self.gaussian = cfg.distribution == "gaussian"
+        self.model: BetaActorCritic | GaussianActorCritic = (
+            GaussianActorCritic(obs_shapes, action_dim, cfg.net, self.num_values, cfg.log_std_init,
+                                cfg.use_sde) if self.gaussian
+            else BetaActorCritic(obs_shapes, action_dim, cfg.net, self.num_values)
+        )  # fmt: skip
         self.value_norm = ValueNorm(self.num_values, cfg.value_norm_beta, cfg.value_norm)
         # One Adam over actor, critic and extractor: NavRL's three Adams share lr 5e-4, and
         # Adam's per-parameter statistics make that the same update (fused kernel: nn.optim.adam).
@@ -75,11 +93,31 @@ class PPO(nn.Module):
 
     @torch.no_grad()
     def act(self, obs: dict[str, torch.Tensor], deterministic: bool = False):
-        """``(action, log_prob, values)``: action in ``[-1, 1]^A``, its log-density, and the
-        denormalised values ``(N, K)`` of ``obs``."""
+        """``(action, log_prob, values)``: the action (Beta: in ``[-1, 1]^A``; Gaussian: the
+        unclipped sample, or the mean), its log-density, and the denormalised values ``(N, K)``
+        of ``obs``."""
+        if self.gaussian:
+            mean, std, values, latent = self.model(obs)
+            action = mean if deterministic else self.model.sample(mean, std, latent)
+            log_prob = gaussian_log_prob(mean, std, action)
+            return action, log_prob, self.value_norm.denormalize(values)
         alpha, beta, values = self.model(obs)
         action = beta_mean_action(alpha, beta) if deterministic else sample_beta_action(alpha, beta)
         return action, beta_log_prob(alpha, beta, action), self.value_norm.denormalize(values)
+
+    def evaluate(self, obs: dict[str, torch.Tensor], actions: torch.Tensor):
+        """``(log pi(a|s), H[pi(.|s)], values)``, ``(B,)``, ``(B,)`` and normalised ``(B, K)``,
+        with gradients (the update's forward pass)."""
+        if self.gaussian:
+            mean, std, values, _ = self.model(obs)
+            return gaussian_log_prob(mean, std, actions), gaussian_entropy(std), values
+        alpha, beta, values = self.model(obs)
+        return beta_log_prob(alpha, beta, actions), beta_entropy(alpha, beta), values
+
+    def reset_noise(self, n: int) -> None:
+        """gSDE: draw new exploration matrices for ``n`` envs (nothing to do otherwise)."""
+        if self.gaussian and self.cfg.use_sde:
+            self.model.reset_noise(n)
 
     @torch.no_grad()
     def value(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -123,12 +161,13 @@ class PPO(nn.Module):
             kl_sum, kl_n = torch.zeros((), device=actions.device), 0
             for start in range(0, size * cfg.num_minibatches, size):
                 idx = perm[start : start + size]
-                alpha, beta, values = self.model({k: v[idx] for k, v in obs.items()})
-                log_prob = beta_log_prob(alpha, beta, actions[idx])
+                log_prob, entropy, values = self.evaluate(
+                    {k: v[idx] for k, v in obs.items()}, actions[idx]
+                )
                 loss_pi = clipped_policy_loss(
                     log_prob, old_log_probs[idx], adv_actor[idx], cfg.clip
                 )
-                entropy = beta_entropy(alpha, beta).mean()
+                entropy = entropy.mean()
                 loss_v = [clipped_value_loss(values[:, k], old_values[idx, k], targets[idx, k],
                                              cfg.value_clip) for k in range(self.num_values)]  # fmt: skip
                 loss = loss_pi - cfg.entropy_coef * entropy + sum(loss_v)
@@ -160,11 +199,11 @@ class PPO(nn.Module):
         out["perf/gradient_steps"] = torch.tensor(float(steps))
         return out
 
-    def policy_module(self) -> BetaDeterministicActor:
-        """The deterministic actor (the Beta mean), sharing parameters with this agent."""
-        return BetaDeterministicActor(
-            self.model.actor_body, self.model.policy_head, input_order(self.obs_shapes)
-        )
+    def policy_module(self) -> BetaDeterministicActor | GaussianDeterministicActor:
+        """The deterministic actor (the Beta mean; the Gaussian mean clipped to ``[-1, 1]``),
+        sharing parameters with this agent."""
+        actor = GaussianDeterministicActor if self.gaussian else BetaDeterministicActor
+        return actor(self.model.actor_body, self.model.policy_head, input_order(self.obs_shapes))
 
     def optimizer_state(self) -> dict[str, Any]:
         state = {"model": self.optimizer.state_dict()}
@@ -184,9 +223,12 @@ def collect_rollout(env: TorchVecEnv, agent: PPO, rollout: Rollout,
     """Fill ``rollout`` (step 1 of the module docstring) starting from ``obs``; returns the
     observation to continue from and the episode statistics of the episodes that ended."""
     episodes = []
-    for _ in range(rollout.steps):
+    freq = agent.cfg.sde_sample_freq
+    for t in range(rollout.steps):
+        if t == 0 or (freq > 0 and t % freq == 0):  # gSDE's exploration matrices (SB3)
+            agent.reset_noise(env.num_envs)
         action, log_prob, values = agent.act(obs)
-        step = env.step(action)
+        step = env.step(action.clamp(-1.0, 1.0))  # the rollout keeps the unclipped sample
         if not bool(step.valid.all()):
             raise SafenavError(
                 "PPO needs a SAME_STEP autoreset vector env (make_vec_env builds one)"
@@ -231,10 +273,12 @@ class PPOLearner:
 
     section = "ppo"
     columns = COLUMNS
-    policy_meta: dict[str, Any] = {"policy_head": POLICY_HEAD}  # what load_policy dispatches on
+    policy_meta: dict[str, Any]
 
     def __init__(self, env: TorchVecEnv, run: RunConfig, cfg: PPOConfig) -> None:
         self.device = env.device
+        head = GAUSSIAN_HEAD if cfg.distribution == "gaussian" else POLICY_HEAD
+        self.policy_meta = {"policy_head": head}  # what load_policy dispatches on
         self.agent = PPO(env.obs_shapes, env.action_dim, cfg).to(env.device)
         self.rollout = Rollout(cfg.rollout_steps, env.num_envs, env.obs_shapes, env.action_dim,
                                self.agent.num_values, env.device)  # fmt: skip
@@ -271,7 +315,8 @@ class PPOLearner:
         return int(metrics.pop("perf/gradient_steps")), [metrics]
 
     def act(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
-        return self.agent.act(obs, deterministic=True)[0]
+        """Deterministic actions in ``[-1, 1]`` (the Gaussian mean clipped, as SB3's predict)."""
+        return self.agent.act(obs, deterministic=True)[0].clamp(-1.0, 1.0)
 
     def log_items(self, d: float) -> dict[str, float]:
         row = {"perf/rollouts": self.rollouts}

@@ -1,13 +1,15 @@
 """PPO / PPO-Lag hyperparameters (torch-free, so that the CLI can build its parser without torch).
 
 Defaults marked (NavRL) are NavRL's ``cfg/ppo.yaml`` and ``scripts/ppo.py``; (OmniSafe) are
-OmniSafe's PPO-Lag; docs/algorithms.md gives the source of every value and what was measured here.
+OmniSafe's PPO-Lag; (SB3) Stable-Baselines3's PPO, for the Gaussian policy and gSDE that go beyond
+NavRL; docs/algorithms.md gives the source of every value and what was measured here.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Literal
 
 from safenav.common.curriculum import ConstraintCurriculumConfig
 from safenav.nn.config import NetConfig
@@ -16,7 +18,8 @@ from safenav.nn.config import NetConfig
 @dataclass(frozen=True)
 class PPOConfig:
     """PPO as NavRL trains it (Beta policy, GAE, clipped actor and value losses, value
-    normalisation); with ``constrained=True`` PPO-Lag (cost value head, Lagrange multiplier)."""
+    normalisation); with ``constrained=True`` PPO-Lag (cost value head, Lagrange multiplier).
+    Beyond NavRL: ``distribution="gaussian"`` (SB3's policy), optionally with gSDE."""
 
     constrained: bool = False
     """Cost value head, cost GAE and a Lagrange multiplier (PPO-Lag, ``--algo ppo_lag``)."""
@@ -49,6 +52,22 @@ class PPOConfig:
     normalize_advantages: bool = True
     """Standardise reward advantages over the rollout (NavRL); cost advantages are only centred
     (OmniSafe), so that lambda trades them on their own scale."""
+    distribution: Literal["beta", "gaussian"] = "beta"
+    """The policy's action distribution: ``beta`` (NavRL: a Beta per action dimension mapped onto
+    ``[-1, 1]``) or ``gaussian`` (beyond NavRL: SB3's PPO policy, a diagonal Gaussian whose
+    samples the env gets clipped to ``[-1, 1]``; ``safenav.nn.gaussian``)."""
+    use_sde: bool = False
+    """gaussian only: explore with generalized State-Dependent Exploration (gSDE; Raffin et al.,
+    "Smooth Exploration for Robotic Reinforcement Learning", CoRL 2021; beyond NavRL): noise
+    linear in the policy's last hidden features, ``a = mu(s) + z(s) W`` with one exploration matrix
+    ``W`` per env held for ``sde-sample-freq`` steps (SB3's ``use_sde``). False: a
+    state-independent std (SB3)."""
+    sde_sample_freq: int = -1
+    """gSDE: draw new exploration matrices every this many vector steps of a rollout as well as at
+    its start; <= 0 (-1): only at the start of each rollout (SB3's ``sde_sample_freq``)."""
+    log_std_init: float = 0.0
+    """gaussian only: initial log standard deviation of the actions (with use-sde: of the
+    exploration matrix entries) (SB3's ``log_std_init``)."""
     target_kl: float | None = None
     """Stop a rollout's epochs early once the approximate KL exceeds this; None = never (NavRL)."""
     lambda_lr: float = 0.035
@@ -84,6 +103,16 @@ class PPOConfig:
             raise ValueError(f"entropy-coef={self.entropy_coef} must be >= 0")
         if self.target_kl is not None and self.target_kl <= 0:
             raise ValueError(f"target-kl={self.target_kl} must be > 0 (or None: never stop early)")
+        if self.distribution not in ("beta", "gaussian"):
+            raise ValueError(f"distribution={self.distribution!r} must be 'beta' or 'gaussian'")
+        if self.use_sde and self.distribution != "gaussian":
+            raise ValueError(f"use-sde needs distribution='gaussian' (got {self.distribution!r}): "
+                             "gSDE perturbs a Gaussian policy's mean; the Beta policy has none "
+                             "(--ppo.no-use-sde turns it off)")  # fmt: skip
+        if not (math.isfinite(self.log_std_init) and -20 <= self.log_std_init <= 20):
+            raise ValueError(
+                f"log-std-init={self.log_std_init} must be a finite number in [-20, 20]"
+            )
         if self.lambda_max is not None and self.lambda_max < 0:
             raise ValueError(f"lambda-max={self.lambda_max} must be >= 0 (or None: no cap)")
 

@@ -36,6 +36,14 @@ class RunConfig:
     cost_fn: str | None = None
     """``module:function`` that gives the cost of each step of an env that reports no
     ``info["cost"]`` (:class:`safenav.common.costs.CostFn`); None = the env's own cost, or 0."""
+    normalize_obs: bool = False
+    """Gymnasium tasks: normalise observations by their running mean and variance, clipped to
+    [-10, 10] (SB3's VecNormalize, the RL Zoo's ``normalize``); the statistics are part of the
+    policy (safenav.common.normalize). Not for SafeNav-v1, which scales its own observations."""
+    normalize_reward: bool = False
+    """Gymnasium tasks: scale rewards by the running standard deviation of the discounted return
+    (the algorithm's gamma), clipped to [-10, 10] (SB3's VecNormalize); costs stay as they are,
+    reported returns too. Not for SafeNav-v1."""
     num_envs: int = 16
     """Parallel envs in the training vector env."""
     seed: int = 1
@@ -86,6 +94,12 @@ class RunConfig:
             raise ValueError(
                 "env-kwargs density: the density is the curriculum's; set it with "
                 "--density.start / --density.end (or --density.no-enabled)"
+            )
+        asked = [f for f in ("normalize_obs", "normalize_reward") if getattr(self, f)]
+        if asked and self.env.split(":")[-1].startswith("SafeNav-"):
+            raise ValueError(
+                f"{' / '.join(f.replace('_', '-') for f in asked)} applies to Gymnasium tasks, "
+                f"not {self.env}: SafeNav scales its own observations and rewards"
             )
         if self.select and not self.keep_policies:
             object.__setattr__(self, "keep_policies", True)  # the candidates of the selection

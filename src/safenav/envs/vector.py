@@ -12,7 +12,11 @@
 - ``real_next_obs``: the true ``s'`` of every transition (``final_obs`` for finished envs),
 - ``valid``: False for the reset steps a ``NEXT_STEP`` autoreset env interleaves (no transition),
 - ``episodes``: return, cost, length, success, collision, timeout of the episodes that ended
-  (success is NaN for envs that report none; collision is "episode cost > 0" unless reported).
+  (success is NaN for envs that report none; collision is "episode cost > 0" unless reported),
+- with ``normalization`` (:class:`~safenav.common.normalize.EnvNormalization`, ``--normalize-obs``
+  / ``--normalize-reward``): observations (``next_obs``, ``real_next_obs``, those of ``reset``)
+  and ``reward`` normalised, its statistics updated with every step; the episode statistics and
+  ``cost`` stay in the env's own units.
 """
 
 from __future__ import annotations
@@ -215,8 +219,11 @@ def _pick(info: dict, key: str, i: int):
 class TorchVecEnv:
     """The tensor view of a vector env described in the module docstring."""
 
-    def __init__(self, envs: gym.vector.VectorEnv, device: str | torch.device = "cpu") -> None:
+    def __init__(self, envs: gym.vector.VectorEnv, device: str | torch.device = "cpu",
+                 normalization: Any = None) -> None:  # fmt: skip
         self.envs, self.device, self.num_envs = envs, torch.device(device), envs.num_envs
+        self.normalization = normalization
+        """An :class:`~safenav.common.normalize.EnvNormalization` (on ``device``) or None."""
         space = envs.single_observation_space
         self.obs_shapes = obs_layout(space)
         self._box_obs = isinstance(space, gym.spaces.Box)
@@ -263,6 +270,8 @@ class TorchVecEnv:
     def reset(self, seed: int | None = None) -> dict[str, torch.Tensor]:
         obs, _ = self.envs.reset(seed=seed)
         self._ret.zero_(), self._cost.zero_(), self._len.zero_(), self._prev_done.zero_()
+        if self.normalization is not None:
+            return self.normalization.reset(self._obs(obs))
         return self._obs(obs)
 
     def set_density(self, density: float) -> bool:
@@ -339,6 +348,8 @@ class TorchVecEnv:
                         "timeout": (truncated[ids] & ~terminated[ids]).float()}  # fmt: skip
             self._ret[ids], self._cost[ids], self._len[ids] = 0.0, 0.0, 0.0
         self._prev_done = done.clone()
+        if self.normalization is not None:  # after the episode statistics: those stay raw
+            next_obs, real_next, reward = self.normalization.step(next_obs, real_next, reward, done)
         return Step(
             next_obs,
             reward * v,

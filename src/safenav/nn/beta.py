@@ -167,19 +167,25 @@ class BetaDeterministicActor(nn.Module):
         return beta_mean_action(alpha, beta)
 
 
-def build_beta_actor(meta: dict[str, Any]) -> BetaDeterministicActor:
-    """An untrained :class:`BetaDeterministicActor` with the architecture ``meta`` describes
-    (the policy metadata of a PPO checkpoint)."""
+def body_from_meta(meta: dict[str, Any]) -> tuple[Body, tuple[str, ...]]:
+    """An untrained actor :class:`Body` with the architecture ``meta`` describes (the policy
+    metadata of a PPO checkpoint) and its input order."""
     from safenav.common.config import from_dict
 
     net: NetConfig = from_dict(NetConfig, meta["net"])
     shapes = {k: tuple(v) for k, v in meta["obs_shapes"].items()}
-    body = Body(shapes, net)
+    return Body(shapes, net), input_order(shapes)
+
+
+def build_beta_actor(meta: dict[str, Any]) -> BetaDeterministicActor:
+    """An untrained :class:`BetaDeterministicActor` with the architecture ``meta`` describes
+    (the policy metadata of a PPO checkpoint)."""
+    body, names = body_from_meta(meta)
     return BetaDeterministicActor(
-        body, nn.Linear(body.out_features, 2 * int(meta["action_dim"])), input_order(shapes)
+        body, nn.Linear(body.out_features, 2 * int(meta["action_dim"])), names
     )
 
 
 __all__ = ["LOG2", "POLICY_HEAD", "UNIT_EPS", "BetaActorCritic", "BetaDeterministicActor", "Body",
            "action_to_unit", "beta_concentrations", "beta_entropy", "beta_log_prob",
-           "beta_mean_action", "build_beta_actor", "sample_beta_action", "unit_to_action"]  # fmt: skip
+           "beta_mean_action", "body_from_meta", "build_beta_actor", "sample_beta_action", "unit_to_action"]  # fmt: skip

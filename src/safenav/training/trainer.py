@@ -1,10 +1,12 @@
 """The training loop every algorithm shares; the algorithm itself is a :class:`Learner`.
 
 :class:`Trainer` owns a run from set-up to the last checkpoint: threads, matmul precision and
-device, the training env and the evaluation env, the density curriculum (obstacle density) and the
-constraint curriculum (the budget ``d``, paper III-C), ``--resume``, the progress display, the
-``progress.csv`` / TensorBoard rows, periodic evaluation with ``best.pt``, checkpoints and early
-stops (:class:`~safenav.common.stopping.RunGuard`). One iteration:
+device, the training env and the evaluation env (``--normalize-obs`` / ``--normalize-reward``:
+the training env's normalisation, :mod:`safenav.common.normalize`, whose observation statistics
+the evaluation and every saved policy apply as they are), the density curriculum (obstacle
+density) and the constraint curriculum (the budget ``d``, paper III-C), ``--resume``, the
+progress display, the ``progress.csv`` / TensorBoard rows, periodic evaluation with ``best.pt``,
+checkpoints and early stops (:class:`~safenav.common.stopping.RunGuard`). One iteration:
 
 1. ``learner.collect``: one vector step into the replay buffer (CSAC, SAC, SAC-Lag) or one rollout
    (PPO, PPO-Lag); the episodes that ended feed the episode charts, both curricula and
@@ -48,9 +50,10 @@ from safenav.common.checkpoint import (
 from safenav.common.config import RunConfig, to_dict
 from safenav.common.curriculum import ConstraintCurriculum, DensityCurriculum
 from safenav.common.logger import RunLogger
+from safenav.common.normalize import make_normalization
 from safenav.common.progress import ProgressDisplay  # here, not lazily: its import draws `random`
 from safenav.common.stopping import RunGuard, enable_sigint
-from safenav.envs.vector import TorchVecEnv, is_safenav, make_vec_env
+from safenav.envs.vector import TorchVecEnv, is_safenav, make_vec_env, obs_layout
 from safenav.errors import SafenavError
 from safenav.training.evaluation import BestPolicy, periodic_evaluation
 from safenav.training.runs import episode_charts, run_summary, write_run_config
@@ -157,8 +160,14 @@ class Trainer:
         env_kwargs = dict(run.env_kwargs)
         if self.nav:  # the curriculum's density
             env_kwargs["density"] = self.density.density
-        self.env = TorchVecEnv(make_vec_env(run.env, run.num_envs, run.device, run.preset,
-                                            **env_kwargs), self.device)  # fmt: skip
+        envs = make_vec_env(run.env, run.num_envs, run.device, run.preset, **env_kwargs)
+        # --normalize-obs / --normalize-reward: statistics updated by the training env only
+        self.normalization = make_normalization(obs_layout(envs.single_observation_space),
+                                                run.num_envs, cfg.gamma, run.normalize_obs,
+                                                run.normalize_reward)  # fmt: skip
+        if self.normalization is not None:
+            self.normalization.to(self.device)
+        self.env = TorchVecEnv(envs, self.device, self.normalization)
         self.eval_env = None
         if run.eval_every > 0:
             eval_kwargs = {**env_kwargs, "density": run.density.end} if self.nav else env_kwargs
@@ -177,6 +186,11 @@ class Trainer:
             self.global_step, self.updates = ckpt["global_step"], ckpt["updates"]
             self.elapsed0 = ckpt["elapsed_s"]
             self.learner.load_state_dict(ckpt)
+            if self.normalization is not None:
+                if "normalization" not in ckpt:
+                    raise SafenavError(f"{ckpt_path} holds no normalisation statistics, but its "
+                                       "run normalises (config.json): it was not written by it")  # fmt: skip
+                self.normalization.load_state_dict(ckpt["normalization"])
             set_rng_state(ckpt["rng"])
         self.env.set_density(self.density.density)
         self.logger = RunLogger(self.run_dir, self.learner.columns, run.tensorboard,
@@ -275,7 +289,7 @@ class Trainer:
 
     def evaluate(self) -> None:
         """The periodic evaluation (deterministic policy, evaluation maps), ``best.pt``."""
-        ev, note = periodic_evaluation(self.eval_env, self.learner.act, self.run_cfg.eval_episodes,
+        ev, note = periodic_evaluation(self.eval_env, self.eval_act, self.run_cfg.eval_episodes,
                                        self.global_step, self.logger, self.best, self.policy_state)  # fmt: skip
         self.row.update(ev)
         self.display.note(note)
@@ -308,6 +322,12 @@ class Trainer:
         self.window, self.sums, self.n_sums, self.row = {}, {}, 0, {}
         self.t_log, self.step_log, self.upd_log = now, step, self.updates
 
+    def eval_act(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Deterministic actions on the evaluation env's observations: normalised first with the
+        training statistics as they are (``--normalize-obs``; evaluation never updates them)."""
+        norm = self.normalization.obs if self.normalization is not None else None
+        return self.learner.act(norm(obs) if norm is not None else obs)
+
     # -- checkpoints ------------------------------------------------------------------------
     def policy_meta(self) -> dict[str, Any]:
         """What :func:`safenav.algos.policy.load_policy` needs to rebuild and describe the actor."""
@@ -318,7 +338,8 @@ class Trainer:
                 "obs_shapes": {k: list(v) for k, v in env.obs_shapes.items()}, "action_dim": env.action_dim,
                 "action_low": env._low.tolist(), "action_high": env._high.tolist(),
                 "net": to_dict(self.cfg.net), "global_step": int(self.global_step),
-                **self.learner.policy_meta}  # fmt: skip
+                **self.learner.policy_meta,
+                **(self.normalization.meta() if self.normalization is not None else {})}  # fmt: skip
 
     def policy_state(self) -> dict[str, Any]:
         """The policy-only part of a checkpoint (``best.pt``, ``policies/``)."""
@@ -327,15 +348,20 @@ class Trainer:
             "run": to_dict(self.run_cfg),
             self.learner.section: to_dict(self.cfg),
         }
+        actor = self.agent.policy_module()
+        if self.normalization is not None:  # the observation statistics go with the policy
+            actor = self.normalization.policy(actor)
         return policy_state(self.algo, self.global_step, self.updates,
                             self.elapsed0 + time.perf_counter() - self.t0, config, self.policy_meta(),
-                            self.agent.policy_module())  # fmt: skip
+                            actor)  # fmt: skip
 
     def checkpoint(self) -> None:
         state = self.policy_state() | {
             "agent": self.agent.state_dict(), "optimizers": self.agent.optimizer_state(),
             "curriculum": self.curriculum.state_dict(), "density": self.density.state_dict(),
             "rng": rng_state(), "best": self.best.state_dict(), **self.learner.state_dict()}  # fmt: skip
+        if self.normalization is not None:
+            state["normalization"] = self.normalization.state_dict()
         self.guard.save(
             self.global_step, state
         )  # refuses non-finite weights: keeps the last good file
