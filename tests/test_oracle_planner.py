@@ -1,0 +1,115 @@
+"""``experiments/oracle_planner.py``: the privileged planner's action conversion, its clearance and
+forecast against the env's own, and that it flies where the straight-to-goal policy crashes."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from safenav.envs.config import make_config
+from safenav.envs.dynamics import goal_frame_to_world
+from safenav.envs.nav import SafeNavVectorEnv
+from safenav.envs.scripted import go_to_goal
+from safenav.envs.sensors import moving_obstacle_clearance
+from safenav.envs.world import CUBOID_HEIGHT, CYLINDER_HEIGHT
+from safenav.experiments.evaluate import evaluate
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _oracle_module():
+    spec = importlib.util.spec_from_file_location(
+        "oracle_planner", ROOT / "experiments" / "oracle_planner.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["oracle_planner"] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+oracle = _oracle_module()
+
+
+def _env(n: int = 8) -> tuple[SafeNavVectorEnv, dict]:
+    env = SafeNavVectorEnv(n, preset="easy", output="torch", autoreset_mode="Disabled")
+    obs, _ = env.reset(seed=12345)
+    return env, obs
+
+
+def test_command_straight_at_the_goal_is_go_to_goal_action():
+    env, obs = _env()
+    for _ in range(3):  # not at rest, off the start's heading
+        obs, *_ = env.step(torch.tensor([[0.3, -0.8, 0.5]]).expand(env.num_envs, 3))
+    to_goal = env.goal - env.pos
+    dist = to_goal.norm(dim=-1, keepdim=True)
+    v = to_goal / dist * env.cfg.v_max * dist.clamp(max=1.0)  # go_to_goal: full speed, slower < 1 m
+    action = oracle.to_action(v, env.cos_yaw, env.sin_yaw, env.cfg.v_max)
+    assert torch.allclose(action, go_to_goal(obs), atol=1e-5)
+    # The env turns the action back into the same world-frame command (inside the box).
+    assert torch.allclose(
+        goal_frame_to_world(action * env.cfg.v_max, env.cos_yaw, env.sin_yaw), v, atol=1e-5
+    )
+    # The planner's candidates include it, and hover.
+    ids = torch.arange(env.num_envs)
+    cmds = oracle.OraclePlanner().candidates(obs, env, ids)
+    assert torch.allclose(cmds[:, -1], v, atol=1e-5)
+    assert bool((cmds[:, -2] == 0).all())
+    # A command beyond the box is applied clipped, as the env clips the action.
+    far = oracle.OraclePlanner(oracle.OracleConfig(speeds=(5.0,), headings=4, climbs=(0.0,)))
+    clipped = far.candidates(obs, env, ids)
+    a = oracle.to_action(clipped, env.cos_yaw[:, None], env.sin_yaw[:, None], env.cfg.v_max)
+    assert a.abs().max() <= 1.0 and (a.abs() == 1.0).any()
+
+
+def test_mover_clearance_matches_the_env():
+    g = torch.Generator().manual_seed(0)
+    centre = torch.rand(3, 7, 3, generator=g) * 4
+    width = torch.rand(3, 1, 7, generator=g) + 0.25
+    cuboid = torch.rand(3, 1, 7, generator=g) < 0.5
+    p = torch.rand(3, 5, 3, generator=g) * 4
+    p[0, 0, 2] = 5.5  # above a cylinder's top
+    ours = oracle.mover_clearance(centre, width, cuboid, p)
+    rel = centre[:, None] - p[:, :, None]
+    ref = moving_obstacle_clearance(rel, width, cuboid, p[..., 2], CUBOID_HEIGHT, CYLINDER_HEIGHT)
+    assert torch.allclose(ours, ref, atol=1e-5)
+
+
+def test_exact_forecast_is_the_future_and_leaves_the_env_alone():
+    env, _ = _env()
+    planner = oracle.OraclePlanner(oracle.OracleConfig(forecast="exact", horizon=25))
+    for _ in range(15):  # some obstacles near a turn or a speed change
+        env.step(torch.zeros(env.num_envs, 3))
+    state = (
+        env.dyn_pos.clone(),
+        env.dyn_goal.clone(),
+        env.dyn_goal_counter.clone(),
+        env.world_step,
+    )
+    future = planner.forecast(env)
+    assert torch.equal(env.dyn_pos, state[0]) and torch.equal(env.dyn_goal, state[1])
+    assert torch.equal(env.dyn_goal_counter, state[2]) and env.world_step == state[3]
+    turned = env.dyn_goal_counter.clone()
+    for t in range(25):
+        env.step(torch.zeros(env.num_envs, 3))
+        assert torch.equal(future[t], env.dyn_pos)
+    assert bool((env.dyn_goal_counter != turned).any())  # some turned inside the horizon
+    constant = oracle.OraclePlanner().forecast(env)
+    assert torch.allclose(constant[0], env.dyn_pos + env.cfg.dt * env.dyn_vel)
+
+
+def test_oracle_flies_where_straight_to_goal_crashes():
+    torch.set_num_threads(1)
+    cfg = make_config("easy")
+    straight = evaluate(go_to_goal, cfg, env_seed=12345, episodes=16)
+    planned = evaluate(oracle.OraclePlanner(), cfg, env_seed=12345, episodes=16)
+    assert straight["collision_rate"] >= 0.5
+    assert planned["collision_rate"] <= 0.1 and planned["success_rate"] >= 0.8
+
+
+def test_cli_refuses_test_and_held_out_maps(tmp_path):
+    with pytest.raises(SystemExit, match="test or held-out"):
+        oracle.main(["--env-seeds", "1", "--episodes", "2", "--json", str(tmp_path / "x.json")])
