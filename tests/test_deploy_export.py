@@ -36,6 +36,17 @@ def real_observations(cfg, steps=10, n=8):
     return env_observations(cfg, steps=steps, num_envs=n)
 
 
+def assert_onnx_equals_torch(actor, cfg, path: Path, real) -> np.ndarray:
+    """Export ``actor``, run the ONNX file on the observations ``real`` and check it against the
+    torch actor (within 1e-5); returns the torch actions."""
+    export_onnx(actor, cfg, path, check_observations=real)
+    got = OnnxPolicy(path)(real["state"], real["lidar"], real["dynamic"])
+    with torch.no_grad():
+        ref = actor(*(torch.as_tensor(real[k]) for k in actor.input_names)).numpy()
+    np.testing.assert_allclose(got, ref, atol=1e-5, rtol=0)
+    return ref
+
+
 @pytest.mark.parametrize("make_actor", [ReferenceActor, GoToGoalActor])
 def test_onnx_runtime_equals_torch(tmp_path: Path, make_actor) -> None:
     cfg = make_config("easy")
@@ -132,11 +143,7 @@ def test_the_trainers_actor_exports_with_its_own_input_order(tmp_path: Path) -> 
     actor = build_actor(meta).eval()
     assert tuple(actor.input_names) == ("state", "lidar", "dynamic")
     real = real_observations(cfg, steps=5)
-    export_onnx(actor, cfg, tmp_path / "csac.onnx", check_observations=real)
-    got = OnnxPolicy(tmp_path / "csac.onnx")(real["state"], real["lidar"], real["dynamic"])
-    with torch.no_grad():
-        ref = actor(*(torch.as_tensor(real[k]) for k in actor.input_names)).numpy()
-    np.testing.assert_allclose(got, ref, atol=1e-5, rtol=0)
+    ref = assert_onnx_equals_torch(actor, cfg, tmp_path / "csac.onnx", real)
     np.testing.assert_allclose(
         TorchPolicy(actor)(real["state"], real["lidar"], real["dynamic"]), ref, atol=1e-6
     )

@@ -281,9 +281,10 @@ def test_gaussian_sde_on_pendulum_trains_saves_resumes_and_loads(tmp_path, capsy
 
 def test_a_safenav_gaussian_policy_exports_to_onnx(tmp_path):
     pytest.importorskip("onnxruntime")
+    from tests.test_deploy_export import assert_onnx_equals_torch
+
     from safenav.algos.policy import build_actor
     from safenav.commands.export import env_observations
-    from safenav.deploy.export import OnnxPolicy, export_onnx
     from safenav.envs import make_config
 
     cfg = make_config("easy")
@@ -293,12 +294,7 @@ def test_a_safenav_gaussian_policy_exports_to_onnx(tmp_path):
                                                       "state": [8]}}  # fmt: skip
     actor = build_actor(meta).eval()
     assert isinstance(actor, GaussianDeterministicActor)
-    real = env_observations(cfg, steps=5)
-    export_onnx(actor, cfg, tmp_path / "gsde.onnx", check_observations=real)
-    got = OnnxPolicy(tmp_path / "gsde.onnx")(real["state"], real["lidar"], real["dynamic"])
-    with torch.no_grad():
-        ref = actor(*(torch.as_tensor(real[k]) for k in actor.input_names)).numpy()
-    np.testing.assert_allclose(got, ref, atol=1e-5, rtol=0)
+    assert_onnx_equals_torch(actor, cfg, tmp_path / "gsde.onnx", env_observations(cfg, steps=5))
 
 
 # --------------------------------------------------------------------------- refusals

@@ -150,10 +150,10 @@ class BetaActorCritic(nn.Module):
         return [*body, *self.value_head.parameters()]
 
 
-class BetaDeterministicActor(nn.Module):
-    """The deployable PPO policy: observation tensors (positional, in ``input_names`` order) ->
-    the Beta mean mapped to ``[-1, 1]^A``. Shares its modules with the training model; traceable
-    (``torch.jit.trace``, ONNX export)."""
+class HeadActor(nn.Module):
+    """A deployable PPO actor's shared part: observation tensors (positional, in ``input_names``
+    order) -> the policy head's raw output; subclasses map it to an action. Shares its modules
+    with the training model; traceable (``torch.jit.trace``, ONNX export)."""
 
     def __init__(self, body: Body, policy_head: nn.Linear, input_names: tuple[str, ...]) -> None:
         super().__init__()
@@ -161,9 +161,15 @@ class BetaDeterministicActor(nn.Module):
         self.policy_head = policy_head
         self.input_names = tuple(input_names)
 
+    def head(self, inputs: tuple[torch.Tensor, ...]) -> torch.Tensor:
+        return self.policy_head(self.body(dict(zip(self.input_names, inputs, strict=True))))
+
+
+class BetaDeterministicActor(HeadActor):
+    """The deployable PPO policy: the Beta mean mapped to ``[-1, 1]^A`` (:class:`HeadActor`)."""
+
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
-        obs = dict(zip(self.input_names, inputs, strict=True))
-        alpha, beta = beta_concentrations(*self.policy_head(self.body(obs)).chunk(2, -1))
+        alpha, beta = beta_concentrations(*self.head(inputs).chunk(2, -1))
         return beta_mean_action(alpha, beta)
 
 
@@ -186,6 +192,6 @@ def build_beta_actor(meta: dict[str, Any]) -> BetaDeterministicActor:
     )
 
 
-__all__ = ["LOG2", "POLICY_HEAD", "UNIT_EPS", "BetaActorCritic", "BetaDeterministicActor", "Body",
+__all__ = ["LOG2", "POLICY_HEAD", "UNIT_EPS", "BetaActorCritic", "BetaDeterministicActor", "Body", "HeadActor",
            "action_to_unit", "beta_concentrations", "beta_entropy", "beta_log_prob",
            "beta_mean_action", "body_from_meta", "build_beta_actor", "sample_beta_action", "unit_to_action"]  # fmt: skip

@@ -36,7 +36,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from safenav.nn.beta import Body, body_from_meta
+from safenav.nn.beta import Body, HeadActor, body_from_meta
 from safenav.nn.config import NetConfig
 
 POLICY_HEAD = "gaussian"
@@ -146,20 +146,12 @@ class GaussianActorCritic(nn.Module):
         return [*body, *self.value_head.parameters()]
 
 
-class GaussianDeterministicActor(nn.Module):
-    """The deployable Gaussian policy: observation tensors (positional, in ``input_names`` order)
-    -> the mean clipped to ``[-1, 1]^A`` (SB3's ``predict(deterministic=True)``). Shares its
-    modules with the training model; traceable (``torch.jit.trace``, ONNX export)."""
-
-    def __init__(self, body: Body, policy_head: nn.Linear, input_names: tuple[str, ...]) -> None:
-        super().__init__()
-        self.body = body
-        self.policy_head = policy_head
-        self.input_names = tuple(input_names)
+class GaussianDeterministicActor(HeadActor):
+    """The deployable Gaussian policy: the mean clipped to ``[-1, 1]^A`` (SB3's
+    ``predict(deterministic=True)``; :class:`~safenav.nn.beta.HeadActor`)."""
 
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
-        obs = dict(zip(self.input_names, inputs, strict=True))
-        return self.policy_head(self.body(obs)).clamp(-1.0, 1.0)
+        return self.head(inputs).clamp(-1.0, 1.0)
 
 
 def build_gaussian_actor(meta: dict[str, Any]) -> GaussianDeterministicActor:
