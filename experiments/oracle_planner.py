@@ -40,6 +40,7 @@ Validation maps only (the test and held-out seeds are refused). Run:
 from __future__ import annotations
 
 import argparse
+import ast
 import copy
 import dataclasses
 import json
@@ -97,6 +98,14 @@ class OracleConfig:
     with full view, euclid with a limited ``privileged_range`` (no map)."""
     forecast: str = "constant"
     """Moving obstacles ahead: ``constant`` velocity or ``exact`` (the env's model, foresight)."""
+    sense: str = "exact"
+    """Pillars and wall: ``exact`` footprints and sides (within ``privileged_range``), or
+    ``lidar``: only the points where the observation's beams hit (its range image, no memory), each
+    as an obstacle point; with ``lidar`` the moving obstacles are the observation's too (the
+    ``num_tracked`` nearest within its range)."""
+    memory: int = 1
+    """With ``lidar``: the hit points of the last ``memory`` range images (each placed in the world
+    from where it was taken; an episode starts with none), 1 = the current image only."""
     near_pillars: int = 24
     """Pillars checked per episode: the nearest footprints (24 cover about 7 m at the paper
     density; a 2-3 s rollout reaches 4-6 m)."""
@@ -110,7 +119,7 @@ class OracleConfig:
 
     @property
     def limited(self) -> bool:
-        return math.isfinite(self.privileged_range)
+        return math.isfinite(self.privileged_range) or self.sense == "lidar"
 
     @property
     def progress_kind(self) -> str:
@@ -123,6 +132,10 @@ class OracleConfig:
             raise ValueError(f"progress={self.progress!r}: choose auto, geodesic or euclid")
         if self.forecast not in ("constant", "exact"):
             raise ValueError(f"forecast={self.forecast!r}: choose constant or exact")
+        if self.sense not in ("exact", "lidar"):
+            raise ValueError(f"sense={self.sense!r}: choose exact or lidar")
+        if self.memory < 1:
+            raise ValueError(f"memory={self.memory}: at least the current range image (1)")
         if self.horizon < 1 or self.headings < 1 or not self.speeds or not self.climbs:
             raise ValueError("horizon, headings, speeds and climbs must be non-empty")
 
@@ -143,6 +156,24 @@ def mover_clearance(
     horiz = ((dx * dx + dy * dy).sqrt() - hw).clamp(min=0)
     above = (p[..., None, 2] - CYLINDER_HEIGHT).clamp(min=0)
     return torch.where(cuboid, box, (horiz * horiz + above * above).sqrt())
+
+
+def beam_hits(lidar: torch.Tensor, pos: torch.Tensor, yaw: torch.Tensor, cfg) -> torch.Tensor:
+    """World points ``(n, E * C, 3)`` where the newest range image ``lidar`` (``(n, >= E, C)``,
+    ``(range - d) / range``) hit a pillar or the wall, seen from ``pos`` with beam column 0 at
+    ``yaw``; beams without a hit are put ``FAR`` away."""
+    from safenav.envs.sensors import RangeImageSpec
+
+    spec = RangeImageSpec.for_config(cfg)
+    e = len(spec.v_angles)
+    d = cfg.lidar_range * (1.0 - lidar[:, :e])  # (n, E, C)
+    az = yaw[:, None] + spec.azimuths(lidar.device)[None]  # (n, C)
+    el = spec.elevations(lidar.device)[None, :, None]  # (1, E, 1)
+    dirs = torch.stack([torch.cos(el) * torch.cos(az)[:, None], torch.cos(el) * torch.sin(az)[:, None],
+                        torch.sin(el).expand(len(az), e, az.shape[1])], -1)  # fmt: skip
+    pts = pos[:, None, None] + d[..., None] * dirs
+    pts = torch.where((d < cfg.lidar_range - 1e-4)[..., None], pts, FAR)
+    return pts.reshape(len(pos), -1, 3)
 
 
 def to_action(v_world: torch.Tensor, cos_yaw, sin_yaw, v_max: float) -> torch.Tensor:
@@ -236,6 +267,7 @@ class OraclePlanner:
         n = env.num_envs
         self.finished = torch.zeros(n, dtype=torch.bool, device=env.device)
         self.prev_cmd = torch.zeros(n, 3, device=env.device)
+        self.seen: torch.Tensor | None = None  # (n, memory * E * C, 3) remembered hit points
         if self.cfg.progress_kind == "geodesic":
             self.fields, self.field_index = geodesic_fields(
                 env, self.cfg.grid_resolution, self.cfg.block_penalty, self.cfg.margin
@@ -314,7 +346,7 @@ class OraclePlanner:
         n, k = cmds.shape[:2]
         pos0, goal = env.pos[ids], env.goal[ids]
         w = env.world_idx[ids]
-        rng = c.privileged_range
+        rng = ec.lidar_range if c.sense == "lidar" else c.privileged_range
 
         # Pillars: the nearest footprints (those out of view sink below the ground).
         ns = env.n_static
@@ -347,6 +379,16 @@ class OraclePlanner:
         sides = lambda p: torch.stack([ec.half - p[..., 0], ec.half + p[..., 0],  # noqa: E731
                                        ec.half - p[..., 1], ec.half + p[..., 1]], -1)  # fmt: skip
         wall_seen = (sides(pos0) <= rng)[:, None]  # (n, 1, 4)
+        hits = None
+        if c.sense == "lidar":
+            now = beam_hits(obs["lidar"], env.pos, env.yaw, ec)  # every env: the memory is per env
+            if self.seen is None or c.memory == 1:
+                self.seen = torch.cat(
+                    [now, torch.full_like(now, FAR).repeat(1, c.memory - 1, 1)], 1
+                )
+            else:
+                self.seen = torch.cat([now, self.seen[:, : -now.shape[1]]], 1)
+            hits = self.seen[ids]
 
         p = pos0[:, None].expand(n, k, 3).contiguous()
         v = env.vel[ids, None].expand(n, k, 3).contiguous()
@@ -358,11 +400,14 @@ class OraclePlanner:
         for t in range(c.horizon):
             p, v = velocity_tracker(p, v, cmds, ec.dt, ec.physics_substeps,
                                     ec.velocity_time_constant, ec.max_acceleration)  # fmt: skip
-            dx = ((p[..., None, 0] - pxy[:, None, :, 0]).abs() - phalf[:, None]).clamp(min=0)
-            dy = ((p[..., None, 1] - pxy[:, None, :, 1]).abs() - phalf[:, None]).clamp(min=0)
-            dz = (p[..., None, 2] - ph[:, None]).clamp(min=0)
-            static = (dx * dx + dy * dy + dz * dz).sqrt().amin(-1)
-            static = torch.minimum(static, torch.where(wall_seen, sides(p), math.inf).amin(-1))
+            if hits is None:
+                dx = ((p[..., None, 0] - pxy[:, None, :, 0]).abs() - phalf[:, None]).clamp(min=0)
+                dy = ((p[..., None, 1] - pxy[:, None, :, 1]).abs() - phalf[:, None]).clamp(min=0)
+                dz = (p[..., None, 2] - ph[:, None]).clamp(min=0)
+                static = (dx * dx + dy * dy + dz * dz).sqrt().amin(-1)
+                static = torch.minimum(static, torch.where(wall_seen, sides(p), math.inf).amin(-1))
+            else:  # the beams' hit points: what the range image shows, nothing between beams
+                static = torch.cdist(p, hits).amin(-1)
             static = static - ec.uav_radius
             mover = torch.full_like(static, math.inf)
             if nd:
@@ -409,7 +454,8 @@ SUMMARY = ("success_rate", "collision_rate", "timeout_rate", "collision_static_r
            "mean_min_clearance", "detour_ratio")  # fmt: skip
 
 
-def run(config: OracleConfig, env_seeds: list[int], episodes: int, preset: str = "paper") -> dict:
+def run(config: OracleConfig, env_seeds: list[int], episodes: int, preset: str = "paper",
+        env_overrides: dict | None = None) -> dict:  # fmt: skip
     """Fly the oracle on ``episodes`` episodes of each validation map; per map and pooled."""
     per_map, pooled = {}, {k: [] for k in ("success", "collision", "timeout", "hit_static",
                                            "hit_dynamic", "out_of_bounds", "time", "mean_speed")}  # fmt: skip
@@ -418,7 +464,12 @@ def run(config: OracleConfig, env_seeds: list[int], episodes: int, preset: str =
             raise SystemExit(f"env seed {seed} is a test or held-out map: use validation maps "
                              f"({', '.join(map(str, VALIDATION_SEEDS))})")  # fmt: skip
         t0 = time.perf_counter()
-        res = evaluate(OraclePlanner(config), make_config(preset), env_seed=seed, episodes=episodes)
+        res = evaluate(
+            OraclePlanner(config),
+            make_config(preset, **(env_overrides or {})),
+            env_seed=seed,
+            episodes=episodes,
+        )
         per_ep = res.pop("per_episode")
         per_map[str(seed)] = {**{k: res[k] for k in SUMMARY}, "wall_s": round(time.perf_counter() - t0, 1),
                               "per_episode": {k: per_ep[k] for k in pooled}}  # fmt: skip
@@ -473,6 +524,25 @@ def main(argv: list[str] | None = None) -> dict:
     )
     ap.add_argument("--progress", choices=("auto", "geodesic", "euclid"), default=d.progress)
     ap.add_argument("--forecast", choices=("constant", "exact"), default=d.forecast)
+    ap.add_argument(
+        "--sense",
+        choices=("exact", "lidar"),
+        default=d.sense,
+        help="pillars and wall as exact geometry or as the range image's hit points",
+    )
+    ap.add_argument(
+        "--memory",
+        type=int,
+        default=d.memory,
+        help="with --sense lidar: range images remembered (1 = the current one)",
+    )
+    ap.add_argument(
+        "--env",
+        nargs="*",
+        default=[],
+        metavar="KEY=VALUE",
+        help="EnvConfig overrides of the preset (e.g. lidar_h_beams=72)",
+    )
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
@@ -481,13 +551,21 @@ def main(argv: list[str] | None = None) -> dict:
                           climbs=tuple(args.climbs), margin=args.margin,
                           mover_margin=args.mover_margin, w_clear=args.w_clear,
                           w_smooth=args.w_smooth, privileged_range=args.privileged_range,
-                          progress=args.progress, forecast=args.forecast)  # fmt: skip
+                          progress=args.progress, forecast=args.forecast, sense=args.sense,
+                          memory=args.memory)  # fmt: skip
     k = config.headings * len(config.speeds) * len(config.climbs) + 2
     print(f"oracle: {k} candidates x {config.horizon} steps, margin {config.margin} m, "
-          f"range {config.privileged_range} m, {config.progress_kind} progress, "
+          f"range {config.privileged_range} m, {config.sense} sensing, {config.progress_kind} progress, "
           f"{config.forecast} forecast", flush=True)  # fmt: skip
     t0 = time.perf_counter()
-    out = run(config, args.env_seeds, args.episodes, args.preset)
+    overrides = {}
+    for item in args.env:
+        key, _, value = item.partition("=")
+        try:
+            overrides[key] = ast.literal_eval(value)
+        except (ValueError, SyntaxError):
+            overrides[key] = value
+    out = run(config, args.env_seeds, args.episodes, args.preset, overrides)
     p = out["pooled"]
     print(f"pooled ({p['episodes']} episodes): success {p['success_rate']:.3f} collision "
           f"{p['collision_rate']:.3f} (static {p['collision_static_rate']:.3f}, dynamic "
@@ -499,7 +577,7 @@ def main(argv: list[str] | None = None) -> dict:
         settings["privileged_range"] = None  # JSON has no infinity: null = everything in view
     record = {"settings": {**settings, "progress_kind": config.progress_kind,
                            "candidates": k, "env_seeds": args.env_seeds, "episodes": args.episodes,
-                           "preset": args.preset, "threads": args.threads,
+                           "preset": args.preset, "env_overrides": overrides, "threads": args.threads,
                            "machine": platform.node(), "date": time.strftime("%Y-%m-%d")},
               **out, "wall_s": round(time.perf_counter() - t0, 1)}  # fmt: skip
     if args.json:
