@@ -40,8 +40,16 @@ LOOKBACK = 10  # steps = 1 s at 10 Hz
 
 
 @torch.no_grad()
-def classify(checkpoint: str, episodes: int = 200, env_seed: int = 1) -> dict:
-    policy, cfg = resolve_policy(Path(checkpoint), "checkpoint", "cpu")
+def classify(checkpoint: str, episodes: int = 200, env_seed: int = 1, planner=None) -> dict:
+    """The causes of ``checkpoint``'s collisions, or of ``planner``'s (a callable
+    ``(obs, env) -> actions``, e.g. ``oracle_planner.OraclePlanner``; ``checkpoint`` then names
+    it in the output) on the paper preset."""
+    if planner is None:
+        policy, cfg = resolve_policy(Path(checkpoint), "checkpoint", "cpu")
+    else:
+        from safenav.envs.config import make_config
+
+        cfg = make_config("paper")
     cfg, starts, goals = fixed_test_scenario(cfg, env_seed, episodes)
     env = SafeNavVectorEnv(episodes, config=cfg, output="torch", autoreset_mode="Disabled")
     obs, _ = env.reset(seed=env_seed, options={"starts": starts, "goals": goals})
@@ -54,7 +62,8 @@ def classify(checkpoint: str, episodes: int = 200, env_seed: int = 1) -> dict:
         ranges = (1.0 - obs["lidar"]) * cfg.lidar_range  # (N, V, H) metres
         history = [*history[-(LOOKBACK - 1) :], (env.pos.clone(), env.yaw.clone(), ranges)]
         before = (env.pos.clone(), env.dyn_pos[0, : env.n_dynamic].clone())
-        action = torch.where(done[:, None], torch.zeros(3), policy(obs).clamp(-1, 1))
+        act = planner(obs, env) if planner is not None else policy(obs)
+        action = torch.where(done[:, None], torch.zeros(3), act.clamp(-1, 1))
         obs, _, term, trunc, info = env.step(action)
         ended = (term | trunc) & ~done
         for i in ended.nonzero().flatten().tolist():

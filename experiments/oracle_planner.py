@@ -57,7 +57,12 @@ from safenav.envs.config import make_config
 from safenav.envs.dynamics import goal_frame_to_world, velocity_tracker, world_to_goal_frame
 from safenav.envs.nav import SafeNavVectorEnv
 from safenav.envs.scripted import go_to_goal
-from safenav.envs.sensors import moving_obstacle_clearance, pillar_clearance
+from safenav.envs.sensors import (
+    RangeImageSpec,
+    beam_hit_points,
+    moving_obstacle_clearance,
+    pillar_clearance,
+)
 from safenav.envs.world import CUBOID_HEIGHT, CYLINDER_HEIGHT, border_clearance
 from safenav.experiments.evaluate import evaluate
 from safenav.experiments.selection import RESERVED_SEEDS, VALIDATION_SEEDS
@@ -103,6 +108,9 @@ class OracleConfig:
     ``lidar``: only the points where the observation's beams hit (its range image, no memory), each
     as an obstacle point; with ``lidar`` the moving obstacles are the observation's too (the
     ``num_tracked`` nearest within its range)."""
+    fill_gaps: bool = False
+    """With ``lidar``: each hit point is a disc as wide as the gap to the next beam at its range
+    (``d sin(pi / beams)``), as if what lies between two beams were solid (conservative)."""
     memory: int = 1
     """With ``lidar``: the hit points of the last ``memory`` range images (each placed in the world
     from where it was taken; an episode starts with none), 1 = the current image only."""
@@ -162,18 +170,9 @@ def beam_hits(lidar: torch.Tensor, pos: torch.Tensor, yaw: torch.Tensor, cfg) ->
     """World points ``(n, E * C, 3)`` where the newest range image ``lidar`` (``(n, >= E, C)``,
     ``(range - d) / range``) hit a pillar or the wall, seen from ``pos`` with beam column 0 at
     ``yaw``; beams without a hit are put ``FAR`` away."""
-    from safenav.envs.sensors import RangeImageSpec
-
     spec = RangeImageSpec.for_config(cfg)
-    e = len(spec.v_angles)
-    d = cfg.lidar_range * (1.0 - lidar[:, :e])  # (n, E, C)
-    az = yaw[:, None] + spec.azimuths(lidar.device)[None]  # (n, C)
-    el = spec.elevations(lidar.device)[None, :, None]  # (1, E, 1)
-    dirs = torch.stack([torch.cos(el) * torch.cos(az)[:, None], torch.cos(el) * torch.sin(az)[:, None],
-                        torch.sin(el).expand(len(az), e, az.shape[1])], -1)  # fmt: skip
-    pts = pos[:, None, None] + d[..., None] * dirs
-    pts = torch.where((d < cfg.lidar_range - 1e-4)[..., None], pts, FAR)
-    return pts.reshape(len(pos), -1, 3)
+    ranges = cfg.lidar_range * (1.0 - lidar[:, : len(spec.v_angles)])
+    return beam_hit_points(ranges, pos, yaw, spec, FAR)
 
 
 def to_action(v_world: torch.Tensor, cos_yaw, sin_yaw, v_max: float) -> torch.Tensor:
@@ -389,6 +388,10 @@ class OraclePlanner:
             else:
                 self.seen = torch.cat([now, self.seen[:, : -now.shape[1]]], 1)
             hits = self.seen[ids]
+            hit_r = None
+            if c.fill_gaps:  # the gap to the next beam at each hit's range
+                d = (hits - pos0[:, None]).norm(dim=-1).clamp(max=ec.lidar_range)
+                hit_r = d * math.sin(math.pi / ec.lidar_h_beams)
 
         p = pos0[:, None].expand(n, k, 3).contiguous()
         v = env.vel[ids, None].expand(n, k, 3).contiguous()
@@ -407,7 +410,8 @@ class OraclePlanner:
                 static = (dx * dx + dy * dy + dz * dz).sqrt().amin(-1)
                 static = torch.minimum(static, torch.where(wall_seen, sides(p), math.inf).amin(-1))
             else:  # the beams' hit points: what the range image shows, nothing between beams
-                static = torch.cdist(p, hits).amin(-1)
+                dist = torch.cdist(p, hits)
+                static = (dist if hit_r is None else dist - hit_r[:, None]).amin(-1)
             static = static - ec.uav_radius
             mover = torch.full_like(static, math.inf)
             if nd:
@@ -531,6 +535,11 @@ def main(argv: list[str] | None = None) -> dict:
         help="pillars and wall as exact geometry or as the range image's hit points",
     )
     ap.add_argument(
+        "--fill-gaps",
+        action="store_true",
+        help="with --sense lidar: treat the space between neighbouring beams as solid",
+    )
+    ap.add_argument(
         "--memory",
         type=int,
         default=d.memory,
@@ -543,6 +552,14 @@ def main(argv: list[str] | None = None) -> dict:
         metavar="KEY=VALUE",
         help="EnvConfig overrides of the preset (e.g. lidar_h_beams=72)",
     )
+    ap.add_argument(
+        "--causes",
+        type=int,
+        default=None,
+        metavar="ENV_SEED",
+        help="instead: sort the collisions of --episodes episodes of this validation "
+        "map (experiments/collision_causes.py) and write them to --json",
+    )
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
@@ -552,7 +569,19 @@ def main(argv: list[str] | None = None) -> dict:
                           mover_margin=args.mover_margin, w_clear=args.w_clear,
                           w_smooth=args.w_smooth, privileged_range=args.privileged_range,
                           progress=args.progress, forecast=args.forecast, sense=args.sense,
-                          memory=args.memory)  # fmt: skip
+                          memory=args.memory, fill_gaps=args.fill_gaps)  # fmt: skip
+    if args.causes is not None:
+        if args.causes in RESERVED_SEEDS:
+            raise SystemExit(f"env seed {args.causes} is a test or held-out map")
+        from collision_causes import classify
+
+        out = classify(f"oracle planner {dataclasses.asdict(config)}", args.episodes, args.causes,
+                       planner=OraclePlanner(config))  # fmt: skip
+        print(json.dumps(out["causes"]))
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps(out, indent=1) + "\n")
+        return out
     k = config.headings * len(config.speeds) * len(config.climbs) + 2
     print(f"oracle: {k} candidates x {config.horizon} steps, margin {config.margin} m, "
           f"range {config.privileged_range} m, {config.sense} sensing, {config.progress_kind} progress, "

@@ -27,7 +27,9 @@ def test_saves_only_improvements_and_survives_a_resume(tmp_path) -> None:
     assert not best.offer(ev(math.nan, 0.0), state(5))  # no episodes finished: no judgement
     assert calls == [1, 3]  # the policy state is only built when it is saved
     saved = load_checkpoint(path)
-    assert saved["global_step"] == 3 and saved["policy_only"] and saved["evaluation"] == ev(0.5, 0.3)
+    assert (
+        saved["global_step"] == 3 and saved["policy_only"] and saved["evaluation"] == ev(0.5, 0.3)
+    )
 
     resumed = BestPolicy(path, best.state_dict())  # what the training checkpoint carries
     assert not resumed.offer(ev(0.45, 0.1), state(6))

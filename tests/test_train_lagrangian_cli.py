@@ -204,7 +204,9 @@ def test_csac_measured_cost_scale_logs_its_threshold_and_resumes(tmp_path, monke
     assert scale["cost_n"] >= 20 and scale["q_n"] > 0  # random flights crash: enough episodes
     last = rows(run_dir)[-1]
     ratio = max(scale["q_mean"], 0.0) / scale["cost_mean"]
-    assert float(last["constraint/d_q"]) == pytest.approx(float(last["constraint/d"]) * ratio, rel=1e-4)
+    assert float(last["constraint/d_q"]) == pytest.approx(
+        float(last["constraint/d"]) * ratio, rel=1e-4
+    )
     # 8192 more steps (128 per env): enough finished episodes to count whatever the policy learned
     main(["train", "--resume", str(run_dir), "--total-steps", "16384", *FAST])
     resumed = load_checkpoint(run_dir)["cost_scale"]

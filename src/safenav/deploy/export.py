@@ -94,6 +94,11 @@ def check_deployable(cfg: EnvConfig, where: str | Path) -> None:
                            f"yet: this one reads the range images of the last {cfg.lidar_history} "
                            "control steps, and the onboard runtime (safenav export / fly) builds "
                            "the current one only; evaluate it in simulation (safenav eval)")  # fmt: skip
+    if cfg.lidar_memory > 0:
+        raise SafenavError(f"{where}: policies trained with lidar_memory > 0 cannot be deployed "
+                           f"yet: this one reads a memory image of the last {cfg.lidar_memory} "
+                           "range images, which the onboard runtime (safenav export / fly) does "
+                           "not build; evaluate it in simulation (safenav eval)")  # fmt: skip
 
 
 def call_actor(

@@ -74,6 +74,16 @@ class EnvConfig:
     current image (the shield) take its first ``E`` rows. Not deployable yet (``safenav export`` /
     ``fly`` refuse it: the onboard runtime builds memoryless observations)."""
 
+    lidar_memory: int = 0
+    """Control steps of range images remembered in a **memory image** appended to the
+    observation's ``lidar`` rows (0 = none, the paper's observation; the default). Beyond the
+    paper: the beams' hit points of the last ``lidar_memory`` steps (the current one included),
+    kept in the world where they were seen, are re-projected each step into ``E`` more rows of
+    the same layout (columns every ``360 / beams`` degrees from the goal direction; rows by
+    elevation, the lowest also holding every point below it): per cell the nearest remembered
+    point, ``(range - d) / range``. It shows a pillar that fell under the lowest beam or between
+    two beams as the UAV closed in, which a memoryless range image loses (docs/csac-v1.md, "The
+    sensor, not the learning"). Not deployable yet, as ``lidar_history``."""
     num_tracked: int = 5
     """Number of nearest moving obstacles in the observation (NavRL)."""
     dyn_speed_range: tuple[float, float] = (0.5, 1.5)
@@ -171,7 +181,8 @@ class EnvConfig:
         ):  # fmt: skip
             finite(name)
         for name in ("num_static", "num_dynamic", "physics_substeps", "lidar_h_beams",
-                     "num_tracked", "num_worlds", "start_sites", "lidar_history"):  # fmt: skip
+                     "num_tracked", "num_worlds", "start_sites", "lidar_history",
+                     "lidar_memory"):  # fmt: skip
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int):
                 bad(name, "must be an integer")
@@ -188,6 +199,8 @@ class EnvConfig:
                 bad(name, "must be >= 1")
         if self.lidar_history > 8:
             bad("lidar_history", "must be at most 8 (range images in the observation)")
+        if not 0 <= self.lidar_memory <= 100:
+            bad("lidar_memory", "must lie in [0, 100] control steps (0 = no memory image)")
         if self.reward_collision > 0:
             bad("reward_collision", "must be <= 0 (a penalty; a positive value pays crashes)")
         if not 0.0 <= self.density <= 1.0:
@@ -244,10 +257,12 @@ PRESETS: dict[str, dict] = {
 
 def observation_shapes(cfg: EnvConfig | Mapping[str, Any]) -> dict[str, tuple[int, ...]]:
     """SafeNav's observation layout under ``cfg`` (an EnvConfig, or one as a dict, e.g. from
-    a checkpoint): ``state`` (8,), ``lidar`` (elevations x lidar_history, beams), ``dynamic``
-    (tracked, 10). A dict without ``lidar_history`` (older checkpoints) has 1."""
+    a checkpoint): ``state`` (8,), ``lidar`` (elevations x (lidar_history + 1 if lidar_memory
+    else lidar_history), beams), ``dynamic`` (tracked, 10). A dict without ``lidar_history`` or
+    ``lidar_memory`` (older checkpoints) has 1 and 0."""
     c = cfg if isinstance(cfg, Mapping) else dataclasses.asdict(cfg)
-    rows = len(c["lidar_v_angles"]) * int(c.get("lidar_history", 1))
+    images = int(c.get("lidar_history", 1)) + (1 if int(c.get("lidar_memory", 0)) else 0)
+    rows = len(c["lidar_v_angles"]) * images
     return {"state": (8,), "lidar": (rows, int(c["lidar_h_beams"])),
             "dynamic": (int(c["num_tracked"]), 10)}  # fmt: skip
 

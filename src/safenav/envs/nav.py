@@ -29,6 +29,7 @@ from safenav.envs.dynamics import (
 )
 from safenav.envs.sensors import (
     RangeImageSpec,
+    beam_hit_points,
     dynamic_obstacle_features,
     moving_obstacle_clearance,
     pillar_clearance,
@@ -345,6 +346,10 @@ class SafeNavVectorEnv(VectorEnv):
         # Range-image history (lidar_history > 1): the stacked lidar rows of the last step,
         # newest image first; observations get copies (a caller may change them in place).
         self._lidar_hist: torch.Tensor | None = None
+        # Memory image (lidar_memory > 0): the world hit points of the last lidar_memory range
+        # images, (N, lidar_memory, E * C, 3), a ring filled at slot _mem_slot; FAR = no point.
+        self._mem: torch.Tensor | None = None
+        self._mem_slot = 0
 
     # ------------------------------------------------------------------ worlds and density
     def _build_worlds(self, base_seed: int) -> None:
@@ -513,6 +518,10 @@ class SafeNavVectorEnv(VectorEnv):
             if mask is not None:  # the others keep their history
                 fresh = torch.where(mask[:, None, None], fresh, self._lidar_hist)
             self._lidar_hist, obs["lidar"] = fresh, fresh.clone()
+        if self.cfg.lidar_memory:
+            start = mask if mask is not None else torch.ones(self.num_envs, dtype=torch.bool,
+                                                              device=self.device)  # fmt: skip
+            obs["lidar"] = self._remember(obs["lidar"], aux["ranges"], start=start)
         if self.render_mode is not None and bool((ids == self.render_env_index).any()):
             self._trail = [self.pos[self.render_env_index].cpu().numpy().copy()]
         info: dict[str, Any] = {"episode_id": self.episode_counter.clone()}
@@ -525,6 +534,50 @@ class SafeNavVectorEnv(VectorEnv):
         ``lidar_history`` copies of it, ``(N, E * lidar_history, C)`` (no zeros: a zero beam
         means free space, which a new episode has not seen)."""
         return lidar.repeat(1, self.cfg.lidar_history, 1)
+
+    def _remember(self, lidar: torch.Tensor, ranges: torch.Tensor, ids: torch.Tensor | None = None,
+                  start: torch.Tensor | None = None) -> torch.Tensor:  # fmt: skip
+        """``lidar`` with the memory image's rows appended (``EnvConfig.lidar_memory``).
+
+        Three callers: a step (all envs: the current image joins the memory, the oldest leaves),
+        reset (``start``: a bool mask of the envs that begin an episode; they forget and
+        remember their first image, the others see their unchanged state again), and the
+        SAME_STEP autoreset (``ids``: the envs whose next episode begins, observed alone)."""
+        cfg, far = self.cfg, 1.0e4
+        sel = slice(None) if ids is None else ids
+        pos, yaw = self.pos[sel], self.yaw[sel]
+        hits = beam_hit_points(ranges, pos, yaw, self.spec_lidar, far)
+        if self._mem is None:
+            self._mem = torch.full((self.num_envs, cfg.lidar_memory, hits.shape[1], 3), far,
+                                   device=self.device)  # fmt: skip
+        if ids is not None:
+            self._mem[ids] = far
+            self._mem[ids, self._mem_slot] = hits
+        elif start is not None:
+            self._mem[start] = far
+            self._mem[start, self._mem_slot] = hits[start]
+        else:
+            self._mem_slot = (self._mem_slot + 1) % cfg.lidar_memory
+            self._mem[:, self._mem_slot] = hits
+        return torch.cat([lidar, self._memory_image(self._mem[sel], pos, yaw)], 1)
+
+    def _memory_image(
+        self, points: torch.Tensor, pos: torch.Tensor, yaw: torch.Tensor
+    ) -> torch.Tensor:
+        """World points ``(n, ..., 3)`` seen from ``pos`` with column 0 at ``yaw``: per (elevation
+        row, azimuth column) cell the nearest within range, ``(range - d) / range``; ``(n, E, C)``."""
+        cfg = self.cfg
+        e, c, r = len(cfg.lidar_v_angles), cfg.lidar_h_beams, cfg.lidar_range
+        rel = points.flatten(1, -2) - pos[:, None]
+        dist = rel.norm(dim=-1)
+        az = torch.atan2(rel[..., 1], rel[..., 0]) - yaw[:, None]
+        col = torch.round(az * (c / (2 * math.pi))).long() % c
+        elev = torch.rad2deg(torch.atan2(rel[..., 2], rel[..., :2].norm(dim=-1)))
+        angles = torch.tensor(cfg.lidar_v_angles, device=self.device)
+        row = torch.bucketize(elev, (angles[1:] + angles[:-1]) / 2)  # nearest beam's elevation
+        cell = torch.full((len(pos), e * c), r, device=self.device)
+        cell.scatter_reduce_(1, row * c + col, dist.clamp(max=r), "amin")
+        return ((r - cell) / r).view(-1, e, c)
 
     def _reset_mask(self, mask, seed: int | None) -> torch.Tensor | None:
         """The ``reset_mask`` option as a bool tensor on the device (``None``: reset all)."""
@@ -663,6 +716,8 @@ class SafeNavVectorEnv(VectorEnv):
             older = self._lidar_hist[:, : -len(cfg.lidar_v_angles)]
             self._lidar_hist = torch.cat([obs["lidar"], older], 1)
             obs["lidar"] = self._lidar_hist.clone()
+        if cfg.lidar_memory:
+            obs["lidar"] = self._remember(obs["lidar"], aux["ranges"])
 
         z = self.pos[:, 2]
         border_clear = border_clearance(self.pos, cfg.half)
@@ -739,6 +794,8 @@ class SafeNavVectorEnv(VectorEnv):
                 if cfg.lidar_history > 1:
                     new_obs["lidar"] = self._first_history(new_obs["lidar"])
                     self._lidar_hist[ids] = new_obs["lidar"]
+                if cfg.lidar_memory:
+                    new_obs["lidar"] = self._remember(new_obs["lidar"], new_aux["ranges"], ids=ids)
                 for key in obs:
                     obs[key][ids] = new_obs[key]
                 self._last_ranges[ids] = new_aux["ranges"]

@@ -125,6 +125,19 @@ def raycast_height_map(
     return dist.reshape(n, nh, nv).transpose(1, 2)
 
 
+def beam_hit_points(ranges: torch.Tensor, pos: torch.Tensor, heading: torch.Tensor,
+                    spec: RangeImageSpec, far: float = 1.0e4) -> torch.Tensor:  # fmt: skip
+    """World points where the beams of a range image hit: ``ranges`` ``(N, E, C)`` metres cast
+    from ``pos`` ``(N, 3)`` with column 0 at ``heading`` ``(N,)``; ``(N, E * C, 3)``, a beam
+    without a hit (its full range) put ``far`` away."""
+    az = heading[:, None] + spec.azimuths(ranges.device)[None]  # (N, C)
+    el = spec.elevations(ranges.device)[None, :, None]  # (1, E, 1)
+    dirs = torch.stack([torch.cos(el) * torch.cos(az)[:, None], torch.cos(el) * torch.sin(az)[:, None],
+                        torch.sin(el).expand(len(az), -1, az.shape[1])], -1)  # fmt: skip
+    hits = pos[:, None, None] + ranges[..., None] * dirs
+    return torch.where((ranges < spec.max_range - 1e-4)[..., None], hits, far).flatten(1, 2)
+
+
 def raycast_boxes_bruteforce(
     box_lo: torch.Tensor,
     box_hi: torch.Tensor,
@@ -208,6 +221,7 @@ def moving_obstacle_clearance(
 __all__ = [
     "HEIGHT_QUANTUM",
     "RangeImageSpec",
+    "beam_hit_points",
     "dynamic_obstacle_features",
     "quantize_heights",
     "box_surface_distance",

@@ -43,11 +43,13 @@ def resolve_policy(checkpoint: Path | None, policy: str, device: str = "cpu"):
 def scenario_config(cfg: EnvConfig | None, preset: str | None) -> EnvConfig:
     """The env config a policy flies in: the ``preset``'s scenario when one is given, else the
     policy's own ``cfg`` (else the paper's). A preset keeps what the policy reads beyond the
-    scenario, its range-image history (``lidar_history``)."""
+    scenario, its range-image history and memory image (``lidar_history``, ``lidar_memory``)."""
     if preset is None and cfg is not None:
         return cfg
     scenario = make_config(preset or "paper")
-    return scenario if cfg is None else scenario.replace(lidar_history=cfg.lidar_history)
+    if cfg is None:
+        return scenario
+    return scenario.replace(lidar_history=cfg.lidar_history, lidar_memory=cfg.lidar_memory)
 
 
 @torch.no_grad()
