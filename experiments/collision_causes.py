@@ -16,6 +16,9 @@ collision:
   (within 4 m, the 5 nearest) at the step before the collision;
 - ``altitude band``: ground or ceiling.
 
+``pillar_top`` counts the pillar collisions at the top of the pillar (the UAV centre above its
+top less ``uav_radius``): a low pillar under the UAV, below the lowest beam as it closes in.
+
 Run: ``.venv/bin/python experiments/collision_causes.py checkpoints/csac-paper.pt [--env-seed N]
 [--json OUT]``.
 """
@@ -58,6 +61,7 @@ def classify(checkpoint: str, episodes: int = 200, env_seed: int = 1, planner=No
     history: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []  # (pos, yaw, ranges)
     done = torch.zeros(episodes, dtype=torch.bool)
     causes: dict[int, str] = {}
+    tops: set[int] = set()  # pillar collisions at the pillar's top
     for _ in range(cfg.max_episode_steps):
         ranges = (1.0 - obs["lidar"]) * cfg.lidar_range  # (N, V, H) metres
         history = [*history[-(LOOKBACK - 1) :], (env.pos.clone(), env.yaw.clone(), ranges)]
@@ -75,6 +79,8 @@ def classify(checkpoint: str, episodes: int = 200, env_seed: int = 1, planner=No
                 causes[i] = "altitude band"
             elif bool(ep["hit_static"][i]):
                 causes[i] = _pillar_cause(pos, pxy, phalf, ph, history, i, cfg)
+                if _near_top(pos, pxy, phalf, ph, cfg):
+                    tops.add(i)
             else:
                 causes[i] = _moving_cause(env, pos, *before, i, cfg)
         done |= ended
@@ -82,7 +88,17 @@ def classify(checkpoint: str, episodes: int = 200, env_seed: int = 1, planner=No
             break
     counts = Counter(causes.values())
     return {"checkpoint": checkpoint, "episodes": episodes, "env_seed": env_seed, "collisions": len(causes),
-            "causes": dict(counts.most_common()), "per_episode": {str(k): v for k, v in sorted(causes.items())}}  # fmt: skip
+            "causes": dict(counts.most_common()), "pillar_top": len(tops), "per_episode": {str(k): v for k, v in sorted(causes.items())}}  # fmt: skip
+
+
+def _near_top(pos, pxy, phalf, ph, cfg) -> bool:
+    """Did the UAV strike the nearest pillar's top (its centre within ``uav_radius`` of the top's
+    height or above it), rather than its side?"""
+    dx = ((pos[0] - pxy[:, 0]).abs() - phalf).clamp(min=0)
+    dy = ((pos[1] - pxy[:, 1]).abs() - phalf).clamp(min=0)
+    dz = (pos[2] - ph).clamp(min=0)
+    j = int((dx * dx + dy * dy + dz * dz).argmin())
+    return bool(pos[2] > ph[j] - cfg.uav_radius)
 
 
 def _pillar_cause(pos, pxy, phalf, ph, history, i, cfg) -> str:
