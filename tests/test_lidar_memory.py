@@ -1,4 +1,5 @@
-"""``EnvConfig.lidar_memory``: the memory image appended to the range image (beyond the paper)."""
+"""``EnvConfig.lidar_memory``: the memory image appended to the range image (beyond the paper);
+the beams' elevations as a string from the command line."""
 
 from __future__ import annotations
 
@@ -93,3 +94,13 @@ def test_memory_policies_fly_their_own_observation_and_are_not_exported() -> Non
     with pytest.raises(SafenavError, match="lidar_memory"):
         check_deployable(cfg, "policy.pt")
     check_deployable(make_config("paper"), "policy.pt")
+
+
+def test_tuple_fields_from_the_command_line() -> None:
+    """``--env-kwargs lidar_v_angles "(-30,-15,0,15)"`` arrives as a string: make_config reads it."""
+    assert make_config("paper", lidar_v_angles="(-30,-15,0,15)").lidar_v_angles == (-30, -15, 0, 15)
+    assert make_config("paper", lidar_v_angles="0, 10").lidar_v_angles == (0.0, 10.0)
+    with pytest.raises(ValueError, match="comma-separated"):
+        make_config("paper", lidar_v_angles="low,high")
+    env = SafeNavVectorEnv(2, preset="paper", output="torch", lidar_v_angles="-30,-15,0,15")
+    assert env.cfg.lidar_v_angles == (-30.0, -15.0, 0.0, 15.0)

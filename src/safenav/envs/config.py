@@ -83,7 +83,7 @@ class EnvConfig:
     elevation, the lowest also holding every point below it): per cell the nearest remembered
     point, ``(range - d) / range``. It shows a pillar that fell under the lowest beam or between
     two beams as the UAV closed in, which a memoryless range image loses (docs/csac-v1.md, "The
-    sensor, not the learning"). Not deployable yet, as ``lidar_history``."""
+    sensor, not only the learning"). Not deployable yet, as ``lidar_history``."""
     num_tracked: int = 5
     """Number of nearest moving obstacles in the observation (NavRL)."""
     dyn_speed_range: tuple[float, float] = (0.5, 1.5)
@@ -270,7 +270,8 @@ def observation_shapes(cfg: EnvConfig | Mapping[str, Any]) -> dict[str, tuple[in
 def make_config(preset: str = "paper", **overrides) -> EnvConfig:
     """The named preset with ``overrides`` applied; ``ValueError`` for unknown names or fields.
     A whole float for an integer field is taken as that integer (a value written ``3.0`` in a
-    recipe or JSON file)."""
+    recipe or JSON file), and a string of comma-separated numbers for a tuple field as that tuple
+    (``--env-kwargs lidar_v_angles -30,-15,0,15``; brackets allowed)."""
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}: choose one of {sorted(PRESETS)}")
     types = {f.name: f.type for f in dataclasses.fields(EnvConfig)}
@@ -280,6 +281,14 @@ def make_config(preset: str = "paper", **overrides) -> EnvConfig:
     for name, value in overrides.items():
         if types[name] in (int, "int") and isinstance(value, float) and value.is_integer():
             overrides[name] = int(value)
+        elif str(types[name]).startswith("tuple") and isinstance(value, str):
+            try:
+                overrides[name] = tuple(
+                    float(v) for v in value.strip("()[] ").split(",") if v.strip()
+                )
+            except ValueError:
+                raise ValueError(f"EnvConfig.{name}={value!r} is invalid: give comma-separated "
+                                 "numbers, e.g. -10,0,10,20") from None  # fmt: skip
     return EnvConfig(**{**PRESETS[preset], **overrides})
 
 
