@@ -110,7 +110,8 @@ class OracleConfig:
     ``num_tracked`` nearest within its range)."""
     fill_gaps: bool = False
     """With ``lidar``: each hit point is a disc as wide as the gap to the next beam at its range
-    (``d sin(pi / beams)``), as if what lies between two beams were solid (conservative)."""
+    (``d sin(pi / beams)``), as if what lies between two beams were solid (conservative); with
+    ``memory`` > 1, ``d`` is a remembered point's range from where the UAV is now."""
     memory: int = 1
     """With ``lidar``: the hit points of the last ``memory`` range images (each placed in the world
     from where it was taken; an episode starts with none), 1 = the current image only."""
