@@ -91,21 +91,22 @@ def classify(checkpoint: str, episodes: int = 200, env_seed: int = 1, planner=No
             "causes": dict(counts.most_common()), "pillar_top": len(tops), "per_episode": {str(k): v for k, v in sorted(causes.items())}}  # fmt: skip
 
 
-def _near_top(pos, pxy, phalf, ph, cfg) -> bool:
-    """Did the UAV strike the nearest pillar's top (its centre within ``uav_radius`` of the top's
-    height or above it), rather than its side?"""
+def _struck_pillar(pos, pxy, phalf, ph) -> int:
+    """Index of the pillar nearest to ``pos`` (footprint and top): the one a collision struck."""
     dx = ((pos[0] - pxy[:, 0]).abs() - phalf).clamp(min=0)
     dy = ((pos[1] - pxy[:, 1]).abs() - phalf).clamp(min=0)
     dz = (pos[2] - ph).clamp(min=0)
-    j = int((dx * dx + dy * dy + dz * dz).argmin())
-    return bool(pos[2] > ph[j] - cfg.uav_radius)
+    return int((dx * dx + dy * dy + dz * dz).argmin())
+
+
+def _near_top(pos, pxy, phalf, ph, cfg) -> bool:
+    """Did the UAV strike the pillar's top (its centre within ``uav_radius`` of the top's height
+    or above it), rather than its side?"""
+    return bool(pos[2] > ph[_struck_pillar(pos, pxy, phalf, ph)] - cfg.uav_radius)
 
 
 def _pillar_cause(pos, pxy, phalf, ph, history, i, cfg) -> str:
-    dx = ((pos[0] - pxy[:, 0]).abs() - phalf).clamp(min=0)
-    dy = ((pos[1] - pxy[:, 1]).abs() - phalf).clamp(min=0)
-    dz = (pos[2] - ph).clamp(min=0)
-    j = int((dx * dx + dy * dy + dz * dz).argmin())
+    j = _struck_pillar(pos, pxy, phalf, ph)
     step = 2 * math.pi / cfg.lidar_h_beams
     seen = []  # per step of the last second, oldest first: was the pillar in the range image?
     for q, yaw, ranges in history:

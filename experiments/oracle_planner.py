@@ -382,7 +382,9 @@ class OraclePlanner:
         hits = None
         if c.sense == "lidar":
             now = beam_hits(obs["lidar"], env.pos, env.yaw, ec)  # every env: the memory is per env
-            if self.seen is None or c.memory == 1:
+            if c.memory == 1:
+                self.seen = now
+            elif self.seen is None:  # a new evaluation: nothing seen before its first image
                 self.seen = torch.cat(
                     [now, torch.full_like(now, FAR).repeat(1, c.memory - 1, 1)], 1
                 )

@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from oracle_planner import OracleConfig, OraclePlanner
+from oracle_planner import FAR, OracleConfig, OraclePlanner
 
 from safenav.algos.config import CSACConfig
 from safenav.algos.csac import CSAC
@@ -65,7 +65,7 @@ class Teacher(OraclePlanner):
         new = (env.goal != self._goals).any(-1)
         self.prev_cmd[new] = 0.0
         if self.seen is not None:  # --sense lidar: a new episode remembers nothing
-            self.seen[new] = 1.0e4
+            self.seen[new] = FAR
         self._goals = env.goal.clone()
         self.finished[:] = False  # SAME_STEP autoreset: no env is ever left finished
         return super().__call__(obs, env)
@@ -104,13 +104,14 @@ def validate(state: dict, episodes: int) -> dict:
 
 
 @torch.no_grad()
-def agreement(policy, envs: int = 64, steps: int = 200, seed: int = TRAIN_SEED0 - 1000) -> dict:
+def agreement(policy, envs: int = 64, steps: int = 200, seed: int = TRAIN_SEED0 - 1000,
+              privileged_range: float = 4.0) -> dict:  # fmt: skip
     """How well a student predicts the planner on the planner's own flights (fresh training
     maps): per action axis (goal-frame forward, lateral, vertical) the labels' variance, the
     student's mean squared error and R^2 = 1 - MSE / variance."""
     env = SafeNavVectorEnv(envs, preset="paper", output="torch")
     obs, _ = env.reset(seed=seed)
-    teacher = Teacher(OracleConfig(privileged_range=4.0))
+    teacher = Teacher(OracleConfig(privileged_range=privileged_range))
     labels, preds = [], []
     for _ in range(steps):
         label = teacher(obs, env)
@@ -148,7 +149,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     if args.agreement_of is not None:
-        out = agreement(load_policy(args.agreement_of), steps=args.agreement_steps)
+        out = agreement(load_policy(args.agreement_of), steps=args.agreement_steps,
+                        privileged_range=args.privileged_range)  # fmt: skip
         print(json.dumps(out))
         return [out]
     torch.manual_seed(args.seed)
@@ -211,7 +213,11 @@ def main(argv: list[str] | None = None) -> list[dict]:
         record = {"settings": {**vars(args), "out": str(args.out), "machine": platform.node(),
                                "date": time.strftime("%Y-%m-%d")}, "iterations": log}  # fmt: skip
         (args.out / "dagger.json").write_text(json.dumps(record, indent=1) + "\n")
-    record["agreement"] = agreement(policy_from_state(state, "student"), steps=args.agreement_steps)
+    record["agreement"] = agreement(
+        policy_from_state(state, "student"),
+        steps=args.agreement_steps,
+        privileged_range=args.privileged_range,
+    )
     print(f"agreement with the planner on its own flights: R^2 {record['agreement']['r2']}")
     (args.out / "dagger.json").write_text(json.dumps(record, indent=1) + "\n")
     return log
