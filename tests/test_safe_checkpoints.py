@@ -209,6 +209,23 @@ def test_rng_state_round_trips_through_a_safe_checkpoint(tmp_path):
     assert (random.random(), np.random.random(3).tolist(), torch.rand(3).tolist()) == draws  # noqa: NPY002
 
 
+def test_cuda_rng_states_loaded_onto_the_gpu_are_restored_as_cpu_tensors(monkeypatch):
+    """A run on --device cuda loads its checkpoint with map_location=cuda, which moves the CUDA
+    generators' states there too; torch.cuda.set_rng_state_all takes CPU byte tensors only (a
+    resume on an H200 stopped with "RNG state must be a torch.ByteTensor")."""
+    given = []
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "set_rng_state_all", given.extend)
+
+    class OnGpu:  # a tensor that map_location put on the GPU: only .cpu() brings it back
+        def cpu(self):
+            return torch.zeros(16, dtype=torch.uint8)
+
+    set_rng_state({**rng_state(), "cuda": [OnGpu(), OnGpu()]})
+    assert len(given) == 2 and all(isinstance(s, torch.Tensor) and s.device.type == "cpu"
+                                   for s in given)  # fmt: skip
+
+
 # -------------------------------------------------------------- older checkpoints: convert
 
 

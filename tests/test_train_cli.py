@@ -15,7 +15,7 @@ import torch
 from safenav.algos.policy import load_policy, save_policy_only
 from safenav.cli import main
 from safenav.common.checkpoint import load_checkpoint, save_checkpoint
-from safenav.envs.config import EnvConfig
+from safenav.envs.config import EnvConfig, make_config
 from safenav.errors import SafenavError
 
 FAST = ["--num-envs", "4", "--log-every", "100", "--eval-every", "200", "--eval-episodes", "2",
@@ -227,3 +227,23 @@ def test_load_policy_errors(csac_run, tmp_path):
     with pytest.raises(SafenavError, match="do not fit"):
         load_policy(mismatch)
     assert np.isfinite(load_policy(csac_run).actor.actor.head.weight.detach().numpy()).all()
+
+
+def test_map_refresh_gives_each_env_a_full_episode(tmp_path, capsys):
+    """--map-refresh-every counts the steps of all envs, and a redraw ends every episode: with
+    many envs it is raised to num_envs x the time limit, so an episode can end on its own (at
+    1024 envs the recipes' 200 000 left 195 steps per env for 600-step episodes), and said."""
+    from safenav.training.trainer import map_refresh_interval
+
+    assert map_refresh_interval(200_000, 256, 600) == 200_000  # the recipes: unchanged
+    assert map_refresh_interval(200_000, 1024, 600) == 614_400
+    assert map_refresh_interval(0, 1024, 600) == 0  # never redraw stays never
+    run_dir = tmp_path / "refresh"
+    main(["train", "--algo", "csac", "--preset", "easy", "--run-dir", str(run_dir), *FAST,
+          "--total-steps", "200", "--map-refresh-every", "100"])  # fmt: skip
+    horizon = make_config("easy").max_episode_steps
+    num_envs = json.loads((run_dir / "config.json").read_text())["run"]["num_envs"]
+    out = capsys.readouterr().out
+    assert f"maps redrawn every {num_envs * horizon} env steps instead" in out
+    start = json.loads((run_dir / "events.jsonl").read_text().splitlines()[0])
+    assert start["event"] == "start" and start["map_refresh_every"] == num_envs * horizon

@@ -266,7 +266,9 @@ def set_rng_state(state: dict[str, Any]) -> None:
         state["torch"].cpu() if isinstance(state["torch"], torch.Tensor) else state["torch"]
     )
     if "cuda" in state and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
+        # a checkpoint loaded onto the GPU (map_location) brings the states there; torch takes
+        # them as CPU byte tensors only
+        torch.cuda.set_rng_state_all([s.cpu() for s in state["cuda"]])
 
 
 def seed_everything(seed: int) -> None:

@@ -64,7 +64,9 @@ class RunConfig:
     checkpoint_every: int = 50_000
     """Env steps between checkpoint.pt writes (also written at the end and on Ctrl-C)."""
     map_refresh_every: int = 200_000
-    """SafeNav-v1: env steps between redraws of the training maps (new seeds); 0 = keep them."""
+    """SafeNav-v1: env steps (all envs together) between redraws of the training maps (new
+    seeds); 0 = keep them. Raised to num_envs x the episode's time limit where it is shorter, so
+    each env can finish an episode per map set (the run says so)."""
     keep_policies: bool = False
     """Also keep the policy of every periodic evaluation as ``policies/step_<N>.pt`` (policy-only,
     ~0.6 MB each), to compare a run's policies afterwards (experiments/checkpoint_sweep.py)."""

@@ -53,7 +53,7 @@ from safenav.common.logger import RunLogger
 from safenav.common.normalize import make_normalization
 from safenav.common.progress import ProgressDisplay  # here, not lazily: its import draws `random`
 from safenav.common.stopping import RunGuard, enable_sigint
-from safenav.envs.vector import TorchVecEnv, is_safenav, make_vec_env, obs_layout
+from safenav.envs.vector import TorchVecEnv, env_horizon, is_safenav, make_vec_env, obs_layout
 from safenav.errors import SafenavError
 from safenav.training.evaluation import BestPolicy, periodic_evaluation
 from safenav.training.runs import episode_charts, run_summary, write_run_config
@@ -126,6 +126,16 @@ def write_config(run_dir: Path, algo: str, run: RunConfig, cfg: CSACConfig | PPO
     write_run_config(run_dir, algo, run, LEARNERS[algo].section, cfg, recipe)
 
 
+def map_refresh_interval(every: int, num_envs: int, horizon: int) -> int:
+    """Env steps between redraws of the training maps: ``every`` (``--map-refresh-every``, 0 =
+    never), raised to ``num_envs * horizon`` so that each env flies at least one full time limit
+    per map set. ``every`` counts the steps of all envs, and a redraw resets every episode: the
+    recipes' 200 000 give each of 256 envs 781 steps (SafeNav-v1's limit is 600), but each of
+    1024 envs only 195, and then no episode longer than that ever ends, a slow success included
+    (the GPU regime, docs/csac-v1.md)."""
+    return max(every, num_envs * horizon) if every > 0 else 0
+
+
 def train(algo: str, run: RunConfig, cfg: CSACConfig | PPOConfig, run_dir: Path,
           resume: bool = False, progress: bool = True) -> dict[str, float]:  # fmt: skip
     """Train ``algo`` (``csac``, ``sac``, ``sac_lag``, ``ppo``, ``ppo_lag``) into ``run_dir``
@@ -168,6 +178,14 @@ class Trainer:
         if self.normalization is not None:
             self.normalization.to(self.device)
         self.env = TorchVecEnv(envs, self.device, self.normalization)
+        horizon = env_horizon(envs)
+        self.refresh_every = (map_refresh_interval(run.map_refresh_every, run.num_envs, horizon)
+                              if self.nav else 0)  # fmt: skip
+        if self.refresh_every != (run.map_refresh_every if self.nav else 0):
+            print(f"safenav train: --map-refresh-every {run.map_refresh_every} would give each of "
+                  f"{run.num_envs} envs {run.map_refresh_every // run.num_envs} steps per map set, "
+                  f"under the {horizon}-step time limit: maps redrawn every {self.refresh_every} "
+                  "env steps instead")  # fmt: skip
         self.eval_env = None
         if run.eval_every > 0:
             eval_kwargs = {**env_kwargs, "density": run.density.end} if self.nav else env_kwargs
@@ -196,7 +214,8 @@ class Trainer:
         self.logger = RunLogger(self.run_dir, self.learner.columns, run.tensorboard,
                                 resume_step=self.global_step if resume else None)  # fmt: skip
         self.logger.event(self.global_step, "resume" if resume else "start", algo=algo,
-                          density=self.density.density, d=self.curriculum.d)  # fmt: skip
+                          density=self.density.density, d=self.curriculum.d,
+                          map_refresh_every=self.refresh_every)  # fmt: skip
         self.guard = RunGuard(self.run_dir, self.logger, self.agent,
                               last_saved=self.global_step if ckpt is not None else None)  # fmt: skip
         self.best = BestPolicy.for_run(self.run_dir, run.keep_policies, ckpt)
@@ -215,7 +234,6 @@ class Trainer:
         every = lambda n: (self.global_step // n + 1) * n if n else math.inf  # noqa: E731
         next_log, next_eval = every(run.log_every), every(run.eval_every)
         next_ckpt = every(run.checkpoint_every)
-        self.refresh_every = run.map_refresh_every if self.nav else 0
         self.refresh = self.global_step // self.refresh_every if self.refresh_every else 0
         self.obs = self.env.reset(seed=run.train_env_seed(self.refresh) if self.nav
                                   else run.seed + self.global_step)  # fmt: skip
@@ -367,4 +385,12 @@ class Trainer:
         )  # refuses non-finite weights: keeps the last good file
 
 
-__all__ = ["LEARNERS", "Learner", "Trainer", "algo_config", "train", "write_config"]
+__all__ = [
+    "LEARNERS",
+    "Learner",
+    "Trainer",
+    "algo_config",
+    "map_refresh_interval",
+    "train",
+    "write_config",
+]
