@@ -321,6 +321,8 @@ def test_bench_gym_on_a_tiny_budget_writes_its_files_and_resumes(tmp_path, capsy
     assert code == 0 and "1 already done (skipped), 1 to run" in err
     assert "resume" in (out / "runs" / names[0][:-5] / "events.jsonl").read_text()
     assert (out / "trials" / names[0]).is_file()
+    config = json.loads((out / "runs" / names[0][:-5] / "config.json").read_text())
+    assert config["run"]["save_buffer"]  # so the resumed SAC kept its replay buffer
 
 
 @MUJOCO
