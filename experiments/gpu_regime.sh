@@ -7,7 +7,9 @@
 #
 #   bash experiments/gpu_regime.sh OUT_DIR [SEED] [DEADLINE_S] [RESUME_TO]
 #
-# RESUME_TO 0 skips the second phase (the first then gets the whole deadline).
+# RESUME_TO 0 skips the second phase (the first then gets the whole deadline). More safenav train
+# options for the first phase in $GPU_REGIME_ARGS, e.g. GPU_REGIME_ARGS="--csac.batch-size 256"
+# (later options win) to run the envs of the regime with the recipe's batch.
 #
 # OUT_DIR gets the run directory as a tarball (policies/, events.jsonl, progress.csv,
 # config.json; not the 10 MB checkpoint) and nvidia-smi's line. Periodic evaluations keep a
@@ -16,8 +18,15 @@
 # chosen on the CPU afterwards (docs/csac-v1.md, "The GPU regime"):
 #   python experiments/checkpoint_sweep.py ... ; python -c "from safenav.commands.train import
 #   finish_run; finish_run(Path(RUN_DIR))"
+#
+# On a machine whose Python has torch but not the project's other dependencies (the lent GPU
+# machines: Python 3.12, torch 2.11), the committed run was started from the repository root as
+#   pip install --no-index --no-deps --target /tmp/site .whl/*.whl   # gymnasium, tyro, ... wheels
+#   PYTHONPATH=$PWD/src:/tmp/site bash experiments/gpu_regime.sh $OUT 2 450 0
+# with .whl/ holding gymnasium, farama-notifications, tyro, docstring-parser, typeguard,
+# typing-extensions and colorednoise (pip download --python-version 3.12 --only-binary=:all:).
 set -uo pipefail
-out=${1:?usage: gpu_regime.sh OUT_DIR [SEED] [DEADLINE_S]}
+out=${1:?usage: gpu_regime.sh OUT_DIR [SEED] [DEADLINE_S] [RESUME_TO]}
 seed=${2:-2}
 deadline=${3:-470}
 resume_to=${4:-2.5M}
@@ -34,7 +43,7 @@ share=2; [ "$resume_to" = 0 ] && share=1
 timeout -s INT $(( $(left) / share )) python3 -m safenav train --algo csac --seed "$seed" \
   --device cuda --num-envs 1024 --csac.batch-size 4096 \
   --total-steps 1M --eval-every 250000 --eval-episodes 32 --checkpoint-every 250000 \
-  --keep-policies --no-progress --run-dir "$run"
+  --keep-policies --no-progress --run-dir "$run" ${GPU_REGIME_ARGS:-}
 echo "phase 1 exit $? at $(( $(date +%s) - start )) s"
 if [ "$resume_to" != 0 ] && [ "$(left)" -gt 30 ]; then
   timeout -s INT "$(left)" python3 -m safenav train --resume "$run" --total-steps "$resume_to" --no-progress
