@@ -28,6 +28,7 @@ from typing import Any
 
 from safenav.bench.suites import CONSTRAINED, DEFAULT_SB3, SUITES, Reference, Task
 from safenav.errors import SafenavError, SafenavRuntimeError
+from safenav.recipes import PPO_ALGOS
 
 EVAL_POINTS = 10
 """Evaluations per trial (every budget / 10 steps), the last at the end of training."""
@@ -107,7 +108,7 @@ def train_command(trial: Trial, out: Path, cost_limit: float,
             str(run_dir), "--overwrite", "--eval-every", str(trial.eval_every), "--eval-episodes",
             str(EVAL_EPISODES), "--log-every", str(max(1, trial.steps // 100)),
             "--checkpoint-every", str(max(1, trial.steps // 10))]  # fmt: skip
-    if not trial.algo.startswith("ppo"):  # an off-policy trial resumes with its replay buffer,
+    if trial.algo not in PPO_ALGOS:  # an off-policy trial resumes with its replay buffer,
         cmd.append("--save-buffer")  # as if it had never stopped (else it refills it first)
     if trial.algo in CONSTRAINED:  # the cost limit: a fixed episode-cost budget d
         family = "ppo" if trial.algo == "ppo_lag" else "csac"

@@ -178,14 +178,15 @@ class Trainer:
         if self.normalization is not None:
             self.normalization.to(self.device)
         self.env = TorchVecEnv(envs, self.device, self.normalization)
-        horizon = env_horizon(envs)
-        self.refresh_every = (map_refresh_interval(run.map_refresh_every, run.num_envs, horizon)
-                              if self.nav else 0)  # fmt: skip
-        if self.refresh_every != (run.map_refresh_every if self.nav else 0):
-            print(f"safenav train: --map-refresh-every {run.map_refresh_every} would give each of "
-                  f"{run.num_envs} envs {run.map_refresh_every // run.num_envs} steps per map set, "
-                  f"under the {horizon}-step time limit: maps redrawn every {self.refresh_every} "
-                  "env steps instead")  # fmt: skip
+        self.refresh_every = 0  # map redraws: SafeNav only
+        if self.nav:
+            horizon = env_horizon(envs)
+            self.refresh_every = map_refresh_interval(run.map_refresh_every, run.num_envs, horizon)
+            if self.refresh_every != run.map_refresh_every:
+                print(f"safenav train: --map-refresh-every {run.map_refresh_every} would give each "
+                      f"of {run.num_envs} envs {run.map_refresh_every // run.num_envs} steps per map "
+                      f"set, under the {horizon}-step time limit: maps redrawn every "
+                      f"{self.refresh_every} env steps instead")  # fmt: skip
         self.eval_env = None
         if run.eval_every > 0:
             eval_kwargs = {**env_kwargs, "density": run.density.end} if self.nav else env_kwargs
