@@ -325,6 +325,41 @@ def test_bench_gym_on_a_tiny_budget_writes_its_files_and_resumes(tmp_path, capsy
     assert config["run"]["save_buffer"]  # so the resumed SAC kept its replay buffer
 
 
+def test_bench_stopped_by_sigterm_stops_its_trials_with_a_checkpoint(tmp_path):
+    """``kill BENCH_PID`` used to leave its trials training as orphans, and a rerun then started a
+    second trainer on the same run dir. The bench now forwards SIGTERM and waits for them."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "gym"
+    run_dir = out / "runs" / "MountainCarContinuous-v0-sac-safenav-1000000-s1"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    bench = subprocess.Popen([sys.executable, "-m", "safenav", "bench", "gym", "--tasks",
+                              "MountainCarContinuous-v0", "--algos", "sac", "--seeds", "1",
+                              "--steps", "1000000", "--out", str(out), "--no-progress"],
+                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                             text=True)  # fmt: skip
+    deadline = time.monotonic() + 120
+    while not (run_dir / "progress.csv").is_file():  # the trial trains
+        assert bench.poll() is None and time.monotonic() < deadline, bench.communicate()[1]
+        time.sleep(0.2)
+    bench.send_signal(signal.SIGTERM)
+    _, err = bench.communicate(timeout=120)
+    assert bench.returncode == 143, err
+    assert "stopping 1 running trial(s)" in err
+    kinds = [
+        json.loads(line)["event"] for line in (run_dir / "events.jsonl").read_text().splitlines()
+    ]
+    assert kinds[-1] == "interrupted" and (run_dir / "checkpoint.pt").is_file()
+    import fcntl  # the trainer has ended: its run-dir lock is free
+
+    with (run_dir / ".safenav.lock").open("a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+
+
 @MUJOCO
 def test_bench_safe_on_a_tiny_budget(tmp_path, capsys):
     out = tmp_path / "safe"

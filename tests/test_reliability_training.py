@@ -358,6 +358,27 @@ def test_sigint_stops_training_with_a_checkpoint_that_resumes(tmp_path, algo, si
     assert kinds[-1] == "end" and "resume" in kinds
 
 
+def test_a_run_dir_in_use_by_another_trainer_is_refused(tmp_path, capsys):
+    """Two trainers on one run dir (a rerun while the first still trains) would both write its
+    checkpoint and logs: the second is refused, and the dir is free again once the first ends."""
+    run_dir = tmp_path / "busy"
+    proc = launch(train_args("csac", run_dir, 10**7))
+    try:
+        assert wait_until(lambda: logged_step(run_dir) >= 0, proc), proc.communicate()[1]
+        err = fails(capsys, resume_args("csac", run_dir), "is in use by another safenav process",
+                    f"pid {proc.pid}")  # fmt: skip
+        assert "kill -TERM" in err
+        fails(capsys, train_args("csac", run_dir, 640, "--overwrite"), "in use")
+        assert (run_dir / "checkpoint.pt").exists() or proc.poll() is None  # nothing deleted
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=30)
+    assert proc.returncode == 143 and events(run_dir)[-1]["event"] == "interrupted"
+    step = load_checkpoint(run_dir / "checkpoint.pt")["global_step"]
+    main(resume_args("csac", run_dir, "--total-steps", str(step + 64)))  # free again
+    assert events(run_dir)[-1]["event"] == "end"
+
+
 # -------------------------------------------------------------------- 3. one-line errors
 def fails(capsys, args: list[str], *words: str) -> str:
     """``safenav ARGS`` exits with code 2 and one ``safenav: error:`` line naming ``words``."""

@@ -19,6 +19,7 @@ import csv
 import math
 import os
 import platform
+import signal
 import subprocess
 import sys
 import time
@@ -195,9 +196,8 @@ def run_trials(trials: list[Trial], out: Path, cost_limit: float, jobs: int = 1,
                progress: bool = True, extra: tuple[str, ...] = ()) -> list[str]:  # fmt: skip
     """Run the trials that have no trial file yet, ``jobs`` at a time; returns the failures."""
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from safenav.common.jsonout import write_json
+    from safenav.common.stopping import Terminated, enable_sigint
 
     for sub in ("trials", "runs", "logs"):
         (out / sub).mkdir(parents=True, exist_ok=True)
@@ -207,11 +207,52 @@ def run_trials(trials: list[Trial], out: Path, cost_limit: float, jobs: int = 1,
         f"run; results in {out}")  # fmt: skip
     failures: list[str] = []
     total = sum(t.steps for t in todo)
+    enable_sigint()  # SIGTERM raises here too, so that the trials below are stopped with it
+    running: dict[Trial, tuple[subprocess.Popen, Any, float, int]] = {}
+    try:
+        _run_queue(todo, running, out, cost_limit, jobs, progress, extra, failures, total, console)
+    except KeyboardInterrupt as err:
+        stop_trials([proc for proc, *_ in running.values()], isinstance(err, Terminated))
+        raise
+    return failures
+
+
+def stop_trials(procs: list[subprocess.Popen], forward: bool, timeout_s: float = 300.0) -> None:
+    """The bench was interrupted: let each running trial checkpoint and stop before the bench
+    exits, so that none trains on as an orphan (a rerun would then start a second trainer on the
+    same run directory). SIGTERM is forwarded (``kill`` of the bench alone); a Ctrl-C reached the
+    whole process group, so the trials have it already. A trial still running after
+    ``timeout_s`` is killed (its last periodic checkpoint stays)."""
+    live = [p for p in procs if p.poll() is None]
+    if not live:
+        return
+    say(f"stopping {len(live)} running trial(s); each writes its checkpoint, and the same "
+        "command resumes them")  # fmt: skip
+    for proc in live:
+        if forward:
+            proc.send_signal(signal.SIGTERM)
+    deadline = time.monotonic() + timeout_s
+    for proc in live:
+        try:
+            proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def _run_queue(todo: list[Trial], running: dict, out: Path, cost_limit: float, jobs: int,
+               progress: bool, extra: tuple[str, ...], failures: list[str], total: int,
+               console) -> None:  # fmt: skip
+    """Run ``todo``, ``jobs`` trials at a time, each a subprocess; ``running`` holds the live ones
+    (what :func:`stop_trials` stops), ``failures`` gets a line per failed trial."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from safenav.common.jsonout import write_json
+
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                TimeElapsedColumn())  # fmt: skip
     with Progress(*columns, console=console, disable=not progress) as bar:
         overall = bar.add_task("all trials (env steps)", total=total)
-        running: dict[Trial, tuple[subprocess.Popen, Any, float, int]] = {}
         queue = list(todo)
         finished_steps = 0
         while queue or running:
@@ -248,7 +289,6 @@ def run_trials(trials: list[Trial], out: Path, cost_limit: float, jobs: int = 1,
                 say(f"{trial.name} done: return {result['final']['return']:.1f}, "
                     f"{result['wall_clock_s']:.0f} s")  # fmt: skip
             bar.update(overall, completed=finished_steps + live)
-    return failures
 
 
 # ------------------------------------------------------------------------------ the report

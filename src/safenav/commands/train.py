@@ -64,20 +64,25 @@ def train(
     """
     from safenav import training
     from safenav.cli import ARGS
-    from safenav.common.logger import prepare_run_dir
+    from safenav.common.logger import prepare_run_dir, run_dir_lock
     from safenav.envs.vector import cost_function
 
     algo, run, csac, ppo, recipe = apply_recipe(config, algo, run, csac, ppo, ARGS.get(), resume)
     run, cfg, run_dir = plan(algo, run, csac, ppo, run_dir, resume, overwrite)
-    prepare_run_dir(run_dir, resume=resume is not None, overwrite=overwrite)
-    if recipe is not None:  # after every refusal: a refused command prints its error alone
-        print(recipe_line(recipe, run.env, chosen=config is None))
-    if resume is None:
-        training.write_config(run_dir, algo, run, cfg, recipe_record(recipe))
-    with cost_function(run.cost_fn):
-        result = training.train(
-            algo, run, cfg, run_dir, resume=resume is not None, progress=progress
-        )
+    with run_dir_lock(run_dir):  # one process per run dir, from the first write to the last
+        prepare_run_dir(run_dir, resume=resume is not None, overwrite=overwrite)
+        if recipe is not None:  # after every refusal: a refused command prints its error alone
+            print(recipe_line(recipe, run.env, chosen=config is None))
+        if resume is None:
+            training.write_config(run_dir, algo, run, cfg, recipe_record(recipe))
+        with cost_function(run.cost_fn):
+            result = training.train(
+                algo, run, cfg, run_dir, resume=resume is not None, progress=progress
+            )
+        _report_and_select(algo, run, run_dir, result)
+
+
+def _report_and_select(algo: str, run: RunConfig, run_dir: Path, result: dict) -> None:
     print(f"safenav train: {algo} finished at step {result['global_step']} ({result['updates']} updates)\n"
           f"  last 100 episodes: success {result['success_rate']:.3f}, collision "
           f"{result['collision_rate']:.3f}, return {result['return']:.2f}\n  run dir {run_dir}")  # fmt: skip

@@ -10,13 +10,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import errno
 import json
 import math
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -65,6 +66,56 @@ def prepare_run_dir(run_dir: Path, resume: bool, overwrite: bool) -> None:
             f"--run-dir {run_dir}: cannot create run directory: {err.strerror or err}"
         ) from None
     _check_writable(run_dir)
+
+
+LOCK_FILE = ".safenav.lock"
+
+
+@contextlib.contextmanager
+def run_dir_lock(run_dir: Path) -> Iterator[None]:
+    """Hold ``run_dir`` for this process: a second ``safenav train`` on the same directory (a
+    rerun while the first still trains, e.g. an orphan of a stopped ``safenav bench``) is refused
+    with one line instead of both writing the same checkpoint and logs.
+
+    An advisory ``flock`` on ``RUN_DIR/.safenav.lock``, which holds the owner's pid; the OS
+    releases it when the process ends, however it ends, so a killed run never leaves a stale
+    lock. No lock where ``fcntl`` is missing (Windows) or the directory cannot be made (then
+    :func:`prepare_run_dir` says why)."""
+    try:
+        import fcntl
+    except ImportError:
+        yield
+        return
+    run_dir = Path(run_dir)
+    lock = run_dir / LOCK_FILE
+    made_dir, made_lock = not run_dir.exists(), not lock.exists()
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError:
+        yield
+        return
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            owner = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+            raise SafenavError(f"--run-dir {run_dir} is in use by another safenav process (pid "
+                               f"{owner}): wait for it to finish, or stop it (kill -TERM {owner} "
+                               "checkpoints it) and then --resume") from None  # fmt: skip
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        try:
+            yield
+        except SafenavError:  # refused before training: leave the directory as it was found
+            if made_lock:
+                lock.unlink(missing_ok=True)
+            if made_dir:
+                with contextlib.suppress(OSError):
+                    run_dir.rmdir()  # only if empty
+            raise
+    finally:
+        os.close(fd)  # releases the lock
 
 
 def has_trained(run_dir: Path) -> bool:
