@@ -381,7 +381,9 @@ def test_bench_refuses_unknown_tasks_and_algorithms(tmp_path, capsys):
     for extra, words in ((["--tasks", "CartPole-v1"], "not in the gym suite"),
                          (["--algos", "csac"], "the gym suite runs sac, ppo"),
                          (["--sb3", "Nope-v0"], "--sb3 Nope-v0"),
-                         (["--train-args=--nope 1"], "--train-args")):  # fmt: skip
+                         (["--train-args=--nope 1"], "--train-args"),
+                         # a value that looks like an option: how to pass it
+                         (["--train-args", "--ppo.lr 1e-3"], "write --train-args='--ppo.lr 1e-3'")):  # fmt: skip
         code, _, err = run(capsys, ["bench", "gym", "--out", str(tmp_path / "x"), *extra])
         assert code == 2 and words in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "x").exists()

@@ -329,7 +329,11 @@ def parse_error_message(event: object, verb: str | None = None) -> str:
         flag = _flag(getattr(event, "argument", None))
         nargs = getattr(getattr(getattr(event, "argument", None), "lowered", None), "nargs", 1)
         if getattr(event, "reason", "") == "too_few_values":
-            return f"{flag} needs {nargs} value{'s' if nargs != 1 else ''}: {_help_of(prog)}"
+            given = list(ARGS.get())
+            after = given[given.index(flag) + 1] if flag in given[:-1] else ""
+            hint = (f" (a value that starts with '-' is taken for an option: write {flag}={after!r})"
+                    if after.startswith("-") and nargs == 1 else "")  # fmt: skip
+            return f"{flag} needs {nargs} value{'s' if nargs != 1 else ''}{hint}: {_help_of(prog)}"
         return (
             f"{flag} takes no value ({getattr(event, 'offending_value', '')!r}): {_help_of(prog)}"
         )
