@@ -192,6 +192,26 @@ def test_env_gets_clipped_actions_the_rollout_keeps_the_sample():
     torch.testing.assert_close(log_prob, rollout.log_probs.flatten(0, 1), rtol=1e-5, atol=1e-5)
 
 
+def test_anneal_lr_decays_the_rate_linearly_to_zero_over_the_run():
+    """CleanRL's ``anneal_lr``: rollout i (of N) is learned at ``lr (1 - (i - 1) / N)``."""
+    torch.manual_seed(7)
+    env = still_envs(2)
+    cfg = dataclasses.replace(SDE, rollout_steps=4, num_minibatches=2, epochs=1, lr=1e-3)
+    rates = {}
+    for anneal in (True, False):
+        learner = PPOLearner(env, RunConfig(total_steps=32, num_envs=2),
+                             dataclasses.replace(cfg, anneal_lr=anneal))  # fmt: skip
+        obs, step, seen = env.reset(seed=0), 0, []
+        for _ in range(4):  # 4 rollouts of 8 steps = the 32-step run
+            obs, _, n = learner.collect(env, obs, step, 0.0)
+            step += n
+            learner.update(step, 0.0)
+            seen.append(learner.agent.optimizer.param_groups[0]["lr"])
+        rates[anneal] = seen
+    assert rates[True] == pytest.approx([1e-3, 0.75e-3, 0.5e-3, 0.25e-3])
+    assert rates[False] == pytest.approx([1e-3] * 4)
+
+
 def test_deterministic_action_is_the_mean_clipped_for_evaluation_and_deployment():
     torch.manual_seed(6)
     env = still_envs(2)

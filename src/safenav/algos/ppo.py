@@ -283,6 +283,7 @@ class PPOLearner:
         self.rollout = Rollout(cfg.rollout_steps, env.num_envs, env.obs_shapes, env.action_dim,
                                self.agent.num_values, env.device)  # fmt: skip
         self.rollouts = 0
+        self.lr, self.total_steps, self.anneal = cfg.lr, run.total_steps, cfg.anneal_lr
         self.ep_costs: list[float] = []  # the costs of the episodes that ended in this rollout
         self.rollout_d = 0.0  # the budget those episodes ran under
         self.lam_sums, self.lam_n = {"losses/lambda": 0.0, "constraint/episode_cost": 0.0}, 0
@@ -310,7 +311,12 @@ class PPOLearner:
             self.lam_sums["constraint/episode_cost"] += float(j_c[0])
             self.lam_n += 1
         self.ep_costs = []
-        # 3-6. the update
+        # 3-6. the update, at the annealed rate where asked (CleanRL: set before the rollout)
+        if self.anneal:
+            before = global_step - self.rollout.steps * self.rollout.num_envs
+            lr = self.lr * max(0.0, 1.0 - before / self.total_steps)
+            for group in self.agent.optimizer.param_groups:
+                group["lr"] = lr
         metrics = self.agent.update(self.rollout)
         return int(metrics.pop("perf/gradient_steps")), [metrics]
 

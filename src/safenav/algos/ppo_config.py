@@ -41,6 +41,10 @@ class PPOConfig:
     ``critic.clip_ratio``); 0 disables value clipping."""
     lr: float = 5e-4
     """Adam learning rate of actor, critic and feature extractor (NavRL: 5e-4 for all three)."""
+    anneal_lr: bool = False
+    """Decay ``lr`` linearly to 0 over the run's ``--total-steps``, set before each rollout's
+    update to ``lr (1 - steps before this rollout / total steps)`` (CleanRL's ``anneal_lr``;
+    beyond NavRL, whose rate is constant)."""
     entropy_coef: float = 1e-3
     """Weight of the entropy bonus (NavRL's ``entropy_loss_coefficient``)."""
     max_grad_norm: float = 5.0
