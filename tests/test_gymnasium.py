@@ -114,8 +114,19 @@ def test_published_values_per_family_and_per_env():
         CSACConfig(), load_recipe("box2d-sac").section("csac", "LunarLanderContinuous-v3")
     )
     assert lunar.net.hidden == (400, 300) and lunar.tau == 0.01
-    ppo = apply(PPOConfig(), load_recipe("mujoco-ppo").section("ppo", "Hopper-v5"))
+    # mujoco-ppo: CleanRL's values and wrappers for any MuJoCo task, the zoo's tuned Hopper entry
+    ppo = apply(PPOConfig(), load_recipe("mujoco-ppo").section("ppo", "Walker2d-v5"))
     assert (ppo.rollout_steps, ppo.epochs, ppo.num_minibatches, ppo.clip) == (2048, 10, 32, 0.2)
+    assert (ppo.distribution, ppo.anneal_lr, ppo.value_clip) == ("gaussian", True, 0.2)
+    run = apply(RunConfig(), load_recipe("mujoco-ppo").section("run", "Walker2d-v5"))
+    assert run.normalize_obs and run.normalize_reward and run.num_envs == 1
+    ppo = apply(PPOConfig(), load_recipe("mujoco-ppo").section("ppo", "Hopper-v5"))
+    assert (ppo.rollout_steps, ppo.epochs, ppo.num_minibatches, ppo.lr) == (512, 5, 16, 9.80828e-5)
+    assert (ppo.anneal_lr, ppo.value_clip, ppo.log_std_init, ppo.net.hidden) == (
+        False, 0.0, -2.0, (256, 256)
+    )  # fmt: skip
+    lunar = apply(PPOConfig(), load_recipe("box2d-ppo").section("ppo", "LunarLanderContinuous-v3"))
+    assert lunar.distribution == "gaussian" and lunar.num_minibatches == 256
 
 
 def test_the_family_is_read_from_the_env_id():
