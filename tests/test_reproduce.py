@@ -245,6 +245,10 @@ if verb == "eval":
 run, total, seed = pathlib.Path(arg("--run-dir")), int(arg("--total-steps")), int(arg("--seed"))
 if "--fail" in args:
     print("boom: something broke"); sys.exit(3)
+if "--killed-once" in args and not (run.parent / f"killed-{{seed}}").exists():
+    run.parent.mkdir(parents=True, exist_ok=True)
+    (run.parent / f"killed-{{seed}}").write_text("")  # as the OOM killer would: SIGKILL
+    import os, signal; os.kill(os.getpid(), signal.SIGKILL)
 run.mkdir(parents=True, exist_ok=True)
 start = json.loads((run / "checkpoint.pt").read_text())["step"] if "--resume" in args else 0
 with (run / "progress.csv").open("a" if start else "w") as f:
@@ -336,6 +340,40 @@ def test_failed_trial_raises_with_the_log_tail(tmp_path, fake_python):
     with pytest.raises(rep.TrialFailed, match="boom: something broke"):
         rep.run_trial(trial)
     assert rep.trial_state(trial) == "fresh"
+
+
+def test_a_killed_trial_raises_trial_killed_which_ray_retries(tmp_path, fake_python):
+    """A signal (here SIGKILL) is TrialKilled, which Ray retries; an exit code is not."""
+    trial = make_trial(tmp_path, fake_python, train_args=("--killed-once",))
+    with pytest.raises(rep.TrialKilled, match="exit code -9"):
+        rep.run_trial(trial)
+    assert rep.run_trial(trial)["state"] == "fresh"  # the retry (nothing saved before the kill)
+    assert rep.trial_state(trial) == "done"
+    assert not issubclass(rep.TrialFailed, rep.TrialKilled)
+
+
+def test_cpu_hours_estimate_and_eta(tmp_path, fake_python):
+    todo = [make_trial(tmp_path, fake_python, total=1_000_000),
+            dataclasses.replace(make_trial(tmp_path, fake_python, total=2_000_000), algo="ppo",
+                                label="ppo", run_dir=tmp_path / "runs" / "ppo" / "seed0")]  # fmt: skip
+    cpu_s, source = rep.estimate_cpu_seconds(todo, done=[])
+    rates = rep.CPU_S_PER_STEP
+    assert cpu_s == pytest.approx(1e6 * rates["csac"] + 2e6 * rates["ppo"])
+    assert "development machine" in source
+    # a resumed trial counts the steps it has left
+    todo[0].run_dir.mkdir(parents=True)
+    (todo[0].run_dir / "progress.csv").write_text("global_step,x\n250000,1\n")
+    assert rep.estimate_cpu_seconds(todo[:1], [])[0] == pytest.approx(7.5e5 * rates["csac"])
+    # finished trials of the sweep give the rate: 1000 s x 1 CPU for 1000 steps = 1 s per step
+    done = make_trial(tmp_path, fake_python, total=1000)
+    done = dataclasses.replace(done, run_dir=tmp_path / "runs" / "csac" / "seed9", seed=9)
+    done.record_path.parent.mkdir(parents=True, exist_ok=True)
+    done.record_path.write_text(json.dumps({"wall_clock_s": 1000.0, "env_steps": 1000}))
+    cpu_s, source = rep.estimate_cpu_seconds(todo[:1], [done])
+    assert cpu_s == pytest.approx(7.5e5) and source == "this sweep's finished trials"
+    line = rep.eta_line(1, 4, 250, 1000, 600.0, now=0.0)
+    assert line == "1 of 4 trials done; about 30.0 min left (ETA 00:30 UTC)"
+    assert rep.eta_line(0, 4, 0, 1000, 5.0) == "0 of 4 trials done"
 
 
 def test_confidence_intervals_wilson_by_hand_and_bootstrap_over_seeds():

@@ -64,6 +64,14 @@ def test_failed_trial_is_reported_and_the_rest_aggregated(tmp_path, fake_python)
     assert "boom: something broke" in (cfg.out / "logs" / "broken-seed0.train.log").read_text()
 
 
+def test_a_killed_trial_is_retried_by_ray_and_completes(tmp_path, fake_python):  # noqa: F811
+    cfg = sweep(tmp_path, fake_python, variants=("flaky=sac --killed-once",))
+    cfg.algos, cfg.seeds = ("flaky",), 1
+    data = rep.run_sweep(cfg)
+    assert data["algos"]["flaky"]["seeds"] == 1 and data["failed"] == []
+    assert (cfg.out / "runs" / "flaky" / "killed-0").exists()  # it was killed once
+
+
 def test_cpus_per_trial_larger_than_any_node_is_refused(tmp_path, fake_python):  # noqa: F811
     from safenav.errors import SafenavError
 

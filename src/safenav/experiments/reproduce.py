@@ -159,6 +159,17 @@ class TrialFailed(RuntimeError):
     """A trial's subprocess exited with an error; the message ends with its log's last lines."""
 
 
+class TrialKilled(TrialFailed):
+    """A trial's subprocess was killed by a signal (the OOM killer, a node going away): Ray runs
+    the task again (:data:`RETRIES`), which resumes the trial from its last checkpoint. A trial
+    that exits with an error code of its own is not retried: the same error would recur."""
+
+
+#: How many times Ray runs a trial again after its worker died (``max_retries``) or its training
+#: subprocess was killed (:class:`TrialKilled`, ``retry_exceptions``); each retry resumes.
+RETRIES = 2
+
+
 def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
     """Linux: the child gets SIGTERM when the Ray worker that started it dies."""
     with contextlib.suppress(Exception):
@@ -195,7 +206,10 @@ def _run_logged(cmd: list[str], log: Path, threads: int) -> float:
     seconds = time.perf_counter() - t0
     if rc != 0:
         tail = log.read_text(errors="replace").strip().splitlines()[-15:]
-        raise TrialFailed(f"exit code {rc} from: {shlex.join(cmd[1:])}\n" + "\n".join(tail))
+        killed = rc < 0 or rc == 128 + signal.SIGKILL  # a signal, directly or through a shell
+        raise (TrialKilled if killed else TrialFailed)(
+            f"exit code {rc} from: {shlex.join(cmd[1:])}\n" + "\n".join(tail)
+        )
     return seconds
 
 
@@ -488,6 +502,11 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
                 f"done), {cluster['parallel_trials']} at a time on {cluster['nodes']} Ray "
                 f"node(s), {cluster['cpus']:.0f} CPUs; logs in {out / 'logs'}"
             )
+            cpu_s, source = estimate_cpu_seconds(todo, [t for t in trials if t not in todo])
+            busy = max(1, min(len(todo), cluster["parallel_trials"])) * cfg.cpus_per_trial
+            console.print(f"[bold]reproduce[/]: about {cpu_s / 3600:.1f} CPU-hours, "
+                          f"{fmt_seconds(cpu_s / busy)} of wall clock at {busy} CPUs busy "
+                          f"(rate: {source})")  # fmt: skip
             outcomes, failures = _run_on_ray(cfg, todo, states, console)
     finally:
         if started_ray:
@@ -545,6 +564,55 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
     return results
 
 
+#: CPU-seconds per env step of a whole trial (training with its periodic evaluations, the
+#: validation selection and the test evaluation), measured on the 2-core development machine
+#: (docs/reproduce.md); :func:`estimate_cpu_seconds` prefers the rate of the sweep's own
+#: finished trials.
+CPU_S_PER_STEP: dict[str, float] = {"csac": 2.6e-3, "sac": 2.2e-3, "sac_lag": 2.6e-3,
+                                    "ppo": 3.0e-4, "ppo_lag": 3.0e-4}  # fmt: skip
+
+
+def estimate_cpu_seconds(todo: list[Trial], done: list[Trial]) -> tuple[float, str]:
+    """``(CPU-seconds, where the rate came from)`` that ``todo`` still needs: each trial's
+    remaining steps (a resumed one has fewer) at its algorithm's rate, measured on the finished
+    trials of ``done`` where there are any (their records' wall clock x CPUs / env steps), else
+    :data:`CPU_S_PER_STEP`."""
+    measured: dict[str, list[float]] = {}
+    for t in done:
+        rec = read_json(t.record_path) or {}
+        wall, steps = rec.get("wall_clock_s"), rec.get("env_steps") or rec.get("budget_env_steps")
+        if wall and steps:
+            measured.setdefault(t.algo, []).append(float(wall) * t.cpus / float(steps))
+    total, sources = 0.0, set()
+    for t in todo:
+        if measured.get(t.algo):
+            rate = sum(measured[t.algo]) / len(measured[t.algo])
+            sources.add("this sweep's finished trials")
+        else:
+            rate = CPU_S_PER_STEP.get(t.algo, max(CPU_S_PER_STEP.values()))
+            sources.add("measured on the 2-core development machine")
+        total += rate * max(0, t.total_steps - last_step(t.run_dir))
+    return total, " and ".join(sorted(sources)) or "-"
+
+
+def eta_line(
+    done: int,
+    count: int,
+    steps_done: int,
+    steps_total: int,
+    elapsed_s: float,
+    now: float | None = None,
+) -> str:
+    """``"3 of 5 trials done; about 41 min left (ETA 08:12 UTC)"``: the steps left at the rate
+    the sweep has made steps so far."""
+    text = f"{done} of {count} trials done"
+    if 0 < steps_done < steps_total and elapsed_s > 0:
+        left = (steps_total - steps_done) * elapsed_s / steps_done
+        at = datetime.fromtimestamp((time.time() if now is None else now) + left, timezone.utc)
+        text += f"; about {fmt_seconds(left)} left (ETA {at:%H:%M} UTC)"
+    return text
+
+
 def _run_on_ray(cfg: SweepConfig, todo: list[Trial], states: dict[str, str], console: Any):
     """Submit ``todo`` as Ray tasks and wait for them with a live progress table."""
     import ray
@@ -557,19 +625,28 @@ def _run_on_ray(cfg: SweepConfig, todo: list[Trial], states: dict[str, str], con
     pending: dict[Any, Trial] = {}
     submitted: dict[str, float] = {}
     for trial in todo:
-        ref = remote.options(num_cpus=trial.cpus, num_gpus=trial.gpus, max_retries=0,
+        ref = remote.options(num_cpus=trial.cpus, num_gpus=trial.gpus, max_retries=RETRIES,
+                             retry_exceptions=[TrialKilled],
                              name=f"trial:{trial.name}").remote(trial)  # fmt: skip
         pending[ref] = trial
         submitted[trial.name] = time.time()
     outcomes: dict[str, dict[str, Any]] = {}
     failures: dict[str, str] = {}
     columns = (rp.TextColumn("{task.description:<22}"), rp.BarColumn(), rp.MofNCompleteColumn(),
-               rp.TextColumn("{task.fields[status]:<10}"), rp.TimeElapsedColumn())  # fmt: skip
+               rp.TextColumn("{task.fields[status]:<10}"), rp.TimeElapsedColumn(),
+               rp.TextColumn("eta"), rp.TimeRemainingColumn())  # fmt: skip
+    first = {t.name: last_step(t.run_dir) for t in todo}
+    steps_total = sum(t.total_steps - first[t.name] for t in todo)
+    t0 = time.time()
+
+    def steps_now() -> int:
+        return sum(min(last_step(t.run_dir), t.total_steps) - first[t.name] for t in todo)
+
     with rp.Progress(*columns, console=console, disable=not cfg.progress,
                   refresh_per_second=2) as bar:  # fmt: skip
-        overall = bar.add_task("all trials", total=len(todo), status="")
+        overall = bar.add_task("all trials (steps)", total=steps_total, status="")
         rows = {t.name: bar.add_task(t.name, total=t.total_steps, status="queued", start=False,
-                                     completed=last_step(t.run_dir)) for t in todo}  # fmt: skip
+                                     completed=first[t.name]) for t in todo}  # fmt: skip
         try:
             while pending:
                 ready, _ = ray.wait(list(pending), num_returns=1, timeout=1.0)
@@ -587,7 +664,10 @@ def _run_on_ray(cfg: SweepConfig, todo: list[Trial], states: dict[str, str], con
                     bar.update(rows[trial.name], completed=last_step(trial.run_dir),
                                status=status)  # fmt: skip
                     bar.stop_task(rows[trial.name])
-                    bar.advance(overall)
+                    finished = len(outcomes) + len(failures)
+                    console.print(f"[bold]reproduce[/]: {trial.name} {status}; "
+                                  + eta_line(finished, len(todo), steps_now(), steps_total,
+                                             time.time() - t0))  # fmt: skip
                 for trial in pending.values():
                     status_file = trial.log("status")
                     status = status_file.read_text().strip() if status_file.exists() else "queued"
@@ -596,6 +676,7 @@ def _run_on_ray(cfg: SweepConfig, todo: list[Trial], states: dict[str, str], con
                         started.add(trial.name)
                     bar.update(rows[trial.name], completed=last_step(trial.run_dir),
                                status=status if status != "done" else "finishing")  # fmt: skip
+                bar.update(overall, completed=steps_now())
         except KeyboardInterrupt:
             for ref in pending:
                 ray.cancel(ref)
@@ -619,11 +700,16 @@ def _print_summary(console: Any, results: dict[str, Any], files: list[Path]) -> 
 
 
 __all__ = [
+    "CPU_S_PER_STEP",
     "DEFAULT_TOTAL_STEPS",
     "KNOWN_ALGOS",
     "SweepConfig",
     "Trial",
     "TrialFailed",
+    "TrialKilled",
+    "RETRIES",
+    "estimate_cpu_seconds",
+    "eta_line",
     "machine_description",
     "parse_steps",
     "parse_variants",
