@@ -171,9 +171,24 @@ def test_each_recipe_is_chosen_from_the_env_and_trains(algo, env, recipe, extra,
     assert config["recipe"]["name"] == recipe
     last = rows(run_dir / "progress.csv")[-1]
     assert int(float(last["global_step"])) >= 300 and float(last["perf/updates"]) > 0
+    # the closing lines: the return of the episodes that ended (success and collision are
+    # SafeNav's), or that none did, never "nan"
+    summary = out.splitlines()[-2]
+    assert "success" not in summary and "nan" not in summary, summary
+    assert summary.startswith(("  last ", "  no training episode ended yet")), summary
 
 
 # ------------------------------------------------------------------------- no silent nonsense
+
+
+def test_an_image_observation_gets_one_warning(capsys):
+    from safenav.commands.train import warn_images
+
+    warn_images("CarRacing-v3", {"obs": (96, 96, 3)})
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "27,648 inputs of an MLP" in err
+    warn_images("Hopper-v5", {"obs": (11,)})
+    assert capsys.readouterr().err == ""
 
 
 def test_a_budget_within_the_warm_up_is_refused_with_both_numbers(tmp_path, capsys):

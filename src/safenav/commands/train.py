@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import sys
 import time
 from pathlib import Path
 from typing import Annotated
@@ -83,9 +84,18 @@ def train(
 
 
 def _report_and_select(algo: str, run: RunConfig, run_dir: Path, result: dict) -> None:
-    print(f"safenav train: {algo} finished at step {result['global_step']} ({result['updates']} updates)\n"
-          f"  last 100 episodes: success {result['success_rate']:.3f}, collision "
-          f"{result['collision_rate']:.3f}, return {result['return']:.2f}\n  run dir {run_dir}")  # fmt: skip
+    from safenav.envs.vector import is_safenav
+
+    episodes = result.get("episodes", 100)
+    if not episodes:  # a budget shorter than one episode: say so rather than print nan
+        recent = "no training episode ended yet (the run is shorter than one episode)"
+    elif is_safenav(run.env):
+        recent = (f"last {episodes} episodes: success {result['success_rate']:.3f}, collision "
+                  f"{result['collision_rate']:.3f}, return {result['return']:.2f}")  # fmt: skip
+    else:  # success and collision are SafeNav's notions
+        recent = f"last {episodes} episodes: return {result['return']:.2f}"
+    print(f"safenav train: {algo} finished at step {result['global_step']} ({result['updates']} "
+          f"updates)\n  {recent}\n  run dir {run_dir}")  # fmt: skip
     if run.select:
         finish_run(run_dir, run.device)
 
@@ -254,6 +264,8 @@ def plan(algo: str, run: RunConfig, csac: CSACConfig, ppo: PPOConfig, run_dir: P
                            "--num-envs)")  # fmt: skip
     check_budget(family, run, cfg)
     check_cost(algo, run)
+    if "lidar" not in obs_shapes:  # SafeNav: its range image has an encoder
+        warn_images(run.env, obs_shapes)
     check_training_memory(algo, run, cfg, obs_shapes, action_dim, env_cfg)
     return run, cfg, Path(run_dir)
 
@@ -274,8 +286,6 @@ def check_cost(algo: str, run: RunConfig) -> None:
     """``--cost-fn`` must name a function (and not be given for SafeNav, which has its own cost);
     a constrained algorithm on an env that reports no ``info["cost"]`` warns, once, that it
     trains its unconstrained form."""
-    import sys
-
     from safenav.envs.vector import is_safenav, reports_cost
     from safenav.errors import SafenavError
 
@@ -301,6 +311,18 @@ def check_cost(algo: str, run: RunConfig) -> None:
             print(f"safenav train: warning: {run.env} reports no info['cost'], so {algo} sees cost "
                   f"0 in every step and reduces to {plain}; give a cost with --cost-fn "
                   "module:function (docs/gymnasium.md)", file=sys.stderr)  # fmt: skip
+
+
+def warn_images(env_id: str, obs_shapes: dict[str, tuple[int, ...]]) -> None:
+    """One warning for an observation with more than one axis (CarRacing's 96x96x3 pixels): the
+    networks of Gymnasium tasks are MLPs over the flattened observation, with no image encoder
+    (SafeNav's range image has its own), so such a run is slow and learns little."""
+    for key, shape in obs_shapes.items():
+        if len(shape) > 1:
+            print(f"safenav train: warning: {env_id}'s observation {key!r} is {'x'.join(map(str, shape))}: "
+                  f"it is flattened into {math.prod(shape):,} inputs of an MLP (no image encoder "
+                  "for Gymnasium tasks), slow and unlikely to learn; wrap the env to give a "
+                  "feature vector (e.g. gymnasium.wrappers)", file=sys.stderr)  # fmt: skip
 
 
 def given(field: str) -> bool:

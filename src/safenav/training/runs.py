@@ -34,10 +34,11 @@ def episode_charts(window: Mapping[str, list[float]]) -> dict[str, float]:
 def run_summary(
     global_step: int, updates: int, recent: Mapping[str, Iterable[float]]
 ) -> dict[str, Any]:
-    """What ``train`` returns: step and update counts and the recent episode rates."""
+    """What ``train`` returns: step and update counts, and the rates and mean return of the
+    recent (up to 100) training episodes, ``episodes`` of them."""
     return {"global_step": global_step, "updates": updates,
             "success_rate": nanmean(recent["success"]), "collision_rate": nanmean(recent["collision"]),
-            "return": nanmean(recent["return"])}  # fmt: skip
+            "return": nanmean(recent["return"]), "episodes": len(list(recent["return"]))}  # fmt: skip
 
 
 def write_run_config(
