@@ -175,7 +175,7 @@ def test_each_recipe_is_chosen_from_the_env_and_trains(algo, env, recipe, extra,
     # SafeNav's), or that none did, never "nan"
     summary = out.splitlines()[-2]
     assert "success" not in summary and "nan" not in summary, summary
-    assert summary.startswith(("  last ", "  no training episode ended yet")), summary
+    assert summary.startswith(("  last ", "  no training episode ended in")), summary
 
 
 # ------------------------------------------------------------------------- no silent nonsense
@@ -351,9 +351,11 @@ def test_bench_gym_on_a_tiny_budget_writes_its_files_and_resumes(tmp_path, capsy
     assert config["run"]["save_buffer"]  # so the resumed SAC kept its replay buffer
 
 
-def test_bench_stopped_by_sigterm_stops_its_trials_with_a_checkpoint(tmp_path):
+@pytest.mark.parametrize(("sig", "code"), [("SIGTERM", 143), ("SIGINT", 130)])
+def test_bench_stopped_by_a_signal_stops_its_trials_with_a_checkpoint(tmp_path, sig, code):
     """``kill BENCH_PID`` used to leave its trials training as orphans, and a rerun then started a
-    second trainer on the same run dir. The bench now forwards SIGTERM and waits for them."""
+    second trainer on the same run dir. The trials now run in their own sessions, and the bench
+    sends each one SIGTERM and waits for its checkpoint (also for a SIGINT sent to it alone)."""
     import os
     import signal
     import subprocess
@@ -372,9 +374,9 @@ def test_bench_stopped_by_sigterm_stops_its_trials_with_a_checkpoint(tmp_path):
     while not (run_dir / "progress.csv").is_file():  # the trial trains
         assert bench.poll() is None and time.monotonic() < deadline, bench.communicate()[1]
         time.sleep(0.2)
-    bench.send_signal(signal.SIGTERM)
+    bench.send_signal(getattr(signal, sig))
     _, err = bench.communicate(timeout=120)
-    assert bench.returncode == 143, err
+    assert bench.returncode == code, err
     assert "stopping 1 running trial(s)" in err
     kinds = [
         json.loads(line)["event"] for line in (run_dir / "events.jsonl").read_text().splitlines()
@@ -409,7 +411,7 @@ def test_bench_refuses_unknown_tasks_and_algorithms(tmp_path, capsys):
                          (["--sb3", "Nope-v0"], "--sb3 Nope-v0"),
                          (["--train-args=--nope 1"], "--train-args"),
                          # a value that looks like an option: how to pass it
-                         (["--train-args", "--ppo.lr 1e-3"], "write --train-args='--ppo.lr 1e-3'")):  # fmt: skip
+                         (["--train-args", "--ppo.lr 1e-3"], "write '--train-args=--ppo.lr 1e-3'")):  # fmt: skip
         code, _, err = run(capsys, ["bench", "gym", "--out", str(tmp_path / "x"), *extra])
         assert code == 2 and words in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "x").exists()

@@ -379,6 +379,31 @@ def test_a_run_dir_in_use_by_another_trainer_is_refused(tmp_path, capsys):
     assert events(run_dir)[-1]["event"] == "end"
 
 
+def test_run_dir_lock_leaves_nothing_when_refused_and_works_without_flock(tmp_path, monkeypatch):
+    import errno
+    import fcntl
+
+    from safenav.common.logger import LOCK_FILE, run_dir_lock, wait_for_run_dir
+
+    fresh = tmp_path / "fresh"
+    with pytest.raises(SafenavError), run_dir_lock(fresh):
+        raise SafenavError("refused before writing")  # e.g. by prepare_run_dir
+    assert not fresh.exists()  # neither the lock file nor the directory it made
+    kept = tmp_path / "kept"
+    with pytest.raises(SafenavError), run_dir_lock(kept):
+        (kept / "config.json").write_text("{}")  # a run that wrote something, then failed
+        raise SafenavError("diverged")
+    assert (kept / LOCK_FILE).exists() and wait_for_run_dir(kept, timeout_s=0)
+
+    # a file system without flock (NFS without lockd): the run goes on without a lock
+    def no_flock(fd, op):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(fcntl, "flock", no_flock)
+    with run_dir_lock(tmp_path / "nfs"), run_dir_lock(tmp_path / "nfs"):
+        pass
+
+
 # -------------------------------------------------------------------- 3. one-line errors
 def fails(capsys, args: list[str], *words: str) -> str:
     """``safenav ARGS`` exits with code 2 and one ``safenav: error:`` line naming ``words``."""

@@ -360,9 +360,12 @@ def test_cpu_hours_estimate_and_eta(tmp_path, fake_python):
     rates = rep.CPU_S_PER_STEP
     assert cpu_s == pytest.approx(1e6 * rates["csac"] + 2e6 * rates["ppo"])
     assert "development machine" in source
-    # a resumed trial counts the steps it has left
+    # rows left by an attempt that never checkpointed are run again (the trial starts afresh) ...
     todo[0].run_dir.mkdir(parents=True)
     (todo[0].run_dir / "progress.csv").write_text("global_step,x\n250000,1\n")
+    assert rep.estimate_cpu_seconds(todo[:1], [])[0] == pytest.approx(1e6 * rates["csac"])
+    # ... a trial that resumes from its checkpoint counts the steps it has left
+    (todo[0].run_dir / "checkpoint.pt").write_text("")
     assert rep.estimate_cpu_seconds(todo[:1], [])[0] == pytest.approx(7.5e5 * rates["csac"])
     # finished trials of the sweep give the rate: 1000 s x 1 CPU for 1000 steps = 1 s per step
     done = make_trial(tmp_path, fake_python, total=1000)
@@ -370,7 +373,9 @@ def test_cpu_hours_estimate_and_eta(tmp_path, fake_python):
     done.record_path.parent.mkdir(parents=True, exist_ok=True)
     done.record_path.write_text(json.dumps({"wall_clock_s": 1000.0, "env_steps": 1000}))
     cpu_s, source = rep.estimate_cpu_seconds(todo[:1], [done])
-    assert cpu_s == pytest.approx(7.5e5) and source == "this sweep's finished trials"
+    assert (
+        cpu_s == pytest.approx(7.5e5) and source == "this sweep's finished trials (training time)"
+    )
     line = rep.eta_line(1, 4, 250, 1000, 600.0, now=0.0)
     assert line == "1 of 4 trials done; about 30.0 min left (ETA 00:30 UTC)"
     assert rep.eta_line(0, 4, 0, 1000, 5.0) == "0 of 4 trials done"

@@ -16,6 +16,7 @@ import contextvars
 import difflib
 import os
 import re
+import shlex
 import sys
 from typing import Annotated
 
@@ -331,8 +332,9 @@ def parse_error_message(event: object, verb: str | None = None) -> str:
         if getattr(event, "reason", "") == "too_few_values":
             given = list(ARGS.get())
             after = given[given.index(flag) + 1] if flag in given[:-1] else ""
-            hint = (f" (a value that starts with '-' is taken for an option: write {flag}={after!r})"
-                    if after.startswith("-") and nargs == 1 else "")  # fmt: skip
+            hint = (f" (a value that starts with '-' is taken for an option: write "
+                    f"{shlex.quote(f'{flag}={after}')})" if after.startswith("-") and nargs == 1
+                    else "")  # fmt: skip
             return f"{flag} needs {nargs} value{'s' if nargs != 1 else ''}{hint}: {_help_of(prog)}"
         return (
             f"{flag} takes no value ({getattr(event, 'offending_value', '')!r}): {_help_of(prog)}"

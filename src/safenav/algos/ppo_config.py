@@ -44,7 +44,8 @@ class PPOConfig:
     anneal_lr: bool = False
     """Decay ``lr`` linearly to 0 over the run's ``--total-steps``, set before each rollout's
     update to ``lr (1 - steps before this rollout / total steps)`` (CleanRL's ``anneal_lr``;
-    beyond NavRL, whose rate is constant)."""
+    beyond NavRL, whose rate is constant). ``--resume`` with a larger ``--total-steps`` stretches
+    the schedule: the rate jumps back up to the new fraction left."""
     entropy_coef: float = 1e-3
     """Weight of the entropy bonus (NavRL's ``entropy_loss_coefficient``)."""
     max_grad_norm: float = 5.0

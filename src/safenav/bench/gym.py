@@ -197,7 +197,7 @@ def run_trials(trials: list[Trial], out: Path, cost_limit: float, jobs: int = 1,
     """Run the trials that have no trial file yet, ``jobs`` at a time; returns the failures."""
     from rich.console import Console
 
-    from safenav.common.stopping import Terminated, enable_sigint
+    from safenav.common.stopping import enable_sigint
 
     for sub in ("trials", "runs", "logs"):
         (out / sub).mkdir(parents=True, exist_ok=True)
@@ -211,26 +211,26 @@ def run_trials(trials: list[Trial], out: Path, cost_limit: float, jobs: int = 1,
     running: dict[Trial, tuple[subprocess.Popen, Any, float, int]] = {}
     try:
         _run_queue(todo, running, out, cost_limit, jobs, progress, extra, failures, total, console)
-    except KeyboardInterrupt as err:
-        stop_trials([proc for proc, *_ in running.values()], isinstance(err, Terminated))
+    except KeyboardInterrupt:
+        stop_trials([proc for proc, *_ in running.values()])
         raise
     return failures
 
 
-def stop_trials(procs: list[subprocess.Popen], forward: bool, timeout_s: float = 300.0) -> None:
-    """The bench was interrupted: let each running trial checkpoint and stop before the bench
-    exits, so that none trains on as an orphan (a rerun would then start a second trainer on the
-    same run directory). SIGTERM is forwarded (``kill`` of the bench alone); a Ctrl-C reached the
-    whole process group, so the trials have it already. A trial still running after
-    ``timeout_s`` is killed (its last periodic checkpoint stays)."""
+def stop_trials(procs: list[subprocess.Popen], timeout_s: float = 300.0) -> None:
+    """The bench was interrupted (Ctrl-C, ``kill``): let each running trial checkpoint and stop
+    before the bench exits, so that none trains on as an orphan (a rerun would then find its run
+    directory in use). The trials run in their own sessions, so a Ctrl-C at the terminal reaches
+    the bench alone, and the bench sends each one SIGTERM, once. A trial still running after
+    ``timeout_s`` is killed (its last periodic checkpoint stays); an SB3 trial has none and
+    starts again."""
     live = [p for p in procs if p.poll() is None]
     if not live:
         return
-    say(f"stopping {len(live)} running trial(s); each writes its checkpoint, and the same "
+    say(f"stopping {len(live)} running trial(s); safenav trials write a checkpoint, and the same "
         "command resumes them")  # fmt: skip
     for proc in live:
-        if forward:
-            proc.send_signal(signal.SIGTERM)
+        proc.send_signal(signal.SIGTERM)
     deadline = time.monotonic() + timeout_s
     for proc in live:
         try:
@@ -248,6 +248,7 @@ def _run_queue(todo: list[Trial], running: dict, out: Path, cost_limit: float, j
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from safenav.common.jsonout import write_json
+    from safenav.common.stopping import die_with_parent
 
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                TimeElapsedColumn())  # fmt: skip
@@ -259,10 +260,15 @@ def _run_queue(todo: list[Trial], running: dict, out: Path, cost_limit: float, j
             while queue and len(running) < jobs:
                 trial = queue.pop(0)
                 log = (out / "logs" / f"{trial.name}.log").open("a")
+                # Its own session: Ctrl-C reaches the bench only, which stops each trial once
+                # (stop_trials); and SIGTERM when the bench dies, however it dies.
+                preexec = die_with_parent if sys.platform.startswith("linux") else None
+                t0 = time.perf_counter()
                 proc = subprocess.Popen(train_command(trial, out, cost_limit, extra), stdout=log,
-                                        stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)  # fmt: skip
-                task = bar.add_task(trial.name, total=trial.steps)
-                running[trial] = (proc, log, time.perf_counter(), task)
+                                        stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                        start_new_session=True, preexec_fn=preexec)  # fmt: skip
+                running[trial] = (proc, log, t0, None)  # at once: stop_trials must see it
+                running[trial] = (proc, log, t0, bar.add_task(trial.name, total=trial.steps))
             time.sleep(0.5 if progress else 0.2)
             live = 0
             for trial, (proc, log, t0, task) in list(running.items()):

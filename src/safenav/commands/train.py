@@ -69,11 +69,13 @@ def train(
     from safenav.envs.vector import cost_function
 
     algo, run, csac, ppo, recipe = apply_recipe(config, algo, run, csac, ppo, ARGS.get(), resume)
-    run, cfg, run_dir = plan(algo, run, csac, ppo, run_dir, resume, overwrite)
+    run, cfg, run_dir, obs_shapes = plan(algo, run, csac, ppo, run_dir, resume, overwrite)
     with run_dir_lock(run_dir):  # one process per run dir, from the first write to the last
         prepare_run_dir(run_dir, resume=resume is not None, overwrite=overwrite)
         if recipe is not None:  # after every refusal: a refused command prints its error alone
             print(recipe_line(recipe, run.env, chosen=config is None))
+        if "lidar" not in obs_shapes:  # SafeNav: its range image has an encoder
+            warn_images(run.env, obs_shapes)
         if resume is None:
             training.write_config(run_dir, algo, run, cfg, recipe_record(recipe))
         with cost_function(run.cost_fn):
@@ -88,7 +90,7 @@ def _report_and_select(algo: str, run: RunConfig, run_dir: Path, result: dict) -
 
     episodes = result.get("episodes", 100)
     if not episodes:  # a budget shorter than one episode: say so rather than print nan
-        recent = "no training episode ended yet (the run is shorter than one episode)"
+        recent = "no training episode ended in this run's steps (an episode is longer)"
     elif is_safenav(run.env):
         recent = (f"last {episodes} episodes: success {result['success_rate']:.3f}, collision "
                   f"{result['collision_rate']:.3f}, return {result['return']:.2f}")  # fmt: skip
@@ -205,8 +207,9 @@ def recipe_record(recipe) -> dict | None:
 
 
 def plan(algo: str, run: RunConfig, csac: CSACConfig, ppo: PPOConfig, run_dir: Path | None,
-         resume: Path | None, overwrite: bool) -> tuple[RunConfig, CSACConfig | PPOConfig, Path]:  # fmt: skip
-    """``(run config, algorithm config, run dir)`` of a ``safenav train`` command line, every
+         resume: Path | None, overwrite: bool) -> tuple[RunConfig, CSACConfig | PPOConfig, Path, dict]:  # fmt: skip
+    """``(run config, algorithm config, run dir, observation shapes)`` of a ``safenav train``
+    command line, every
     check done before anything is written: algorithm, resume config, device, env and its
     spaces, memory. ``SafenavError`` (exit 2) or ``SafenavRuntimeError`` (exit 1) otherwise."""
     from safenav.common.checks import check_device
@@ -264,10 +267,8 @@ def plan(algo: str, run: RunConfig, csac: CSACConfig, ppo: PPOConfig, run_dir: P
                            "--num-envs)")  # fmt: skip
     check_budget(family, run, cfg)
     check_cost(algo, run)
-    if "lidar" not in obs_shapes:  # SafeNav: its range image has an encoder
-        warn_images(run.env, obs_shapes)
     check_training_memory(algo, run, cfg, obs_shapes, action_dim, env_cfg)
-    return run, cfg, Path(run_dir)
+    return run, cfg, Path(run_dir), obs_shapes
 
 
 def check_budget(family: str, run: RunConfig, cfg) -> None:
@@ -318,7 +319,7 @@ def warn_images(env_id: str, obs_shapes: dict[str, tuple[int, ...]]) -> None:
     networks of Gymnasium tasks are MLPs over the flattened observation, with no image encoder
     (SafeNav's range image has its own), so such a run is slow and learns little."""
     for key, shape in obs_shapes.items():
-        if len(shape) > 1:
+        if len(shape) > 1 and math.prod(shape) >= 1024:  # not a small matrix of features
             print(f"safenav train: warning: {env_id}'s observation {key!r} is {'x'.join(map(str, shape))}: "
                   f"it is flattened into {math.prod(shape):,} inputs of an MLP (no image encoder "
                   "for Gymnasium tasks), slow and unlikely to learn; wrap the env to give a "

@@ -71,51 +71,105 @@ def prepare_run_dir(run_dir: Path, resume: bool, overwrite: bool) -> None:
 LOCK_FILE = ".safenav.lock"
 
 
+def _open_lock(run_dir: Path) -> int | None:
+    """The lock file's descriptor (created with the directory where missing), or None where no
+    lock can be had: no ``fcntl`` (Windows), or a directory that cannot be made (then
+    :func:`prepare_run_dir` says why). Read-only where the file is another user's."""
+    try:
+        import fcntl  # noqa: F401
+    except ImportError:
+        return None
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        return os.open(run_dir / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
+    except PermissionError:
+        with contextlib.suppress(OSError):
+            return os.open(run_dir / LOCK_FILE, os.O_RDONLY)  # flock works on it too
+    except OSError:
+        pass
+    return None
+
+
+def _try_flock(fd: int) -> bool | None:
+    """True: locked; False: another process holds it; None: this file system has no flock."""
+    import fcntl
+
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return True
+    except OSError as err:
+        if err.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            return False
+        return None  # ENOLCK, EOPNOTSUPP, ENOSYS: NFS without lockd, some FUSE/Lustre mounts
+
+
 @contextlib.contextmanager
 def run_dir_lock(run_dir: Path) -> Iterator[None]:
     """Hold ``run_dir`` for this process: a second ``safenav train`` on the same directory (a
     rerun while the first still trains, e.g. an orphan of a stopped ``safenav bench``) is refused
     with one line instead of both writing the same checkpoint and logs.
 
-    An advisory ``flock`` on ``RUN_DIR/.safenav.lock``, which holds the owner's pid; the OS
-    releases it when the process ends, however it ends, so a killed run never leaves a stale
-    lock. No lock where ``fcntl`` is missing (Windows) or the directory cannot be made (then
-    :func:`prepare_run_dir` says why)."""
-    try:
-        import fcntl
-    except ImportError:
-        yield
-        return
+    An advisory ``flock`` on ``RUN_DIR/.safenav.lock``, which holds the owner's ``pid@host``; the
+    OS releases it when the process ends, however it ends, so a killed run never leaves a stale
+    lock. Runs without a lock where none can be had (:func:`_open_lock`, a file system without
+    flock). A command refused before it wrote anything leaves no lock file (nor a directory it
+    made) behind."""
+    import socket
+
     run_dir = Path(run_dir)
     lock = run_dir / LOCK_FILE
     made_dir, made_lock = not run_dir.exists(), not lock.exists()
+    fd = _open_lock(run_dir)
+    locked = _try_flock(fd) if fd is not None else None
     try:
-        run_dir.mkdir(parents=True, exist_ok=True)
-        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
-    except OSError:
-        yield
-        return
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            owner = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
-            raise SafenavError(f"--run-dir {run_dir} is in use by another safenav process (pid "
-                               f"{owner}): wait for it to finish, or stop it (kill -TERM {owner} "
-                               "checkpoints it) and then --resume") from None  # fmt: skip
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        if locked is False:
+            owner = os.pread(fd, 256, 0).decode(errors="replace").strip()
+            pid, _, host = owner.partition("@")
+            here = host == socket.gethostname() and pid.isdigit()
+            where = f"pid {pid} on {host}" if owner else "its pid not yet written"
+            stop = f"stop it (kill -TERM {pid} checkpoints it)" if here else "stop it"
+            raise SafenavError(f"--run-dir {run_dir} is in use by another safenav process "
+                               f"({where}): wait for it to finish, or {stop} and then --resume")  # fmt: skip
+        if locked:
+            with contextlib.suppress(OSError):  # read-only: the lock holds, the name is unknown
+                os.ftruncate(fd, 0)
+                os.pwrite(fd, f"{os.getpid()}@{socket.gethostname()}\n".encode(), 0)
+        failed = True
         try:
             yield
-        except SafenavError:  # refused before training: leave the directory as it was found
-            if made_lock:
-                lock.unlink(missing_ok=True)
-            if made_dir:
-                with contextlib.suppress(OSError):
-                    run_dir.rmdir()  # only if empty
-            raise
+            failed = False
+        finally:
+            # Refused before anything was written: leave the directory as it was found.
+            if failed and locked and not any((run_dir / f).exists() for f in RUN_FILES):
+                if made_lock:
+                    lock.unlink(missing_ok=True)
+                if made_dir:
+                    with contextlib.suppress(OSError):
+                        run_dir.rmdir()  # only if empty
     finally:
-        os.close(fd)  # releases the lock
+        if fd is not None:
+            os.close(fd)  # releases the lock
+
+
+def wait_for_run_dir(run_dir: Path, timeout_s: float = 300.0) -> bool:
+    """Wait until no process holds ``run_dir``'s lock (a trainer that is still writing its
+    checkpoint after a SIGTERM); True when free (or never locked), False after ``timeout_s``."""
+    lock = Path(run_dir) / LOCK_FILE
+    if not lock.exists():
+        return True
+    try:
+        fd = os.open(lock, os.O_RDONLY)
+    except OSError:
+        return True
+    try:
+        deadline = time.monotonic() + timeout_s
+        while _try_flock(fd) is False:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.5)
+        return True
+    finally:
+        os.close(fd)
 
 
 def has_trained(run_dir: Path) -> bool:

@@ -46,6 +46,15 @@ def _raise_terminated(signum, frame) -> None:
     raise Terminated()
 
 
+def die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
+    """Linux: this (child) process gets SIGTERM when the process that started it dies (a Ray
+    worker, ``safenav bench``), so that a trainer never trains on as an orphan. ``preexec_fn``."""
+    with contextlib.suppress(Exception):
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
 def enable_sigint() -> None:
     """Let SIGINT (Ctrl-C, ``kill -INT``) raise ``KeyboardInterrupt`` and SIGTERM
     :class:`Terminated` (a ``KeyboardInterrupt``) in this process: both checkpoint and stop.

@@ -170,14 +170,6 @@ class TrialKilled(TrialFailed):
 RETRIES = 2
 
 
-def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
-    """Linux: the child gets SIGTERM when the Ray worker that started it dies."""
-    with contextlib.suppress(Exception):
-        import ctypes
-
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-
-
 def _run_logged(cmd: list[str], log: Path, threads: int) -> float:
     """Run ``cmd`` with ``threads`` torch/OpenMP threads, output appended to ``log``.
 
@@ -191,7 +183,9 @@ def _run_logged(cmd: list[str], log: Path, threads: int) -> float:
     with log.open("ab") as out:
         out.write(f"\n$ {shlex.join(cmd)}\n".encode())
         out.flush()
-        preexec = _die_with_parent if sys.platform.startswith("linux") else None
+        from safenav.common.stopping import die_with_parent
+
+        preexec = die_with_parent if sys.platform.startswith("linux") else None
         proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env,
                                 preexec_fn=preexec)  # fmt: skip
         try:
@@ -206,7 +200,14 @@ def _run_logged(cmd: list[str], log: Path, threads: int) -> float:
     seconds = time.perf_counter() - t0
     if rc != 0:
         tail = log.read_text(errors="replace").strip().splitlines()[-15:]
-        killed = rc < 0 or rc == 128 + signal.SIGKILL  # a signal, directly or through a shell
+        # Killed from outside (the OOM killer's SIGKILL, a SIGTERM the trainer answered with a
+        # checkpoint and 143), not a crash of its own (SIGSEGV, SIGABRT: they would recur).
+        killed = rc in (
+            -signal.SIGKILL,
+            -signal.SIGTERM,
+            128 + signal.SIGKILL,
+            128 + signal.SIGTERM,
+        )
         raise (TrialKilled if killed else TrialFailed)(
             f"exit code {rc} from: {shlex.join(cmd[1:])}\n" + "\n".join(tail)
         )
@@ -223,7 +224,12 @@ def run_trial(trial: Trial) -> dict[str, Any]:
     Returns ``{"name", "state", "host", "started", "train_s", "eval_s"}`` (``state`` as found by
     :func:`trial_state` before it ran; ``started`` as ``time.time()``).
     """
+    from safenav.common.logger import wait_for_run_dir
+
     started = time.time()
+    # A retry after a worker died: its trainer may still be writing the checkpoint (SIGTERM).
+    if not wait_for_run_dir(trial.run_dir):
+        raise TrialFailed(f"{trial.run_dir} is still in use by another safenav train after 300 s")
     state = trial_state(trial)
     info: dict[str, Any] = {"name": trial.name, "state": state, "host": socket.gethostname(),
                             "started": started, "train_s": 0.0, "eval_s": 0.0}  # fmt: skip
@@ -577,22 +583,28 @@ def estimate_cpu_seconds(todo: list[Trial], done: list[Trial]) -> tuple[float, s
     remaining steps (a resumed one has fewer) at its algorithm's rate, measured on the finished
     trials of ``done`` where there are any (their records' wall clock x CPUs / env steps), else
     :data:`CPU_S_PER_STEP`."""
-    measured: dict[str, list[float]] = {}
+    measured: dict[str, list[float]] = {}  # by label: variants of one algorithm differ
     for t in done:
         rec = read_json(t.record_path) or {}
         wall, steps = rec.get("wall_clock_s"), rec.get("env_steps") or rec.get("budget_env_steps")
         if wall and steps:
-            measured.setdefault(t.algo, []).append(float(wall) * t.cpus / float(steps))
+            measured.setdefault(t.label, []).append(float(wall) * t.cpus / float(steps))
     total, sources = 0.0, set()
     for t in todo:
-        if measured.get(t.algo):
-            rate = sum(measured[t.algo]) / len(measured[t.algo])
-            sources.add("this sweep's finished trials")
+        if measured.get(t.label):
+            rate = sum(measured[t.label]) / len(measured[t.label])
+            sources.add("this sweep's finished trials (training time)")
         else:
             rate = CPU_S_PER_STEP.get(t.algo, max(CPU_S_PER_STEP.values()))
             sources.add("measured on the 2-core development machine")
-        total += rate * max(0, t.total_steps - last_step(t.run_dir))
+        total += rate * max(0, t.total_steps - steps_done(t))
     return total, " and ".join(sorted(sources)) or "-"
+
+
+def steps_done(trial: Trial) -> int:
+    """Env steps a trial will not run again: those of its checkpoint's run when it resumes, none
+    when it starts afresh (rows a failed attempt left in progress.csv are overwritten)."""
+    return last_step(trial.run_dir) if trial_state(trial) != "fresh" else 0
 
 
 def eta_line(
@@ -635,12 +647,12 @@ def _run_on_ray(cfg: SweepConfig, todo: list[Trial], states: dict[str, str], con
     columns = (rp.TextColumn("{task.description:<22}"), rp.BarColumn(), rp.MofNCompleteColumn(),
                rp.TextColumn("{task.fields[status]:<10}"), rp.TimeElapsedColumn(),
                rp.TextColumn("eta"), rp.TimeRemainingColumn())  # fmt: skip
-    first = {t.name: last_step(t.run_dir) for t in todo}
-    steps_total = sum(t.total_steps - first[t.name] for t in todo)
+    first = {t.name: steps_done(t) for t in todo}
+    steps_total = sum(max(0, t.total_steps - first[t.name]) for t in todo)
     t0 = time.time()
 
     def steps_now() -> int:
-        return sum(min(last_step(t.run_dir), t.total_steps) - first[t.name] for t in todo)
+        return sum(max(0, min(last_step(t.run_dir), t.total_steps) - first[t.name]) for t in todo)
 
     with rp.Progress(*columns, console=console, disable=not cfg.progress,
                   refresh_per_second=2) as bar:  # fmt: skip
