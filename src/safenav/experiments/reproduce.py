@@ -571,11 +571,13 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
 
 
 #: CPU-seconds per env step of a whole trial (training with its periodic evaluations, the
-#: validation selection and the test evaluation), measured on the 2-core development machine
-#: (docs/reproduce.md); :func:`estimate_cpu_seconds` prefers the rate of the sweep's own
-#: finished trials.
-CPU_S_PER_STEP: dict[str, float] = {"csac": 2.6e-3, "sac": 2.2e-3, "sac_lag": 2.6e-3,
-                                    "ppo": 3.0e-4, "ppo_lag": 3.0e-4}  # fmt: skip
+#: validation selection and the test evaluation) on the 2-core development machine, 2 CPUs per
+#: trial; :func:`estimate_cpu_seconds` prefers the rate of the sweep's own finished trials.
+#: csac: results/csac seed 2, 1M steps in 18 min (913 s of training); sac: 599 s of training for
+#: 1M (results/csac-v1/sac1m-s2) plus the same 170 s of evaluation; sac_lag as csac; ppo and
+#: ppo_lag: 2M steps in 741 s on one CPU (results/paper, SafeNav-v0), rounded up.
+CPU_S_PER_STEP: dict[str, float] = {"csac": 2.2e-3, "sac": 1.5e-3, "sac_lag": 2.2e-3,
+                                    "ppo": 4.0e-4, "ppo_lag": 4.0e-4}  # fmt: skip
 
 
 def estimate_cpu_seconds(todo: list[Trial], done: list[Trial]) -> tuple[float, str]:
