@@ -390,8 +390,9 @@ def test_run_dir_lock_leaves_nothing_when_refused_and_works_without_flock(tmp_pa
         raise SafenavError("refused before writing")  # e.g. by prepare_run_dir
     assert not fresh.exists()  # neither the lock file nor the directory it made
     kept = tmp_path / "kept"
-    with pytest.raises(SafenavError), run_dir_lock(kept):
-        (kept / "config.json").write_text("{}")  # a run that wrote something, then failed
+    with pytest.raises(SafenavError), run_dir_lock(kept) as lock:
+        lock.accepted = True  # past the refusals: a run that then failed (diverged)
+        (kept / "config.json").write_text("{}")
         raise SafenavError("diverged")
     assert (kept / LOCK_FILE).exists() and wait_for_run_dir(kept, timeout_s=0)
 

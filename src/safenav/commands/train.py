@@ -70,8 +70,9 @@ def train(
 
     algo, run, csac, ppo, recipe = apply_recipe(config, algo, run, csac, ppo, ARGS.get(), resume)
     run, cfg, run_dir, obs_shapes = plan(algo, run, csac, ppo, run_dir, resume, overwrite)
-    with run_dir_lock(run_dir):  # one process per run dir, from the first write to the last
+    with run_dir_lock(run_dir) as lock:  # one process per run dir, first write to last
         prepare_run_dir(run_dir, resume=resume is not None, overwrite=overwrite)
+        lock.accepted = True  # past the refusals: a later failure keeps the lock file
         if recipe is not None:  # after every refusal: a refused command prints its error alone
             print(recipe_line(recipe, run.env, chosen=config is None))
         if "lidar" not in obs_shapes:  # SafeNav: its range image has an encoder

@@ -103,8 +103,15 @@ def _try_flock(fd: int) -> bool | None:
         return None  # ENOLCK, EOPNOTSUPP, ENOSYS: NFS without lockd, some FUSE/Lustre mounts
 
 
+class RunDirLock:
+    """What :func:`run_dir_lock` yields: set ``accepted`` once the command passed its refusals,
+    so that a failure after it (a diverged run) keeps the lock file."""
+
+    accepted = False
+
+
 @contextlib.contextmanager
-def run_dir_lock(run_dir: Path) -> Iterator[None]:
+def run_dir_lock(run_dir: Path) -> Iterator[RunDirLock]:
     """Hold ``run_dir`` for this process: a second ``safenav train`` on the same directory (a
     rerun while the first still trains, e.g. an orphan of a stopped ``safenav bench``) is refused
     with one line instead of both writing the same checkpoint and logs.
@@ -112,8 +119,8 @@ def run_dir_lock(run_dir: Path) -> Iterator[None]:
     An advisory ``flock`` on ``RUN_DIR/.safenav.lock``, which holds the owner's ``pid@host``; the
     OS releases it when the process ends, however it ends, so a killed run never leaves a stale
     lock. Runs without a lock where none can be had (:func:`_open_lock`, a file system without
-    flock). A command refused before it wrote anything leaves no lock file (nor a directory it
-    made) behind."""
+    flock). A command refused before ``accepted`` leaves no lock file (nor a directory it made)
+    behind."""
     import socket
 
     run_dir = Path(run_dir)
@@ -134,13 +141,13 @@ def run_dir_lock(run_dir: Path) -> Iterator[None]:
             with contextlib.suppress(OSError):  # read-only: the lock holds, the name is unknown
                 os.ftruncate(fd, 0)
                 os.pwrite(fd, f"{os.getpid()}@{socket.gethostname()}\n".encode(), 0)
-        failed = True
+        state, failed = RunDirLock(), True
         try:
-            yield
+            yield state
             failed = False
         finally:
             # Refused before anything was written: leave the directory as it was found.
-            if failed and locked and not any((run_dir / f).exists() for f in RUN_FILES):
+            if failed and locked and not state.accepted:
                 if made_lock:
                     lock.unlink(missing_ok=True)
                 if made_dir:
