@@ -118,7 +118,9 @@ def test_published_values_per_family_and_per_env():
     ppo = apply(PPOConfig(), load_recipe("mujoco-ppo").section("ppo", "Walker2d-v5"))
     assert (ppo.rollout_steps, ppo.epochs, ppo.num_minibatches, ppo.clip) == (2048, 10, 32, 0.2)
     assert (ppo.distribution, ppo.anneal_lr, ppo.value_clip) == ("gaussian", True, 0.2)
-    run = apply(RunConfig(), load_recipe("mujoco-ppo").section("run", "Walker2d-v5"))
+    run = apply(
+        RunConfig(env="Walker2d-v5"), load_recipe("mujoco-ppo").section("run", "Walker2d-v5")
+    )
     assert run.normalize_obs and run.normalize_reward and run.num_envs == 1
     ppo = apply(PPOConfig(), load_recipe("mujoco-ppo").section("ppo", "Hopper-v5"))
     assert (ppo.rollout_steps, ppo.epochs, ppo.num_minibatches, ppo.lr) == (512, 5, 16, 9.80828e-5)

@@ -366,7 +366,7 @@ def test_cli_refuses_sde_with_the_beta_policy_before_writing(tmp_path, capsys):
     assert code == 0, err
 
 
-def test_classic_ppo_takes_the_zoos_gsde_and_other_recipes_keep_beta():
+def test_classic_ppo_takes_the_zoos_gsde_and_safenav_recipes_keep_beta():
     from safenav.recipes import apply, available, load_recipe
 
     recipe = load_recipe("classic-ppo")
@@ -377,6 +377,13 @@ def test_classic_ppo_takes_the_zoos_gsde_and_other_recipes_keep_beta():
     pendulum = apply(PPOConfig(), recipe.section("ppo", "Pendulum-v1"))
     assert (pendulum.distribution, pendulum.use_sde, pendulum.sde_sample_freq) == (
         "gaussian", True, 4)  # fmt: skip
+    # the Gymnasium families take their sources' Gaussian (SB3 zoo, CleanRL); SafeNav's recipes
+    # and gym-ppo (unknown tasks) keep NavRL's Beta
+    gaussian = {"classic-ppo", "box2d-ppo", "mujoco-ppo"}
     for name in available():
-        if name != "classic-ppo" and load_recipe(name).algo in ("ppo", "ppo_lag"):
-            assert apply(PPOConfig(), load_recipe(name).section("ppo")).distribution == "beta"
+        if load_recipe(name).algo in ("ppo", "ppo_lag"):
+            dist = apply(PPOConfig(), load_recipe(name).section("ppo")).distribution
+            expected = "beta" if name not in gaussian else dist  # classic-ppo: per env
+            assert dist == expected, name
+    for name in ("box2d-ppo", "mujoco-ppo"):
+        assert apply(PPOConfig(), load_recipe(name).section("ppo")).distribution == "gaussian"

@@ -52,6 +52,17 @@ def test_sweep_on_local_ray_then_rerun_skips(tmp_path, fake_python, monkeypatch)
     again = rep.run_sweep(cfg)
     assert again["algos"]["csac"]["seeds"] == 2 and again["ray"] == data["ray"]
     assert (out / "runs" / "csac" / "calls.txt").read_text().splitlines() == calls
+    # A fresh clone has the committed trial files, not the (ignored) run directories: the same
+    # command reports them and runs nothing.
+    import shutil
+
+    shutil.rmtree(out / "runs")
+    cloned = rep.run_sweep(cfg)
+    assert not (out / "runs").exists()
+    for algo in ("csac", "sac"):
+        ours, kept = data["algos"][algo], cloned["algos"][algo]
+        assert kept["seeds"] == 2 and kept["success_rate"] == ours["success_rate"]
+        assert kept["ci95"] == ours["ci95"]
 
 
 def test_failed_trial_is_reported_and_the_rest_aggregated(tmp_path, fake_python):  # noqa: F811

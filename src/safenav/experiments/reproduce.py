@@ -274,6 +274,22 @@ def run_trial(trial: Trial) -> dict[str, Any]:
     return info
 
 
+def committed_record(trial: Trial) -> dict[str, Any] | None:
+    """The trial's ``OUT/trials/`` record when it is the result this trial asks for (same
+    budget and test episodes) and no run directory says otherwise: what a rerun in a fresh clone,
+    which has the committed records but not the (ignored) run directories, reports and skips."""
+    if trial.checkpoint.exists():
+        return None  # a run directory is there: its files decide (trial_state)
+    rec = read_json(trial.record_path)
+    if not rec or rec.get("budget_env_steps") != trial.total_steps:
+        return None
+    if rec.get("eval_episodes") != trial.eval_episodes or rec.get("algo") != trial.label:
+        return None
+    if (rec.get("selection") == "validation") != trial.select:
+        return None
+    return rec
+
+
 def write_trial_record(trial: Trial) -> dict[str, Any]:
     """``OUT/trials/<label>-s<S>.json``: the trial's row of the results (test, held-out,
     selection, budget, wall-clock, arena metrics) and the commands that made it; commit it as
@@ -493,6 +509,9 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
     out = Path(cfg.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     states = {t.name: trial_state(t) for t in trials}
+    for t in trials:  # a fresh clone: the committed trial files stand for the run directories
+        if states[t.name] == "fresh" and committed_record(t) is not None:
+            states[t.name] = "done"
     todo = [t for t in trials if states[t.name] != "done"]
     sweep_t0 = time.perf_counter()
     started_ray, init_s = False, 0.0
@@ -525,6 +544,8 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
             rec = seed_record(t.run_dir, algo=t.label, seed=t.seed)
             rec["run_dir"] = os.path.relpath(t.run_dir, out)  # results stay valid when moved
             records.append(rec)
+        elif t.name not in failures and (kept := committed_record(t)) is not None:
+            records.append(kept)
     submitted = [o for o in outcomes.values() if "submitted" in o]
     latency = [o["started"] - o["submitted"] for o in submitted]
     ray_meta = {
@@ -557,7 +578,8 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
     results = aggregate(records, meta)
     js, md = write_results(results, out)
     figures: list[Path] = []
-    if cfg.plots and records:
+    # the curves come from the run directories; a fresh clone has only the committed figures
+    if cfg.plots and records and any((t.run_dir / "progress.csv").exists() for t in trials):
         from safenav.experiments.plots import plot_all
 
         figures = plot_all([out], out / "figures")
