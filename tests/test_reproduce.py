@@ -353,26 +353,33 @@ def test_a_killed_trial_raises_trial_killed_which_ray_retries(tmp_path, fake_pyt
 
 
 def test_cpu_hours_estimate_and_eta(tmp_path, fake_python):
+    def states(trials):
+        return {t.name: rep.trial_state(t) for t in trials}
+
     todo = [make_trial(tmp_path, fake_python, total=1_000_000),
             dataclasses.replace(make_trial(tmp_path, fake_python, total=2_000_000), algo="ppo",
                                 label="ppo", run_dir=tmp_path / "runs" / "ppo" / "seed0")]  # fmt: skip
-    cpu_s, source = rep.estimate_cpu_seconds(todo, done=[])
+    cpu_s, source = rep.estimate_cpu_seconds(todo, [], states(todo))
     rates = rep.CPU_S_PER_STEP
     assert cpu_s == pytest.approx(1e6 * rates["csac"] + 2e6 * rates["ppo"])
     assert "development machine" in source
     # rows left by an attempt that never checkpointed are run again (the trial starts afresh) ...
     todo[0].run_dir.mkdir(parents=True)
     (todo[0].run_dir / "progress.csv").write_text("global_step,x\n250000,1\n")
-    assert rep.estimate_cpu_seconds(todo[:1], [])[0] == pytest.approx(1e6 * rates["csac"])
+    assert rep.estimate_cpu_seconds(todo[:1], [], states(todo[:1]))[0] == pytest.approx(
+        1e6 * rates["csac"]
+    )
     # ... a trial that resumes from its checkpoint counts the steps it has left
     (todo[0].run_dir / "checkpoint.pt").write_text("")
-    assert rep.estimate_cpu_seconds(todo[:1], [])[0] == pytest.approx(7.5e5 * rates["csac"])
+    assert rep.estimate_cpu_seconds(todo[:1], [], states(todo[:1]))[0] == pytest.approx(
+        7.5e5 * rates["csac"]
+    )
     # finished trials of the sweep give the rate: 1000 s x 1 CPU for 1000 steps = 1 s per step
     done = make_trial(tmp_path, fake_python, total=1000)
     done = dataclasses.replace(done, run_dir=tmp_path / "runs" / "csac" / "seed9", seed=9)
     done.record_path.parent.mkdir(parents=True, exist_ok=True)
     done.record_path.write_text(json.dumps({"wall_clock_s": 1000.0, "env_steps": 1000}))
-    cpu_s, source = rep.estimate_cpu_seconds(todo[:1], [done])
+    cpu_s, source = rep.estimate_cpu_seconds(todo[:1], [done], states(todo[:1]))
     assert (
         cpu_s == pytest.approx(7.5e5) and source == "this sweep's finished trials (training time)"
     )

@@ -263,12 +263,12 @@ def _run_queue(todo: list[Trial], running: dict, out: Path, cost_limit: float, j
                 # Its own session: Ctrl-C reaches the bench only, which stops each trial once
                 # (stop_trials); and SIGTERM when the bench dies, however it dies.
                 preexec = die_with_parent if sys.platform.startswith("linux") else None
-                t0 = time.perf_counter()
+                task = bar.add_task(trial.name, total=trial.steps)
                 proc = subprocess.Popen(train_command(trial, out, cost_limit, extra), stdout=log,
                                         stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                         start_new_session=True, preexec_fn=preexec)  # fmt: skip
-                running[trial] = (proc, log, t0, None)  # at once: stop_trials must see it
-                running[trial] = (proc, log, t0, bar.add_task(trial.name, total=trial.steps))
+                # at once, with nothing between: stop_trials must see every trial started
+                running[trial] = (proc, log, time.perf_counter(), task)
             time.sleep(0.5 if progress else 0.2)
             live = 0
             for trial, (proc, log, t0, task) in list(running.items()):

@@ -89,7 +89,7 @@ def train(
 def _report_and_select(algo: str, run: RunConfig, run_dir: Path, result: dict) -> None:
     from safenav.envs.vector import is_safenav
 
-    episodes = result.get("episodes", 100)
+    episodes = result["episodes"]
     if not episodes:  # a budget shorter than one episode: say so rather than print nan
         recent = "no training episode ended in this run's steps (an episode is longer)"
     elif is_safenav(run.env):

@@ -509,9 +509,10 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
     out = Path(cfg.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     states = {t.name: trial_state(t) for t in trials}
-    for t in trials:  # a fresh clone: the committed trial files stand for the run directories
-        if states[t.name] == "fresh" and committed_record(t) is not None:
-            states[t.name] = "done"
+    # a fresh clone: the committed trial files stand for the (ignored) run directories
+    kept = {t.name: rec for t in trials
+            if states[t.name] == "fresh" and (rec := committed_record(t)) is not None}  # fmt: skip
+    states |= dict.fromkeys(kept, "done")
     todo = [t for t in trials if states[t.name] != "done"]
     sweep_t0 = time.perf_counter()
     started_ray, init_s = False, 0.0
@@ -527,7 +528,7 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
                 f"done), {cluster['parallel_trials']} at a time on {cluster['nodes']} Ray "
                 f"node(s), {cluster['cpus']:.0f} CPUs; logs in {out / 'logs'}"
             )
-            cpu_s, source = estimate_cpu_seconds(todo, [t for t in trials if t not in todo])
+            cpu_s, source = estimate_cpu_seconds(todo, [t for t in trials if t not in todo], states)
             busy = max(1, min(len(todo), cluster["parallel_trials"])) * cfg.cpus_per_trial
             console.print(f"[bold]reproduce[/]: about {cpu_s / 3600:.1f} CPU-hours, "
                           f"{fmt_seconds(cpu_s / busy)} of wall clock at {busy} CPUs busy "
@@ -544,8 +545,8 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
             rec = seed_record(t.run_dir, algo=t.label, seed=t.seed)
             rec["run_dir"] = os.path.relpath(t.run_dir, out)  # results stay valid when moved
             records.append(rec)
-        elif t.name not in failures and (kept := committed_record(t)) is not None:
-            records.append(kept)
+        elif t.name in kept:
+            records.append(kept[t.name])
     submitted = [o for o in outcomes.values() if "submitted" in o]
     latency = [o["started"] - o["submitted"] for o in submitted]
     ray_meta = {
@@ -602,9 +603,11 @@ CPU_S_PER_STEP: dict[str, float] = {"csac": 2.2e-3, "sac": 1.5e-3, "sac_lag": 2.
                                     "ppo": 4.0e-4, "ppo_lag": 4.0e-4}  # fmt: skip
 
 
-def estimate_cpu_seconds(todo: list[Trial], done: list[Trial]) -> tuple[float, str]:
+def estimate_cpu_seconds(todo: list[Trial], done: list[Trial],
+                         states: dict[str, str]) -> tuple[float, str]:  # fmt: skip
     """``(CPU-seconds, where the rate came from)`` that ``todo`` still needs: each trial's
-    remaining steps (a resumed one has fewer) at its algorithm's rate, measured on the finished
+    remaining steps (a resumed one has fewer; ``states`` from :func:`trial_state`) at its
+    algorithm's rate, measured on the finished
     trials of ``done`` where there are any (their records' wall clock x CPUs / env steps), else
     :data:`CPU_S_PER_STEP`."""
     measured: dict[str, list[float]] = {}  # by label: variants of one algorithm differ
@@ -621,14 +624,15 @@ def estimate_cpu_seconds(todo: list[Trial], done: list[Trial]) -> tuple[float, s
         else:
             rate = CPU_S_PER_STEP.get(t.algo, max(CPU_S_PER_STEP.values()))
             sources.add("measured on the 2-core development machine")
-        total += rate * max(0, t.total_steps - steps_done(t))
+        total += rate * max(0, t.total_steps - steps_done(t, states[t.name]))
     return total, " and ".join(sorted(sources)) or "-"
 
 
-def steps_done(trial: Trial) -> int:
-    """Env steps a trial will not run again: those of its checkpoint's run when it resumes, none
-    when it starts afresh (rows a failed attempt left in progress.csv are overwritten)."""
-    return last_step(trial.run_dir) if trial_state(trial) != "fresh" else 0
+def steps_done(trial: Trial, state: str) -> int:
+    """Env steps a trial in ``state`` (:func:`trial_state`) will not run again: those of its
+    checkpoint's run when it resumes, none when it starts afresh (rows a failed attempt left in
+    progress.csv are overwritten)."""
+    return last_step(trial.run_dir) if state != "fresh" else 0
 
 
 def eta_line(
@@ -671,12 +675,13 @@ def _run_on_ray(cfg: SweepConfig, todo: list[Trial], states: dict[str, str], con
     columns = (rp.TextColumn("{task.description:<22}"), rp.BarColumn(), rp.MofNCompleteColumn(),
                rp.TextColumn("{task.fields[status]:<10}"), rp.TimeElapsedColumn(),
                rp.TextColumn("eta"), rp.TimeRemainingColumn())  # fmt: skip
-    first = {t.name: steps_done(t) for t in todo}
+    first = {t.name: steps_done(t, states[t.name]) for t in todo}
     steps_total = sum(max(0, t.total_steps - first[t.name]) for t in todo)
     t0 = time.time()
+    now = dict(first)  # each trial's last logged step, read once per poll
 
     def steps_now() -> int:
-        return sum(max(0, min(last_step(t.run_dir), t.total_steps) - first[t.name]) for t in todo)
+        return sum(max(0, min(now[t.name], t.total_steps) - first[t.name]) for t in todo)
 
     with rp.Progress(*columns, console=console, disable=not cfg.progress,
                   refresh_per_second=2) as bar:  # fmt: skip
@@ -697,8 +702,8 @@ def _run_on_ray(cfg: SweepConfig, todo: list[Trial], states: dict[str, str], con
                         cause = getattr(err, "cause", None) or err
                         failures[trial.name] = str(cause)
                         status = "failed"
-                    bar.update(rows[trial.name], completed=last_step(trial.run_dir),
-                               status=status)  # fmt: skip
+                    now[trial.name] = last_step(trial.run_dir)
+                    bar.update(rows[trial.name], completed=now[trial.name], status=status)
                     bar.stop_task(rows[trial.name])
                     finished = len(outcomes) + len(failures)
                     console.print(f"[bold]reproduce[/]: {trial.name} {status}; "
@@ -710,7 +715,8 @@ def _run_on_ray(cfg: SweepConfig, todo: list[Trial], states: dict[str, str], con
                     if status != "queued" and trial.name not in started:
                         bar.start_task(rows[trial.name])  # the clock runs from the task's start
                         started.add(trial.name)
-                    bar.update(rows[trial.name], completed=last_step(trial.run_dir),
+                    now[trial.name] = last_step(trial.run_dir)
+                    bar.update(rows[trial.name], completed=now[trial.name],
                                status=status if status != "done" else "finishing")  # fmt: skip
                 bar.update(overall, completed=steps_now())
         except KeyboardInterrupt:
