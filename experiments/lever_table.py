@@ -53,7 +53,9 @@ def ci95(values: list[float]) -> tuple[float, float]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("levers", nargs="+", help="LABEL=FILE or further FILEs of the last LABEL")
-    parser.add_argument("--upto", type=int, default=10**9, help="ignore evaluations after this step")
+    parser.add_argument(
+        "--upto", type=int, default=10**9, help="ignore evaluations after this step"
+    )
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_intermixed_args(argv)
 
@@ -85,9 +87,7 @@ def main(argv: list[str] | None = None) -> int:
         print("| seed | " + " | ".join(f"{s / 1e6:.2f} M" for s in steps) + " |")
         print("|---:|" + "---|" * len(steps))
         for seed, ev in runs.items():
-            cells = [
-                "{:.3f} / {:.3f} / {:.3f}".format(*ev[s]) if s in ev else "" for s in steps
-            ]
+            cells = ["{:.3f} / {:.3f} / {:.3f}".format(*ev[s]) if s in ev else "" for s in steps]
             print(f"| {seed} | " + " | ".join(cells) + " |")
         summary = {}
         for k, name in enumerate(("success", "collision", "timeout")):

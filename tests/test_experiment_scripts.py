@@ -113,3 +113,30 @@ def test_train_profile_splits_a_run_into_disjoint_parts(tmp_path):
     from safenav.algos.csac import CSAC
 
     assert not hasattr(CSAC.update, "__wrapped__")  # the timers are gone after the run
+
+
+def test_lever_table_reads_each_seeds_validation_curve(tmp_path, capsys):
+    """``lever_table.py`` takes the seed from the config beside each events file, keeps the
+    evaluations up to ``--upto``, and counts the seeds that time out in a third of the episodes."""
+    files = []
+    for seed, last in ((1, (0.1, 0.4, 0.5)), (2, (0.5, 0.4, 0.1)), (3, (0.3, 0.5, 0.2))):
+        (tmp_path / f"x-s{seed}-config.json").write_text(json.dumps({"run": {"seed": seed}}))
+        events = [{"global_step": 0, "event": "start"}]
+        for step, rates in ((250_112, (0.0, 0.9, 0.1)), (500_224, last), (750_336, (1, 0, 0))):
+            keys = ("eval/success_rate", "eval/collision_rate", "eval/timeout_rate")
+            events.append(
+                {"global_step": step, "event": "eval", **dict(zip(keys, rates, strict=True))}
+            )
+        path = tmp_path / f"x-s{seed}-events.jsonl"
+        path.write_text("\n".join(json.dumps(e) for e in events))
+        files.append(str(path))
+    out = tmp_path / "table.json"
+    assert script("lever_table").main([f"lever={files[0]}", *files[1:], "--upto", "600000",
+                                       "--json", str(out)]) == 0  # fmt: skip
+    report = json.loads(out.read_text())["lever"]
+    assert set(report["seeds"]) == {"1", "2", "3"}
+    assert report["last"]["success"]["mean"] == pytest.approx(0.3)
+    low, high = report["last"]["success"]["ci95"]
+    assert low < 0.3 < high
+    assert report["last"]["seeds_stopping"] == 1
+    assert "| 1 | 0.000 / 0.900 / 0.100 | 0.100 / 0.400 / 0.500 |" in capsys.readouterr().out

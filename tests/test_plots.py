@@ -20,7 +20,7 @@ def synthetic_runs(root):
         for seed in range(n):
             run = root / "runs" / algo / f"seed{seed}"
             learning_run(run, algo, seed, steps=20_000 + 2_000 * seed, final_success=final,
-                         constrained=constrained)  # fmt: skip
+                         constrained=constrained, eval_every=5_000)  # fmt: skip
             write_eval(run, final - 0.02 * seed, (1 - final) / 2 + 0.01 * seed)
     return root
 
@@ -90,7 +90,7 @@ def test_plot_cli_accepts_run_dirs_and_skips_fig4_without_eval(tmp_path, capsys)
     assert "2 runs of sac" in out and "Fig. 4 needs" in out
     files = sorted(p.name for p in (tmp_path / "figs").iterdir())
     # SAC has no λ/d and no eval.json: only the curves.
-    assert files == ["fig3_learning_curves.png", "return_cost.png"]
+    assert files == ["fig3_learning_curves.png", "fig3_validation_curves.png", "return_cost.png"]
 
 
 def test_plot_cli_default_out_and_errors(tmp_path, capsys):
@@ -104,3 +104,40 @@ def test_plot_cli_default_out_and_errors(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     with pytest.raises(SafenavError, match="no run directories"):
         plots.find_runs([tmp_path / "empty"])
+
+
+def test_trial_records_stand_in_for_missing_run_dirs(tmp_path):
+    """A fresh clone of a sweep has trials/*.json but no runs/: Fig. 3 (validation) and Fig. 4
+    come from the records; a record whose run directory is there is not counted twice."""
+    import json
+
+    from safenav.experiments.aggregate import seed_record
+
+    root = synthetic_runs(tmp_path / "sweep")
+    (root / "trials").mkdir()
+    for run in sorted((root / "runs").glob("*/seed*")):
+        rec = seed_record(run)
+        assert rec["validation_curve"][0]["env_steps"] == 5_000
+        (root / "trials" / f"{rec['algo']}-s{rec['seed']}.json").write_text(json.dumps(rec))
+    both = plots.find_runs([root])
+    assert len(both) == 8 and all(r.run_dir.name.startswith("seed") for r in both)
+    import shutil
+
+    shutil.rmtree(root / "runs")
+    runs = plots.find_runs([root])
+    assert sorted((r.algo, r.seed) for r in runs) == sorted((r.algo, r.seed) for r in both)
+    csac0 = next(r for r in runs if (r.algo, r.seed) == ("csac", 0))
+    assert csac0.progress["global_step"].tolist() == [5_000, 10_000, 15_000, 20_000]
+    assert csac0.eval["success_rate"] == pytest.approx(0.95)
+    written = {p.name for p in plots.plot_all([root], tmp_path / "fig")}
+    assert written == {"fig3_validation_curves.png", "fig4_test_results.png"}
+    table = plots.eval_table(plots.group(runs))
+    low, high = table["csac"]["ci95"]["success_rate"]
+    assert low <= table["csac"]["success_rate"]["mean"] <= high
+
+
+def test_ci95_band_is_the_bootstrap_interval_of_the_mean():
+    stack = np.array([[0.1, 0.5, np.nan], [0.3, 0.5, 0.2], [0.5, 0.5, np.nan]])
+    low, high = plots.ci95_band(stack)
+    assert 0.1 <= low[0] < 0.3 < high[0] <= 0.5
+    assert low[1] == high[1] == 0.5 and low[2] == high[2] == 0.2  # no spread / one seed

@@ -254,9 +254,11 @@ start = json.loads((run / "checkpoint.pt").read_text())["step"] if "--resume" in
 with (run / "progress.csv").open("a" if start else "w") as f:
     if not start:
         f.write("global_step,charts/success_rate,charts/collision_rate,constraint/lambda,"
-                "constraint/d,perf/sps\\n")
+                "constraint/d,perf/sps,eval/success_rate,eval/collision_rate,eval/timeout_rate\\n")
     for step in range(start + 100, total + 1, 100):
-        f.write(f"{{step}},{{step / total * 0.9}},{{0.3 * (1 - step / total)}},0.1,0.2,1000\\n")
+        ev = (f"{{step / total * 0.9}},{{0.2 * (1 - step / total)}},0.1" if step % 500 == 0
+              else ",,")  # the periodic evaluation on the validation maps, every 500 steps
+        f.write(f"{{step}},{{step / total * 0.9}},{{0.3 * (1 - step / total)}},0.1,0.2,1000,{{ev}}\\n")
 success = 0.8 + 0.05 * seed
 (run / "config.json").write_text(json.dumps({{"algo": arg("--algo"), "seed": seed}}))
 (run / "checkpoint.pt").write_text(json.dumps({{"step": total, "resumed_from": start,

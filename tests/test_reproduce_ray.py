@@ -39,8 +39,12 @@ def test_sweep_on_local_ray_then_rerun_skips(tmp_path, fake_python, monkeypatch)
     assert data["ray"]["cpus_per_trial"] == 1 and data["ray"]["parallel_trials"] == 2
     assert data["ray"]["init_s"] > 0 and data["failed"] == []
     assert "| CSAC | 2 | 82.5 ± 3.5 % | 84.7 % |" in (out / "results.md").read_text()
-    for name in ("fig3_learning_curves.png", "fig4_test_results.png", "constraint_lambda_d.png"):
+    for name in ("fig3_validation_curves.png", "fig3_learning_curves.png",
+                 "fig4_test_results.png", "constraint_lambda_d.png"):  # fmt: skip
         assert (out / "figures" / name).stat().st_size > 10_000
+    record = json.loads((out / "trials" / "csac-s1.json").read_text())
+    assert [p["env_steps"] for p in record["validation_curve"]] == [500, 1000]
+    assert record["validation_curve"][-1]["success_rate"] == pytest.approx(0.9)
     assert (out / "logs" / "sac-seed1.train.log").exists()
     calls = (out / "runs" / "csac" / "calls.txt").read_text().splitlines()
     assert len(calls) == 4  # two seeds: train + eval each
@@ -57,8 +61,12 @@ def test_sweep_on_local_ray_then_rerun_skips(tmp_path, fake_python, monkeypatch)
     import shutil
 
     shutil.rmtree(out / "runs")
+    shutil.rmtree(out / "figures")
     cloned = rep.run_sweep(cfg)
     assert not (out / "runs").exists()
+    # Fig. 3 (validation curves) and Fig. 4 are redrawn from the trial files alone
+    for name in ("fig3_validation_curves.png", "fig4_test_results.png"):
+        assert (out / "figures" / name).stat().st_size > 10_000
     for algo in ("csac", "sac"):
         ours, kept = data["algos"][algo], cloned["algos"][algo]
         assert kept["seeds"] == 2 and kept["success_rate"] == ours["success_rate"]

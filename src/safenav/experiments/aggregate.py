@@ -30,6 +30,7 @@ import numpy as np
 
 from safenav.common.atomic import write_text_atomic
 from safenav.common.jsonout import write_json
+from safenav.experiments.stats import compare, iqm, outcomes_string
 
 #: The paper's Fig. 4 / Section IV-B figures (test success and collision rates), as fractions.
 PAPER_RESULTS: dict[str, dict[str, float]] = {
@@ -191,6 +192,28 @@ def time_to_target(
     return {"env_steps": int(progress["global_step"][i]), "wall_clock_s": wall, "source": source}
 
 
+def validation_curve(progress: dict[str, np.ndarray]) -> list[dict[str, Any]]:
+    """The run's periodic evaluations (validation maps), one entry per evaluation:
+    ``{"env_steps", "wall_clock_s", "success_rate", "collision_rate", "timeout_rate"}``.
+
+    Small enough for a trial record, so the learning curves of a sweep (issue 21's Fig. 3) can be
+    drawn from its committed trial files alone. Empty if the run logged no evaluation."""
+    steps = progress.get("global_step")
+    succ, coll, tout = (progress.get(f"eval/{k}_rate") for k in ("success", "collision", "timeout"))
+    if steps is None or succ is None or coll is None:
+        return []
+    elapsed = elapsed_seconds(progress)
+    curve = []
+    for i in np.flatnonzero(np.isfinite(succ) & np.isfinite(coll)):
+        wall = elapsed[i] if elapsed is not None and np.isfinite(elapsed[i]) else None
+        timeout = tout[i] if tout is not None and np.isfinite(tout[i]) else None
+        curve.append({"env_steps": int(steps[i]),
+                      "wall_clock_s": None if wall is None else round(float(wall), 1),
+                      "success_rate": float(succ[i]), "collision_rate": float(coll[i]),
+                      "timeout_rate": None if timeout is None else float(timeout)})  # fmt: skip
+    return curve
+
+
 def read_json(path: Path) -> dict[str, Any] | None:
     """A JSON file as a dict, or ``None`` if missing or unreadable."""
     try:
@@ -282,6 +305,8 @@ def seed_record(
         "env_steps": env_steps,
         "wall_clock_s": wall_clock_s,
         "time_to_target": time_to_target(progress, target) if progress else None,
+        "validation_curve": validation_curve(progress) if progress else [],
+        "test_outcomes": outcomes_string(ev.get("per_episode")),
     }
 
 
@@ -378,6 +403,9 @@ def aggregate_algo(
             "wall_clock_s": mean_std(t["wall_clock_s"] for t in reached),
             "source": sources[0] if len(sources) == 1 else ("mixed" if sources else None),
         },
+        "iqm": {
+            key: iqm([r[key] for r in evaluated]) for key in ("success_rate", "collision_rate")
+        },
         "paper": PAPER_RESULTS.get(name),
         "per_seed": sorted(per_seed, key=lambda r: (r.get("seed") is None, r.get("seed") or 0)),
     }
@@ -397,7 +425,14 @@ def aggregate(
     for rec in records:
         groups.setdefault(rec["algo"], []).append(rec)
     algos = {name: aggregate_algo(name, recs, target) for name, recs in groups.items()}
-    return {"algos": algos, "paper": PAPER_RESULTS, **(meta or {})}
+    # CSAC against each other label: difference over seeds (bootstrap CI) and McNemar's exact
+    # test on the paired test episodes (safenav.experiments.stats)
+    comparisons = {
+        f"csac_vs_{name}": compare(groups["csac"], recs)
+        for name, recs in groups.items()
+        if "csac" in groups and name != "csac"
+    }
+    return {"algos": algos, "comparisons": comparisons, "paper": PAPER_RESULTS, **(meta or {})}
 
 
 # -- Markdown ------------------------------------------------------------------------------------
@@ -494,6 +529,40 @@ def render_markdown(results: dict[str, Any]) -> str:
                 cells += [pct(c["pooled"]), f"{pct(c['wilson'][0])} – {pct(c['wilson'][1])}",
                           f"{pct(boot[0])} – {pct(boot[1])}" if boot else "—"]  # fmt: skip
             lines.append(f"| {display_name(name)} | {scenario} | " + " | ".join(cells) + " |")
+    lines += ["", "## Interquartile mean (IQM)", "",
+              "Mean of the middle half of the seeds (scipy `trim_mean`, 25 % cut each side), robust "
+              "to one seed that fails or excels; 95 % bootstrap CI over seeds.", "",
+              "| algorithm | seeds | success IQM | 95 % CI | collision IQM | 95 % CI |",
+              "|---|---:|---:|---:|---:|---:|"]  # fmt: skip
+    for name, a in algos.items():
+        cells = []
+        for key in ("success_rate", "collision_rate"):
+            q = (a.get("iqm") or {}).get(key)
+            ci = q and q.get("ci95")
+            cells += [pct(q["iqm"]) if q else "—", f"{pct(ci[0])} – {pct(ci[1])}" if ci else "—"]
+        lines.append(f"| {display_name(name)} | {a['seeds']} | " + " | ".join(cells) + " |")
+    comparisons = results.get("comparisons") or {}
+    if comparisons:
+        lines += ["", "## CSAC against each baseline", "",
+                  "Difference CSAC − baseline of the mean over seeds, 95 % bootstrap CI (the seeds "
+                  "of each resampled): *resolved* only where the interval excludes 0. McNemar's "
+                  "exact test pairs each test episode with the same episode (same map, start, goal, "
+                  "obstacle motion) of the other algorithm's seed of the same number: episodes where "
+                  "only CSAC / only the baseline had the event, and the two-sided p-value "
+                  "(episode-level noise, not the spread of training seeds).", "",
+                  "| CSAC vs | rate | difference | 95 % CI | resolved | McNemar: only CSAC / only "
+                  "baseline (pairs) | p |", "|---|---|---:|---:|---|---:|---:|"]  # fmt: skip
+        for key_name, comp in comparisons.items():
+            other = display_name(key_name.removeprefix("csac_vs_"))
+            for key, label in (("success_rate", "success"), ("collision_rate", "collision")):
+                c = comp.get(key) or {}
+                d, m = c.get("mean_difference"), c.get("mcnemar")
+                diff = f"{100 * d['difference']:+.1f} pp" if d else "—"
+                ci = f"{100 * d['ci95'][0]:+.1f} – {100 * d['ci95'][1]:+.1f} pp" if d else "—"
+                res = ("yes" if d["resolved"] else "no") if d else "—"
+                mc = f"{m['only_a']} / {m['only_b']} ({m['pairs']})" if m else "—"
+                pv = f"{m['p_value']:.3g}" if m else "—"
+                lines.append(f"| {other} | {label} | {diff} | {ci} | {res} | {mc} | {pv} |")
     lines += ["", "## Time to target", ""]
     first = next(iter(algos.values()), None)
     ttt0 = first["time_to_target"] if first else {"success_min": 0.85, "collision_max": 0.10}
@@ -580,5 +649,6 @@ __all__ = [
     "run_identity",
     "seed_record",
     "time_to_target",
+    "validation_curve",
     "write_results",
 ]

@@ -29,6 +29,7 @@ from matplotlib.ticker import FuncFormatter, PercentFormatter  # noqa: E402
 from safenav.errors import SafenavError  # noqa: E402
 from safenav.experiments.aggregate import (  # noqa: E402
     PAPER_RESULTS,
+    confidence_intervals,
     display_name,
     mean_std,
     read_json,
@@ -61,15 +62,22 @@ class Run:
 
 
 def find_runs(paths: Sequence[str | Path]) -> list[Run]:
-    """Every run directory (one holding ``progress.csv``) among or below ``paths``."""
+    """Every run directory (one holding ``progress.csv``) among or below ``paths``, and every
+    trial record (``trials/*.json`` of a ``safenav reproduce`` output, or such a file given
+    directly) whose algorithm and seed no run directory has: a fresh clone of a sweep has its
+    committed trial files but not its (ignored) run directories."""
     dirs: list[Path] = []
+    records: list[Path] = []
     for p in map(Path, paths):
         if not p.exists():
             raise SafenavError(f"{p} does not exist: pass run directories or a reproduce --out")
-        if (p / "progress.csv").exists():
+        if p.is_file() and p.suffix == ".json":
+            records.append(p)
+        elif (p / "progress.csv").exists():
             dirs.append(p)
         else:
             dirs += sorted(f.parent for f in p.rglob("progress.csv"))
+            records += sorted(f for f in p.rglob("trials/*.json"))
     runs = []
     for d in dict.fromkeys(dirs):
         progress = read_progress(d)
@@ -77,11 +85,42 @@ def find_runs(paths: Sequence[str | Path]) -> list[Run]:
             continue
         algo, seed = run_identity(d)
         runs.append(Run(algo, seed, d, progress, read_json(d / "eval.json")))
+    have = {(r.algo, r.seed) for r in runs}
+    for path in dict.fromkeys(records):
+        run = run_from_record(path)
+        if run is not None and (run.algo, run.seed) not in have:
+            runs.append(run)
+            have.add((run.algo, run.seed))
     if not runs:
-        raise SafenavError(
-            f"no run directories with a non-empty progress.csv in {[str(p) for p in paths]}"
-        )
+        raise SafenavError(f"no run directories with a non-empty progress.csv and no trial "
+                           f"records in {[str(p) for p in paths]}")  # fmt: skip
     return runs
+
+
+def run_from_record(path: Path) -> Run | None:
+    """A :class:`Run` from a trial record of ``safenav reproduce`` (``trials/LABEL-sSEED.json``):
+    its validation curve as the progress table (``eval/*`` columns and ``time/elapsed_s``) and its
+    test result as the evaluation; None if the file is no such record."""
+    rec = read_json(path)
+    if not isinstance(rec, dict) or not isinstance(rec.get("algo"), str):
+        return None
+    curve = rec.get("validation_curve") or []
+    progress: dict[str, np.ndarray] = {}
+    if curve:
+
+        def column(key: str) -> np.ndarray:
+            return np.array([np.nan if p.get(key) is None else float(p[key]) for p in curve])
+
+        progress = {"global_step": column("env_steps"), "time/elapsed_s": column("wall_clock_s")}
+        for key in ("success", "collision", "timeout"):
+            progress[f"eval/{key}_rate"] = column(f"{key}_rate")
+    test = None
+    if rec.get("success_rate") is not None:
+        test = {k: rec.get(k) for k in ("success_rate", "collision_rate", "timeout_rate")}
+        test["episodes"] = rec.get("eval_episodes")
+    if not progress and test is None:
+        return None
+    return Run(rec["algo"], rec.get("seed"), path, progress, test)
 
 
 def color_of(algo: str, order: Sequence[str]) -> str:
@@ -233,6 +272,88 @@ def plot_learning_curves(groups: dict[str, list[Run]], out: Path, window: int = 
          True)))  # fmt: skip
 
 
+def ci95_band(stack: np.ndarray, resamples: int = 2000) -> tuple[np.ndarray, np.ndarray]:
+    """95 % percentile-bootstrap interval of the mean over seeds (rows of ``stack``) at each grid
+    point (column); NaN cells (a seed that does not cover the point) are left out, and a point
+    one seed covers gets that seed's value as both ends."""
+    rng = np.random.default_rng(0)
+    low, high = np.full(stack.shape[1], np.nan), np.full(stack.shape[1], np.nan)
+    for j in range(stack.shape[1]):
+        col = stack[:, j][np.isfinite(stack[:, j])]
+        if len(col) == 0:
+            continue
+        if len(col) == 1 or np.ptp(col) == 0:
+            low[j] = high[j] = col[0]
+            continue
+        means = rng.choice(col, size=(resamples, len(col)), replace=True).mean(axis=1)
+        low[j], high[j] = np.percentile(means, [2.5, 97.5])
+    return low, high
+
+
+def _validation_panel(ax, groups, column: str, x_column: str, title: str, ylabel: str) -> bool:
+    """Mean over seeds of an evaluation rate against env steps or wall-clock, 95 % CI band."""
+    drew, order = False, list(groups)
+    for algo, runs in groups.items():
+        series = []
+        for r in runs:
+            x, y = r.progress.get(x_column), r.progress.get(column)
+            if x is None or y is None:
+                continue
+            ok = np.isfinite(x) & np.isfinite(y)
+            if ok.any():
+                series.append((x[ok], y[ok]))
+        if not series:
+            continue
+        # the span every seed covers, so the mean never averages a changing set of seeds
+        lo = max(float(x.min()) for x, _ in series)
+        hi = min(float(x.max()) for x, _ in series)
+        grid = np.linspace(lo, hi, 100) if hi > lo else np.array([hi])
+        stack = np.stack([resample(x, y, grid) for x, y in series])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mean = np.nanmean(stack, axis=0)
+        low, high = ci95_band(stack)
+        scale = 1 / 60 if x_column == "time/elapsed_s" else 1.0
+        color = color_of(algo, order)
+        n = len(series)
+        ax.plot(grid * scale, mean * 100, color=color, lw=2, ls=LINESTYLES.get(algo, "-"),
+                label=f"{display_name(algo)} ({n} seed{'s' if n != 1 else ''})")  # fmt: skip
+        for x, y in series:  # each seed's evaluations, so the reader sees where the band comes from
+            ax.plot(x * scale, y * 100, "o", color=color, ms=3, alpha=0.5)
+        ax.fill_between(grid * scale, low * 100, high * 100, color=color, alpha=0.2, lw=0)
+        drew = True
+    ax.set_title(title)
+    ax.set_ylabel(ylabel)
+    ax.set_ylim(-2, 102)
+    ax.yaxis.set_major_formatter(PercentFormatter(100, decimals=0))
+    ax.grid(alpha=0.3)
+    if x_column == "time/elapsed_s":
+        ax.set_xlabel("wall-clock of training (minutes)")
+    else:
+        _steps_axis(ax)
+    if drew:
+        ax.legend(loc="best", fontsize=9)
+    return drew
+
+
+def plot_validation_curves(groups: dict[str, list[Run]], out: Path) -> Path | None:
+    """Fig. 3 from the periodic evaluations on the validation maps (the same episodes at every
+    point, full density, deterministic policy): success and collision against env steps (top) and
+    against training wall-clock (bottom), mean over seeds with a 95 % bootstrap CI band. Unlike the
+    training-episode curves, a map redraw that resets every env at once cannot bias it."""
+    fig, axes = plt.subplots(2, 2, figsize=(13, 9), constrained_layout=True)
+    drew = [
+        _validation_panel(axes[row, col], groups, f"eval/{key}_rate", x, title, f"{key} rate")
+        for row, (x, when) in enumerate((("global_step", "env steps"),
+                                         ("time/elapsed_s", "wall-clock")))
+        for col, (key, title) in enumerate((("success", f"Validation success vs {when}"),
+                                            ("collision", f"Validation collision vs {when}")))
+    ]  # fmt: skip
+    fig.suptitle("Learning curves on the validation maps (cf. paper Fig. 3): mean over seeds, "
+                 "band = 95 % bootstrap CI, dots = each seed", fontsize=13)  # fmt: skip
+    return _save(fig, out) if any(drew) else _discard(fig)
+
+
 def plot_return_cost(groups: dict[str, list[Run]], out: Path, window: int = 1) -> Path | None:
     """Episodic return and episodic cost (collisions per episode) during training."""
     return _curves(groups, out, window, "Return and cost: mean over seeds, shading ± 1 std", (
@@ -258,17 +379,27 @@ def plot_constraint(groups: dict[str, list[Run]], out: Path) -> Path | None:
 
 
 def eval_table(groups: dict[str, list[Run]]) -> dict[str, dict[str, Any]]:
-    """Per algorithm: mean/std of test success and collision rates over its evaluated seeds."""
+    """Per algorithm: mean/std of test success and collision rates over its evaluated seeds, and
+    their 95 % intervals (``ci95``: bootstrap over seeds, else Wilson on the pooled episodes for
+    a single seed; :func:`safenav.experiments.aggregate.confidence_intervals`)."""
     table = {}
     for algo, runs in groups.items():
-        evals = [r.eval for r in runs if r.eval and "success_rate" in r.eval]
+        evals = [r.eval for r in runs if r.eval and r.eval.get("success_rate") is not None]
         if evals:
             table[algo] = {
                 "success_rate": mean_std(e["success_rate"] for e in evals),
                 "collision_rate": mean_std(e["collision_rate"] for e in evals),
                 "seeds": len(evals),
                 "episodes": evals[0].get("episodes"),
+                "ci95": {},
             }
+            for key in ("success_rate", "collision_rate"):
+                ci = confidence_intervals([(e[key], e.get("episodes")) for e in evals])
+                mean = table[algo][key]["mean"]
+                bounds = (
+                    (ci or {}).get("bootstrap_seeds") or (ci or {}).get("wilson") or [mean, mean]
+                )
+                table[algo]["ci95"][key] = bounds
     return table
 
 
@@ -291,13 +422,14 @@ def plot_test_results(groups: dict[str, list[Run]], out: Path) -> Path | None:
         paper = [PAPER_RESULTS.get(a, {}).get(key) for a in algos]
         has = np.array([p is not None for p in paper])
         ours = np.array([100 * table[a][key]["mean"] for a in algos])
-        err = np.array([100 * table[a][key]["std"] for a in algos])
+        bounds = np.array([table[a]["ci95"][key] for a in algos]) * 100  # (algos, 2)
+        err = np.stack([np.maximum(ours - bounds[:, 0], 0), np.maximum(bounds[:, 1] - ours, 0)])
         # Side by side where the paper has a figure; centred alone where it does not.
         xo = np.where(has, x - width / 2, x)
         ax.bar(xo, ours, width, yerr=err, capsize=5, color=colors, edgecolor="black", lw=0.8,
                error_kw={"elinewidth": 1.5})  # fmt: skip
-        tops = list(ours + err)
-        for xi, m, e in zip(xo, ours, err, strict=True):
+        tops = list(ours + err[1])
+        for xi, m, e in zip(xo, ours, err[1], strict=True):
             ax.annotate(f"{m:.1f}", (xi, m + e), xytext=(0, 3), textcoords="offset points",
                         ha="center", fontsize=10, fontweight="bold")  # fmt: skip
         if has.any():
@@ -316,8 +448,8 @@ def plot_test_results(groups: dict[str, list[Run]], out: Path) -> Path | None:
         ax.set_ylabel(f"{name.lower()} (% of test episodes)")
         ax.set_title(f"{name} ({better})")
         ax.grid(axis="y", alpha=0.3)
-    handles = [Patch(facecolor="#999", edgecolor="black", label="ours: mean, error bar ± 1 std "
-                     "over seeds")]  # fmt: skip
+    handles = [Patch(facecolor="#999", edgecolor="black", label="ours: mean over seeds, whiskers "
+                     "95 % CI (bootstrap over seeds; Wilson for one seed)")]  # fmt: skip
     if any(a in PAPER_RESULTS for a in algos):
         handles.append(Patch(facecolor="white", edgecolor="#555", hatch="///",
                              label="paper, Sec. IV-B (Isaac Sim, RTX 4090)"))  # fmt: skip
@@ -345,6 +477,7 @@ def _discard(fig: Any) -> None:
 
 #: File names of the figures :func:`plot_all` writes.
 FIGURES = {
+    "validation_curves": "fig3_validation_curves.png",
     "learning_curves": "fig3_learning_curves.png",
     "test_results": "fig4_test_results.png",
     "constraint": "constraint_lambda_d.png",
@@ -367,6 +500,7 @@ def plot_all(
     groups = group(runs if runs is not None else find_runs(paths))
     out_dir = Path(out_dir)
     written = [
+        plot_validation_curves(groups, out_dir / FIGURES["validation_curves"]),
         plot_learning_curves(groups, out_dir / FIGURES["learning_curves"], window),
         plot_test_results(groups, out_dir / FIGURES["test_results"]),
         plot_constraint(groups, out_dir / FIGURES["constraint"]),
@@ -385,7 +519,9 @@ __all__ = [
     "plot_learning_curves",
     "plot_return_cost",
     "plot_test_results",
+    "plot_validation_curves",
     "resample",
+    "run_from_record",
     "smooth",
     "eval_table",
 ]

@@ -542,6 +542,8 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
     records = []
     for t in trials:
         if t.name not in failures and (t.run_dir / "eval.json").exists():
+            if states[t.name] == "done" and t.name not in outcomes:
+                write_trial_record(t)  # a trial of an earlier sweep: its file gains new fields
             rec = seed_record(t.run_dir, algo=t.label, seed=t.seed)
             rec["run_dir"] = os.path.relpath(t.run_dir, out)  # results stay valid when moved
             records.append(rec)
@@ -579,8 +581,9 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
     results = aggregate(records, meta)
     js, md = write_results(results, out)
     figures: list[Path] = []
-    # the curves come from the run directories; a fresh clone has only the committed figures
-    if cfg.plots and records and any((t.run_dir / "progress.csv").exists() for t in trials):
+    # from the run directories, else (a fresh clone) from the committed trial files, whose
+    # validation curves and test results redraw Fig. 3 and Fig. 4
+    if cfg.plots and records:
         from safenav.experiments.plots import plot_all
 
         figures = plot_all([out], out / "figures")

@@ -1,0 +1,68 @@
+"""The comparison statistics of ``safenav reproduce`` (issue 21): IQM with a bootstrap CI,
+McNemar's exact test on paired test episodes, and the difference of means over seeds."""
+
+from __future__ import annotations
+
+import pytest
+
+from safenav.experiments import aggregate as agg
+from safenav.experiments import stats
+
+
+def test_outcomes_string_is_one_letter_per_episode():
+    per_episode = {"success": [1, 0, 0, 1], "collision": [0, 1, 0, 0], "timeout": [0, 0, 1, 0]}
+    assert stats.outcomes_string(per_episode) == "SCTS"
+    assert stats.outcomes_string(None) is None
+
+
+def test_iqm_trims_a_quarter_each_side():
+    q = stats.iqm([0.0, 0.1, 0.5, 0.6, 0.9])
+    assert q["iqm"] == pytest.approx((0.1 + 0.5 + 0.6) / 3) and q["seeds"] == 5
+    low, high = q["ci95"]
+    assert 0.0 <= low < q["iqm"] < high <= 0.9
+    assert stats.iqm([0.4])["ci95"] is None and stats.iqm([]) is None
+
+
+def test_mcnemar_counts_only_discordant_pairs():
+    a = [True] * 10 + [False] * 10 + [True] * 5
+    b = [False] * 10 + [False] * 10 + [True] * 5
+    m = stats.mcnemar_exact(a, b)
+    assert (m["only_a"], m["only_b"], m["pairs"]) == (10, 0, 25)
+    assert m["p_value"] == pytest.approx(2 * 0.5**10)  # exact binomial, two-sided
+    assert stats.mcnemar_exact([True, False], [True, False])["p_value"] == 1.0
+    with pytest.raises(ValueError, match="differ in length"):
+        stats.mcnemar_exact([True], [True, False])
+
+
+def test_mean_difference_is_resolved_only_when_its_interval_excludes_zero():
+    far = stats.mean_difference([0.1, 0.12, 0.11], [0.5, 0.52, 0.49])
+    assert far["difference"] == pytest.approx(0.11 - 0.5033, abs=1e-3) and far["resolved"]
+    assert far["ci95"][1] < 0
+    near = stats.mean_difference([0.1, 0.5, 0.3], [0.2, 0.4, 0.35])
+    assert not near["resolved"] and near["ci95"][0] < 0 < near["ci95"][1]
+    assert stats.mean_difference([0.1], [0.2, 0.3]) is None
+
+
+def record(algo, seed, outcomes):
+    n = len(outcomes)
+    return {"algo": algo, "seed": seed, "success_rate": outcomes.count("S") / n,
+            "collision_rate": outcomes.count("C") / n, "timeout_rate": outcomes.count("T") / n,
+            "eval_episodes": n, "test_outcomes": outcomes, "time_to_target": None}  # fmt: skip
+
+
+def test_aggregate_compares_csac_with_each_baseline_on_paired_episodes():
+    records = [record("csac", 1, "SSSSSSSSTC"), record("csac", 2, "SSSSSSSSCC"),
+               record("sac", 1, "SSSSSCCCCC"), record("sac", 2, "SSSSCCCCCC"),
+               record("sac", 3, "SSSSSSSSSS")]  # fmt: skip
+    results = agg.aggregate(records)
+    comp = results["comparisons"]["csac_vs_sac"]
+    mc = comp["collision_rate"]["mcnemar"]
+    # seeds 1 and 2 are paired (seed 3 of SAC has no CSAC partner): 20 pairs
+    assert mc["seeds"] == [1, 2] and mc["pairs"] == 20
+    assert (mc["only_a"], mc["only_b"]) == (0, 8)  # CSAC collides where SAC does, not more
+    diff = comp["collision_rate"]["mean_difference"]
+    assert diff["difference"] == pytest.approx(0.15 - 1.1 / 3)
+    assert results["algos"]["csac"]["iqm"]["success_rate"]["iqm"] == pytest.approx(0.8)
+    text = agg.render_markdown(results)
+    assert "## CSAC against each baseline" in text and "| SAC | collision |" in text
+    assert "## Interquartile mean (IQM)" in text
