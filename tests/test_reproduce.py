@@ -216,6 +216,7 @@ def test_plan_total_steps_variants_and_order(tmp_path):
         ({"cpus_per_trial": 0}, "at least one CPU"),
         ({"variants": ("nolabel",)}, "LABEL=ALGO"),
         ({"variants": ("x=dqn --a b",)}, "unknown algorithm 'dqn'"),
+        ({"label_seeds": {"sac": (1, 2)}}, r"\['sac'\] name no algorithm or variant"),
     ],
 )
 def test_plan_rejects_mistakes_with_one_line(tmp_path, changes, message):
@@ -224,6 +225,51 @@ def test_plan_rejects_mistakes_with_one_line(tmp_path, changes, message):
         setattr(cfg, k, v)
     with pytest.raises(SafenavError, match=message):
         rep.plan(cfg)
+
+
+def test_no_flags_plan_the_papers_comparison(tmp_path, monkeypatch):
+    """``safenav reproduce`` alone: CSAC, SAC, PPO on seeds 1-5, the Lagrangian baselines and the
+    CSAC ablations on 1-3, one budget (1M) for all and PPO's 3M as its own labelled row."""
+    from safenav.cli import main
+
+    seen = {}
+    monkeypatch.setattr(rep, "run_sweep", lambda cfg: seen.setdefault("cfg", cfg))
+    monkeypatch.chdir(tmp_path)
+    main(["reproduce", "--preset", "easy"])
+    cfg = seen["cfg"]
+    assert cfg.out == Path("results") / "paper"
+    trials = rep.plan(cfg)
+    seeds: dict[str, list[int]] = {}
+    for t in trials:
+        seeds.setdefault(t.label, []).append(t.seed)
+    assert seeds == {"csac": [1, 2, 3, 4, 5], "sac": [1, 2, 3, 4, 5], "ppo": [1, 2, 3, 4, 5],
+                     "sac_lag": [1, 2, 3], "ppo_lag": [1, 2, 3], "csac_paper": [1, 2, 3],
+                     "csac_min": [1, 2, 3], "csac_fixed_d": [1, 2, 3], "ppo_3m": [1, 2, 3]}  # fmt: skip
+    steps = {t.label: t.total_steps for t in trials}
+    assert set(steps.values()) == {1_000_000, 3_000_000} and steps["ppo_3m"] == 3_000_000
+    assert {k for k, v in steps.items() if v != 1_000_000} == {"ppo_3m"}
+    by = {t.name: t for t in trials}
+    assert by["csac_paper-seed1"].train_args[-2:] == ("--config", "csac-paper")
+    assert by["csac_fixed_d-seed2"].train_args[-1] == "--csac.curriculum.no-enabled"
+    # named algorithms: results/<algos>, seeds per label where given
+    seen.clear()
+    main(["reproduce", "--preset", "easy", "--algos", "csac", "sac", "--seeds", "1-3 sac=4,5"])
+    cfg = seen["cfg"]
+    assert cfg.out == Path("results") / "csac+sac"
+    assert [t.name for t in rep.plan(cfg)] == ["csac-seed1", "csac-seed2", "csac-seed3",
+                                               "sac-seed4", "sac-seed5"]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "spec, message",
+    [("sac=1-3", "start with the default seeds"), ("1-5 sac", "not LABEL=SEEDS"),
+     ("1-5 sac=3", "as a range"), ("1-5 sac=3-1", "distinct seeds")],
+)  # fmt: skip
+def test_seed_spec_mistakes_are_refused(spec, message):
+    from safenav.commands.reproduce import parse_seed_spec
+
+    with pytest.raises(SafenavError, match=message):
+        parse_seed_spec(spec)
 
 
 # -- one trial: fresh, resumed, evaluated, skipped --------------------------------------------

@@ -13,8 +13,8 @@ from safenav.cli import app
 @app.command(name="reproduce")
 def reproduce(
     out: Path | None = None,
-    algos: tuple[str, ...] = ("csac", "sac", "ppo"),
-    seeds: str = "5",
+    algos: tuple[str, ...] = ("paper",),
+    seeds: str = "auto",
     first_seed: int = 0,
     total_steps: tuple[str, ...] = (),
     preset: str = "paper",
@@ -41,6 +41,14 @@ def reproduce(
     existing Ray cluster (OUT must then be on a file system every node sees). Every option,
     including each trial's train options, is checked before Ray starts.
 
+    With no --algos (or --algos paper) and no --variants it runs the paper's comparison (docs/reproduce.md): CSAC,
+    SAC and PPO with seeds 1-5; SAC-Lag, PPO-Lag and the CSAC ablations (csac_paper: the paper's
+    values exactly; csac_min: min cost target; csac_fixed_d: no constraint curriculum) with seeds
+    1-3; 1M env steps each, and PPO at 3M as the extra row ppo_3m; into results/paper.
+
+    Example: safenav reproduce  # the paper's comparison, results/paper/ (many CPU-hours: it
+    prints the estimate first; rerun the same command to resume)
+
     Example: safenav reproduce --algos csac --seeds 1-5  # writes results/csac/
 
     Example: safenav reproduce --out runs/repro-easy --algos csac ppo --seeds 2 --total-steps 300k
@@ -48,9 +56,9 @@ def reproduce(
     easy --train-args="--num-envs 64 --csac.batch-size 512"
 
     Args:
-        out: Output directory (runs/, logs/, trials/, results.json, results.md, figures/); default results/paper for the default algorithms, else results/<algos joined by +>.
-        algos: Algorithms (safenav train --algo) or --variants labels to run.
-        seeds: Training seeds: a count N (first_seed, first_seed+1, ...), a range A-B or a list A,B,C.
+        out: Output directory (runs/, logs/, trials/, results.json, results.md, figures/); default results/paper for the paper's comparison (no --algos, no --variants), else results/<algos joined by +>.
+        algos: Algorithms (safenav train --algo) or --variants labels to run; paper (the default): the paper's comparison, its algorithms and ablations.
+        seeds: Training seeds: a count N (first_seed, first_seed+1, ...), a range A-B or a list A,B,C, then optionally LABEL=SEEDS for particular labels, e.g. "1-5 sac_lag=1-3"; auto: the paper comparison's seeds, else 5.
         first_seed: The first training seed when --seeds is a count.
         total_steps: Env steps per trial: N for every algorithm and/or ALGO=N (300k, 2M, 1e6 accepted); unnamed algorithms use a per-algorithm default (docs/reproduce.md).
         preset: Env preset to train on (easy, medium, paper).
@@ -65,15 +73,34 @@ def reproduce(
         plots: Write the figures (safenav plot OUT) at the end.
         select: Each trial ends by choosing its policy on validation maps (train --select); --no-select evaluates the final checkpoint.
     """
-    from safenav.experiments.reproduce import SweepConfig, TrialFailed, run_sweep
+    from safenav.errors import SafenavError
+    from safenav.experiments.reproduce import (
+        PAPER_ALGOS,
+        PAPER_SEEDS,
+        PAPER_TOTAL_STEPS,
+        PAPER_VARIANTS,
+        SweepConfig,
+        TrialFailed,
+        run_sweep,
+    )
 
-    count, seed_list = parse_seeds(seeds)
+    if "paper" in algos and (len(algos) > 1 or variants):
+        raise SafenavError("--algos paper is the paper's whole comparison: name no other "
+                           "algorithm and no --variants with it")  # fmt: skip
+    paper = tuple(algos) == ("paper",)
+    if paper:
+        algos, variants = PAPER_ALGOS, PAPER_VARIANTS
+        total_steps = total_steps or PAPER_TOTAL_STEPS
+    if seeds == "auto":
+        seeds = PAPER_SEEDS if paper else "5"
+    count, seed_list, label_seeds = parse_seed_spec(seeds)
     if out is None:
-        default = ("csac", "sac", "ppo")
-        out = Path("results") / ("paper" if tuple(algos) == default else "+".join(algos))
+        out = Path("results") / (
+            "paper" if paper else "+".join(algos or [v.split("=")[0] for v in variants])
+        )
     cfg = SweepConfig(
         out=out, algos=algos, seeds=count, first_seed=first_seed, seed_list=seed_list,
-        total_steps=total_steps, select=select,
+        label_seeds=label_seeds, total_steps=total_steps, select=select,
         preset=preset, address=address, cpus_per_trial=cpus_per_trial,
         gpus_per_trial=gpus_per_trial, num_cpus=num_cpus, eval_episodes=eval_episodes,
         device=device, train_args=tuple(shlex.split(train_args)), variants=variants, plots=plots,
@@ -86,6 +113,29 @@ def reproduce(
     except TrialFailed as err:
         print(f"safenav: {err}", file=sys.stderr)
         raise SystemExit(1) from None
+
+
+def parse_seed_spec(text: str) -> tuple[int, tuple[int, ...], dict[str, tuple[int, ...]]]:
+    """``--seeds "1-5 sac_lag=1-3"``: the default seeds (:func:`parse_seeds`) and, per label, its
+    own (a range or a list; a bare count there means seeds 0..N-1 would be ambiguous, so not)."""
+    from safenav.errors import SafenavError
+
+    words = str(text).split()
+    if not words or "=" in words[0]:
+        raise SafenavError(f"--seeds {text!r}: start with the default seeds (5, 1-5 or 1,3,5), "
+                           "then LABEL=SEEDS for particular labels")  # fmt: skip
+    count, seed_list = parse_seeds(words[0])
+    per_label: dict[str, tuple[int, ...]] = {}
+    for word in words[1:]:
+        label, sep, spec = word.partition("=")
+        if not sep or not label:
+            raise SafenavError(f"--seeds {text!r}: {word!r} is not LABEL=SEEDS")
+        _, listed = parse_seeds(spec)
+        if not listed:
+            raise SafenavError(f"--seeds {text!r}: give {label}'s seeds as a range (1-3) or a "
+                               "list (1,2,3)")  # fmt: skip
+        per_label[label] = listed
+    return count, seed_list, per_label
 
 
 def parse_seeds(text: str) -> tuple[int, tuple[int, ...]]:
@@ -137,8 +187,8 @@ def check_sweep(cfg) -> None:
     from safenav.experiments.reproduce import parse_variants, plan
 
     in_range("--seeds", cfg.seeds, 1, 1000)
-    if not cfg.seed_list:
-        in_range("--first-seed", cfg.first_seed, 0, MAX_SEED - cfg.seeds + 1)
+    # checked even where listed seeds make it unused: a bad value is a mistake either way
+    in_range("--first-seed", cfg.first_seed, 0, MAX_SEED - (0 if cfg.seed_list else cfg.seeds - 1))
     at_least("--gpus-per-trial", cfg.gpus_per_trial, 0)
     if cfg.num_cpus is not None:
         in_range("--num-cpus", cfg.num_cpus, 1, 1024)

@@ -65,6 +65,20 @@ DEFAULT_TOTAL_STEPS: dict[str, int] = {
 }
 FALLBACK_TOTAL_STEPS = 1_000_000
 
+#: ``safenav reproduce`` with no --algos and no --variants: the paper's comparison (issue 21).
+#: CSAC, SAC and PPO (the paper's Fig. 4) with 5 seeds; the Lagrangian baselines and the CSAC
+#: ablations with 3. One env-step budget for every label (the paper's x-axis is env steps);
+#: PPO's own larger budget is an extra, labelled row.
+PAPER_ALGOS: tuple[str, ...] = ("csac", "sac", "ppo", "sac_lag", "ppo_lag")
+PAPER_VARIANTS: tuple[str, ...] = (
+    "csac_paper=csac --config csac-paper",  # the paper's equations and values exactly
+    "csac_min=csac --csac.cost-target min",  # min over the target cost critics (optimistic)
+    "csac_fixed_d=csac --csac.curriculum.no-enabled",  # no constraint curriculum: d = d_min
+    "ppo_3m=ppo",  # PPO at its own budget, 3M env steps
+)
+PAPER_SEEDS = "1-5 sac_lag=1-3 ppo_lag=1-3 csac_paper=1-3 csac_min=1-3 csac_fixed_d=1-3 ppo_3m=1-3"
+PAPER_TOTAL_STEPS: tuple[str, ...] = ("1M", "ppo_3m=3M")
+
 
 @dataclass(frozen=True)
 class Trial:
@@ -377,6 +391,8 @@ class SweepConfig:
     first_seed: int = 0
     seed_list: tuple[int, ...] = ()
     """Explicit training seeds (``--seeds 1-5``); empty: ``seeds`` seeds from ``first_seed``."""
+    label_seeds: dict[str, tuple[int, ...]] = field(default_factory=dict)
+    """Seeds of particular labels (``--seeds "1-5 sac_lag=1-3"``); others take the default."""
     total_steps: tuple[str, ...] = ()
     preset: str | None = "paper"
     address: str | None = None
@@ -419,6 +435,12 @@ def plan(cfg: SweepConfig) -> list[Trial]:
             raise SafenavError(f"--algos: unknown algorithm {label!r}; choose from "
                                f"{list(KNOWN_ALGOS)} or define it with --variants")  # fmt: skip
     steps = resolve_total_steps(cfg.total_steps, labels, algo_of)
+    unknown = sorted(set(cfg.label_seeds) - set(labels))
+    if unknown:
+        raise SafenavError(f"--seeds: {unknown} name no algorithm or variant of this sweep "
+                           f"({labels})")  # fmt: skip
+    default = tuple(cfg.seed_list or range(cfg.first_seed, cfg.first_seed + cfg.seeds))
+    seeds_of = {label: cfg.label_seeds.get(label, default) for label in labels}
     out = Path(cfg.out).resolve()
     return [
         Trial(label=label, algo=algo_of[label], seed=seed, total_steps=steps[label],
@@ -427,8 +449,9 @@ def plan(cfg: SweepConfig) -> list[Trial]:
               gpus=cfg.gpus_per_trial, eval_episodes=cfg.eval_episodes, env_seed=cfg.env_seed,
               train_args=tuple(cfg.train_args) + variants.get(label, ("", ()))[1],
               python=cfg.python, select=cfg.select)
-        for seed in (cfg.seed_list or range(cfg.first_seed, cfg.first_seed + cfg.seeds))
+        for seed in sorted(set().union(*seeds_of.values()))
         for label in labels
+        if seed in seeds_of[label]
     ]  # fmt: skip
 
 
@@ -747,6 +770,10 @@ def _print_summary(console: Any, results: dict[str, Any], files: list[Path]) -> 
 __all__ = [
     "CPU_S_PER_STEP",
     "DEFAULT_TOTAL_STEPS",
+    "PAPER_ALGOS",
+    "PAPER_SEEDS",
+    "PAPER_TOTAL_STEPS",
+    "PAPER_VARIANTS",
     "KNOWN_ALGOS",
     "SweepConfig",
     "Trial",
