@@ -57,7 +57,7 @@ def reproduce(
 
     Args:
         out: Output directory (runs/, logs/, trials/, results.json, results.md, figures/); default results/paper for the paper's comparison (no --algos, no --variants), else results/<algos joined by +>.
-        algos: Algorithms (safenav train --algo) or --variants labels to run; paper (the default): the paper's comparison, its algorithms and ablations.
+        algos: Algorithms (safenav train --algo) or --variants labels to run; paper (the default): the paper's comparison, its algorithms and ablations; with --variants alone, only the variants.
         seeds: Training seeds: a count N (first_seed, first_seed+1, ...), a range A-B or a list A,B,C, then optionally LABEL=SEEDS for particular labels, e.g. "1-5 sac_lag=1-3"; auto: the paper comparison's seeds, else 5.
         first_seed: The first training seed when --seeds is a count.
         total_steps: Env steps per trial: N for every algorithm and/or ALGO=N (300k, 2M, 1e6 accepted); unnamed algorithms use a per-algorithm default (docs/reproduce.md).
@@ -84,9 +84,11 @@ def reproduce(
         run_sweep,
     )
 
-    if "paper" in algos and (len(algos) > 1 or variants):
+    if "paper" in algos and len(algos) > 1:
         raise SafenavError("--algos paper is the paper's whole comparison: name no other "
-                           "algorithm and no --variants with it")  # fmt: skip
+                           "algorithm with it")  # fmt: skip
+    if tuple(algos) == ("paper",) and variants:
+        algos = ()  # only the labels --variants defines
     paper = tuple(algos) == ("paper",)
     if paper:
         algos, variants = PAPER_ALGOS, PAPER_VARIANTS
