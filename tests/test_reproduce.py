@@ -250,6 +250,8 @@ def test_no_flags_plan_the_papers_comparison(tmp_path, monkeypatch):
     assert {k for k, v in steps.items() if v != 1_000_000} == {"ppo_3m"}
     by = {t.name: t for t in trials}
     assert by["csac_paper-seed1"].train_args[-2:] == ("--config", "csac-paper")
+    # one evaluation protocol for all, whatever the recipe: every 250k, 400 validation episodes
+    assert all(t.train_args[:6] == rep.PAPER_TRAIN_ARGS for t in trials)
     assert by["csac_fixed_d-seed2"].train_args[-1] == "--csac.curriculum.no-enabled"
     # named algorithms: results/<algos>, seeds per label where given
     seen.clear()

@@ -78,6 +78,7 @@ def reproduce(
         PAPER_ALGOS,
         PAPER_SEEDS,
         PAPER_TOTAL_STEPS,
+        PAPER_TRAIN_ARGS,
         PAPER_VARIANTS,
         SweepConfig,
         TrialFailed,
@@ -93,6 +94,7 @@ def reproduce(
     if paper:
         algos, variants = PAPER_ALGOS, PAPER_VARIANTS
         total_steps = total_steps or PAPER_TOTAL_STEPS
+        train_args = shlex.join(PAPER_TRAIN_ARGS) + (f" {train_args}" if train_args else "")
     if seeds == "auto":
         seeds = PAPER_SEEDS if paper else "5"
     count, seed_list, label_seeds = parse_seed_spec(seeds)

@@ -78,6 +78,11 @@ PAPER_VARIANTS: tuple[str, ...] = (
 )
 PAPER_SEEDS = "1-5 sac_lag=1-3 ppo_lag=1-3 csac_paper=1-3 csac_min=1-3 csac_fixed_d=1-3 ppo_3m=1-3"
 PAPER_TOTAL_STEPS: tuple[str, ...] = ("1M", "ppo_3m=3M")
+#: One evaluation protocol for every label of the comparison, whatever its recipe says: the
+#: validation curves of Fig. 3 at the same points, and the same policies for --select to choose
+#: from (the csac and sac recipes already do this; ppo's evaluates every 1M of its 30M).
+PAPER_TRAIN_ARGS: tuple[str, ...] = ("--eval-every", "250000", "--eval-episodes", "400",
+                                     "--checkpoint-every", "250000")  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -773,6 +778,7 @@ __all__ = [
     "PAPER_ALGOS",
     "PAPER_SEEDS",
     "PAPER_TOTAL_STEPS",
+    "PAPER_TRAIN_ARGS",
     "PAPER_VARIANTS",
     "KNOWN_ALGOS",
     "SweepConfig",
