@@ -9,8 +9,8 @@ episodes (a policy that learned to stop, not to arrive)::
         recipe=results/csac/runs/csac/seed{1,2,3,4,5}/events.jsonl \
         rc50=results/csac-v1/levers/rc50-s{1,2,3,4,5}-events.jsonl --upto 500000
 
-``LABEL=FILE [FILE ...]``: the files of one lever (one per seed; the seed is read from the run's
-``start`` event). ``--json OUT`` writes the same figures.
+``LABEL=FILE [FILE ...]``: the files of one lever (one per seed; the seed is read from the
+``config.json`` beside each). ``--json OUT`` writes the same figures.
 """
 
 from __future__ import annotations
@@ -22,7 +22,8 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from scipy.stats import bootstrap
+
+from safenav.experiments.stats import bootstrap_ci
 
 HOVER = 1 / 3  # timeout share at which a seed counts as having learned to stop
 
@@ -44,10 +45,8 @@ def read_run(path: Path, upto: int) -> tuple[int | None, dict[int, tuple[float, 
 
 
 def ci95(values: list[float]) -> tuple[float, float]:
-    if len(values) < 2:
-        return (float("nan"), float("nan"))
-    res = bootstrap((np.asarray(values),), np.mean, confidence_level=0.95, random_state=0)
-    return float(res.confidence_interval.low), float(res.confidence_interval.high)
+    """The project's bootstrap of the mean over seeds (NaN below two seeds)."""
+    return tuple(bootstrap_ci(np.mean, values) or (float("nan"), float("nan")))
 
 
 def main(argv: list[str] | None = None) -> int:

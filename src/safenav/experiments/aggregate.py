@@ -30,7 +30,7 @@ import numpy as np
 
 from safenav.common.atomic import write_text_atomic
 from safenav.common.jsonout import write_json
-from safenav.experiments.stats import compare, iqm, outcomes_string
+from safenav.experiments.stats import bootstrap_ci, compare, iqm, outcomes_string
 
 #: The paper's Fig. 4 / Section IV-B figures (test success and collision rates), as fractions.
 PAPER_RESULTS: dict[str, dict[str, float]] = {
@@ -326,15 +326,7 @@ def confidence_intervals(rates: Sequence[tuple[float | None, int | None]]) -> di
     k = sum(round(r * n) for r, n in pairs)
     n = sum(n for _, n in pairs)
     wilson = stats.binomtest(k, n).proportion_ci(confidence_level=0.95, method="wilson")
-    xs = np.array([r for r, _ in pairs])
-    boot = None
-    if len(xs) >= 2:
-        if np.ptp(xs) == 0:
-            boot = [float(xs[0]), float(xs[0])]
-        else:
-            res = stats.bootstrap((xs,), np.mean, confidence_level=0.95, n_resamples=10_000,
-                                  method="percentile", random_state=0)  # fmt: skip
-            boot = [float(res.confidence_interval.low), float(res.confidence_interval.high)]
+    boot = bootstrap_ci(np.mean, [r for r, _ in pairs])
     return {"pooled": k / n, "episodes": n, "wilson": [float(wilson.low), float(wilson.high)],
             "bootstrap_seeds": boot, "seeds": len(pairs)}  # fmt: skip
 

@@ -36,6 +36,7 @@ from safenav.experiments.aggregate import (  # noqa: E402
     read_progress,
     run_identity,
 )
+from safenav.experiments.stats import bootstrap_ci  # noqa: E402
 
 COLORS: dict[str, str] = {
     "csac": "#d62728",
@@ -272,21 +273,16 @@ def plot_learning_curves(groups: dict[str, list[Run]], out: Path, window: int = 
          True)))  # fmt: skip
 
 
-def ci95_band(stack: np.ndarray, resamples: int = 2000) -> tuple[np.ndarray, np.ndarray]:
-    """95 % percentile-bootstrap interval of the mean over seeds (rows of ``stack``) at each grid
-    point (column); NaN cells (a seed that does not cover the point) are left out, and a point
-    one seed covers gets that seed's value as both ends."""
-    rng = np.random.default_rng(0)
+def ci95_band(stack: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """95 % bootstrap interval of the mean over seeds (rows of ``stack``) at each grid point
+    (column; :func:`safenav.experiments.stats.bootstrap_ci`); NaN cells (a seed that does not
+    cover the point) are left out, and a point one seed covers gets that seed's value as both
+    ends."""
     low, high = np.full(stack.shape[1], np.nan), np.full(stack.shape[1], np.nan)
     for j in range(stack.shape[1]):
         col = stack[:, j][np.isfinite(stack[:, j])]
-        if len(col) == 0:
-            continue
-        if len(col) == 1 or np.ptp(col) == 0:
-            low[j] = high[j] = col[0]
-            continue
-        means = rng.choice(col, size=(resamples, len(col)), replace=True).mean(axis=1)
-        low[j], high[j] = np.percentile(means, [2.5, 97.5])
+        if len(col):
+            low[j], high[j] = bootstrap_ci(np.mean, col) or (col[0], col[0])
     return low, high
 
 

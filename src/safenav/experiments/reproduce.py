@@ -309,11 +309,13 @@ def committed_record(trial: Trial) -> dict[str, Any] | None:
     return rec
 
 
-def write_trial_record(trial: Trial) -> dict[str, Any]:
+def write_trial_record(trial: Trial, rec: dict[str, Any] | None = None) -> dict[str, Any]:
     """``OUT/trials/<label>-s<S>.json``: the trial's row of the results (test, held-out,
-    selection, budget, wall-clock, arena metrics) and the commands that made it; commit it as
-    each trial finishes (the run directory itself is large and ignored)."""
-    rec = seed_record(trial.run_dir, algo=trial.label, seed=trial.seed)
+    selection, budget, wall-clock, arena metrics; ``rec``, the run's :func:`seed_record` when the
+    caller has it, is not modified) and the commands that made it; commit it as each trial
+    finishes (the run directory itself is large and ignored)."""
+    rec = dict(rec) if rec is not None else seed_record(trial.run_dir, algo=trial.label,
+                                                         seed=trial.seed)  # fmt: skip
     marker = read_json(trial.run_dir / "reproduce.json") or {}
     out = trial.log_dir.parent
     rec["run_dir"] = os.path.relpath(trial.run_dir, out)
@@ -570,9 +572,9 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
     records = []
     for t in trials:
         if t.name not in failures and (t.run_dir / "eval.json").exists():
-            if states[t.name] == "done" and t.name not in outcomes:
-                write_trial_record(t)  # a trial of an earlier sweep: its file gains new fields
             rec = seed_record(t.run_dir, algo=t.label, seed=t.seed)
+            if states[t.name] == "done" and t.name not in outcomes:
+                write_trial_record(t, rec)  # a trial of an earlier sweep: its file gains new fields
             rec["run_dir"] = os.path.relpath(t.run_dir, out)  # results stay valid when moved
             records.append(rec)
         elif t.name in kept:

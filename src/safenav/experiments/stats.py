@@ -20,7 +20,7 @@ Every figure comes from scipy (no hand-written distribution):
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -39,6 +39,24 @@ def outcomes_string(per_episode: dict[str, Sequence[Any]] | None) -> str | None:
     return "".join("S" if s else "C" if c else "T" for s, c in zip(success, collision, strict=True))
 
 
+def bootstrap_ci(statistic: Callable[..., Any], *samples: Sequence[float]) -> list[float] | None:
+    """95 % percentile-bootstrap interval of ``statistic(*samples, axis=...)`` (scipy's
+    ``bootstrap``, 10,000 resamples, ``random_state`` 0; each sample resampled on its own): the
+    one bootstrap of the project's results. None when a sample has fewer than 2 values; the
+    statistic itself as both ends when no sample varies (every resample would give it)."""
+    from scipy import stats
+
+    xs = [np.asarray(sample, dtype=float) for sample in samples]
+    if any(len(x) < 2 for x in xs):
+        return None
+    if all(np.ptp(x) == 0 for x in xs):
+        value = float(statistic(*xs, axis=-1))
+        return [value, value]
+    res = stats.bootstrap(tuple(xs), statistic, confidence_level=0.95, n_resamples=10_000,
+                          method="percentile", random_state=0)  # fmt: skip
+    return [float(res.confidence_interval.low), float(res.confidence_interval.high)]
+
+
 def iqm(values: Sequence[float]) -> dict[str, Any] | None:
     """Interquartile mean of per-seed values and its 95 % percentile-bootstrap CI over seeds
     (None below 2 values for the interval)."""
@@ -48,15 +66,7 @@ def iqm(values: Sequence[float]) -> dict[str, Any] | None:
     if len(xs) == 0:
         return None
     value = float(stats.trim_mean(xs, 0.25))
-    ci = None
-    if len(xs) >= 2:
-        if np.ptp(xs) == 0:
-            ci = [value, value]
-        else:
-            res = stats.bootstrap((xs,), lambda x, axis: stats.trim_mean(x, 0.25, axis=axis),
-                                  confidence_level=0.95, n_resamples=10_000,
-                                  method="percentile", random_state=0)  # fmt: skip
-            ci = [float(res.confidence_interval.low), float(res.confidence_interval.high)]
+    ci = bootstrap_ci(lambda x, axis: stats.trim_mean(x, 0.25, axis=axis), xs)
     return {"iqm": value, "ci95": ci, "seeds": int(len(xs))}
 
 
@@ -77,20 +87,12 @@ def mcnemar_exact(a: Sequence[bool], b: Sequence[bool]) -> dict[str, Any]:
 def mean_difference(a: Sequence[float], b: Sequence[float]) -> dict[str, Any] | None:
     """``mean(a) - mean(b)`` over seeds and its 95 % percentile-bootstrap CI, the two groups of
     seeds resampled independently; None when either group has fewer than 2 seeds."""
-    from scipy import stats
-
     xa = np.asarray([v for v in a if v is not None], dtype=float)
     xb = np.asarray([v for v in b if v is not None], dtype=float)
-    if len(xa) < 2 or len(xb) < 2:
+    ci = bootstrap_ci(lambda x, y, axis: x.mean(axis=axis) - y.mean(axis=axis), xa, xb)
+    if ci is None:
         return None
     diff = float(xa.mean() - xb.mean())
-    if np.ptp(xa) == 0 and np.ptp(xb) == 0:
-        ci = [diff, diff]
-    else:
-        res = stats.bootstrap((xa, xb), lambda x, y, axis: x.mean(axis=axis) - y.mean(axis=axis),
-                              confidence_level=0.95, n_resamples=10_000, method="percentile",
-                              random_state=0)  # fmt: skip
-        ci = [float(res.confidence_interval.low), float(res.confidence_interval.high)]
     return {"difference": diff, "ci95": ci, "resolved": bool(ci[0] > 0 or ci[1] < 0)}
 
 
@@ -117,5 +119,5 @@ def compare(reference: Sequence[dict[str, Any]], other: Sequence[dict[str, Any]]
     return out
 
 
-__all__ = ["OUTCOME_LETTERS", "compare", "iqm", "mcnemar_exact", "mean_difference",
+__all__ = ["OUTCOME_LETTERS", "bootstrap_ci", "compare", "iqm", "mcnemar_exact", "mean_difference",
            "outcomes_string"]  # fmt: skip
