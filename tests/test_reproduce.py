@@ -244,10 +244,12 @@ def test_no_flags_plan_the_papers_comparison(tmp_path, monkeypatch):
         seeds.setdefault(t.label, []).append(t.seed)
     assert seeds == {"csac": [1, 2, 3, 4, 5], "sac": [1, 2, 3, 4, 5], "ppo": [1, 2, 3, 4, 5],
                      "sac_lag": [1, 2, 3], "ppo_lag": [1, 2, 3], "csac_paper": [1, 2, 3],
-                     "csac_min": [1, 2, 3], "csac_fixed_d": [1, 2, 3], "ppo_3m": [1, 2, 3]}  # fmt: skip
+                     "csac_min": [1, 2, 3], "csac_fixed_d": [1, 2, 3], "csac_3m": [1, 2, 3],
+                     "sac_3m": [1, 2, 3], "ppo_3m": [1, 2, 3]}  # fmt: skip
     steps = {t.label: t.total_steps for t in trials}
     assert set(steps.values()) == {1_000_000, 3_000_000} and steps["ppo_3m"] == 3_000_000
-    assert {k for k, v in steps.items() if v != 1_000_000} == {"ppo_3m"}
+    assert {k for k, v in steps.items() if v != 1_000_000} == {"csac_3m", "sac_3m", "ppo_3m"}
+    assert {t.algo for t in trials if t.label.endswith("_3m")} == {"csac", "sac", "ppo"}
     by = {t.name: t for t in trials}
     assert by["csac_paper-seed1"].train_args[-2:] == ("--config", "csac-paper")
     # one evaluation protocol for all, whatever the recipe: every 250k, 400 validation episodes

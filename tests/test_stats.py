@@ -66,3 +66,22 @@ def test_aggregate_compares_csac_with_each_baseline_on_paired_episodes():
     text = agg.render_markdown(results)
     assert "## CSAC against each baseline" in text and "| SAC | collision |" in text
     assert "## Interquartile mean (IQM)" in text
+
+
+def test_aggregate_compares_only_labels_of_the_same_budget():
+    def at(budget, rec):
+        return rec | {"budget_env_steps": budget}
+
+    records = [at(10**6, record("csac", 1, "SSSC")), at(10**6, record("sac", 1, "SSCC")),
+               at(3 * 10**6, record("ppo_3m", 1, "SCCC")),
+               at(3 * 10**6, record("csac_3m", 1, "SSSS")),
+               at(3 * 10**6, record("sac_3m", 1, "SSSC"))]  # fmt: skip
+    comparisons = agg.aggregate(records)["comparisons"]
+    # the 1M CSAC against the 1M baseline only; the 3M rows against the 3M CSAC
+    assert set(comparisons) == {"csac_vs_sac", "csac_3m_vs_ppo_3m", "csac_3m_vs_sac_3m"}
+    text = agg.render_markdown(agg.aggregate(records))
+    assert "| SAC | success |" in text and "| ppo_3m (against csac_3m) | success |" in text
+    # records without a declared budget (older sweeps) are compared as before
+    assert set(
+        agg.aggregate([record("csac", 1, "SC"), record("ppo_3m", 1, "CC")])["comparisons"]
+    ) == {"csac_vs_ppo_3m"}

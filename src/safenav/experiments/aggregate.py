@@ -21,6 +21,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -417,14 +418,32 @@ def aggregate(
     for rec in records:
         groups.setdefault(rec["algo"], []).append(rec)
     algos = {name: aggregate_algo(name, recs, target) for name, recs in groups.items()}
-    # CSAC against each other label: difference over seeds (bootstrap CI) and McNemar's exact
-    # test on the paired test episodes (safenav.experiments.stats)
+    # CSAC against each other label of its budget: difference over seeds (bootstrap CI) and
+    # McNemar's exact test on the paired test episodes (safenav.experiments.stats). A label at a
+    # larger budget (ppo_3m) is compared with the CSAC of that budget (csac_3m), if any.
+    budget = {name: label_budget(recs) for name, recs in groups.items()}
     comparisons = {
-        f"csac_vs_{name}": compare(groups["csac"], recs)
+        f"{ref}_vs_{name}": compare(groups[ref], recs)
+        for ref in groups
+        if is_reference(ref)
         for name, recs in groups.items()
-        if "csac" in groups and name != "csac"
+        if not is_reference(name)
+        and (None in (budget[ref], budget[name]) or budget[ref] == budget[name])
     }
     return {"algos": algos, "comparisons": comparisons, "paper": PAPER_RESULTS, **(meta or {})}
+
+
+def is_reference(label: str) -> bool:
+    """CSAC's own labels, what the others are compared with: ``csac``, and ``csac_3m`` style
+    labels (the csac recipe at another budget)."""
+    return label == "csac" or re.fullmatch(r"csac_\d+(\.\d+)?[km]", label) is not None
+
+
+def label_budget(records: Sequence[dict[str, Any]]) -> int | None:
+    """The declared env-step budget of a label's trials (``budget_env_steps``), None if the
+    records do not say or disagree."""
+    budgets = {r.get("budget_env_steps") for r in records}
+    return budgets.pop() if len(budgets) == 1 else None
 
 
 # -- Markdown ------------------------------------------------------------------------------------
@@ -545,7 +564,8 @@ def render_markdown(results: dict[str, Any]) -> str:
                   "| CSAC vs | rate | difference | 95 % CI | resolved | McNemar: only CSAC / only "
                   "baseline (pairs) | p |", "|---|---|---:|---:|---|---:|---:|"]  # fmt: skip
         for key_name, comp in comparisons.items():
-            other = display_name(key_name.removeprefix("csac_vs_"))
+            ref, other = (display_name(part) for part in key_name.split("_vs_", 1))
+            other = other if ref == "CSAC" else f"{other} (against {ref})"
             for key, label in (("success_rate", "success"), ("collision_rate", "collision")):
                 c = comp.get(key) or {}
                 d, m = c.get("mean_difference"), c.get("mcnemar")
