@@ -1,6 +1,6 @@
 """The diagnostic scripts of ``experiments/`` that docs/csac.md and docs/csac-v1.md quote run on a
 tiny CSAC run: ``checkpoint_sweep.py`` (with ``--sampled``), ``cost_critic_bias.py``,
-``speed_profile.py`` and ``timeout_paths.py``."""
+``flight_grid.py``, ``speed_profile.py`` and ``timeout_paths.py``."""
 
 from __future__ import annotations
 
@@ -140,3 +140,31 @@ def test_lever_table_reads_each_seeds_validation_curve(tmp_path, capsys):
     assert low < 0.3 < high
     assert report["last"]["seeds_stopping"] == 1
     assert "| 1 | 0.000 / 0.900 / 0.100 | 0.100 / 0.400 / 0.500 |" in capsys.readouterr().out
+
+
+def test_flight_grid_flies_the_median_seed_of_each_label(tiny_run, tmp_path):
+    import shutil
+
+    out = tmp_path / "sweep"
+    for seed, final in ((1, 0.1), (2, 0.5), (3, 0.9)):
+        run = out / "runs" / "csac" / f"seed{seed}"
+        run.mkdir(parents=True)
+        shutil.copy(tiny_run / "checkpoint.pt", run / "policy.pt")
+        (out / "trials").mkdir(exist_ok=True)
+        (out / "trials" / f"csac-s{seed}.json").write_text(json.dumps(
+            {"algo": "csac", "seed": seed, "validation_curve": [{"success_rate": final}]}))  # fmt: skip
+    grid = script("flight_grid")
+    assert grid.median_seed(out, "csac") == (2, 0.5)
+    png, gif = tmp_path / "grid.png", tmp_path / "grid.gif"
+    grid.main([str(out), "--labels", "csac", "--env-seed", "12345", "--episodes", "0", "1",
+               "--out", str(png), "--gif", str(gif), "--gif-seconds", "2"])  # fmt: skip
+    from PIL import Image
+
+    assert Image.open(png).size[0] == 2 * 300  # two episodes, tiles of half the 600 px frame
+    assert Image.open(gif).n_frames <= 10  # 2 s of flight, every third step, held at the end
+    summary = json.loads(png.with_suffix(".json").read_text())
+    assert summary["csac"]["seed"] == 2 and set(summary["csac"]) >= {"0", "1"}
+    with pytest.raises(SystemExit, match="test or held-out"):
+        grid.main([str(out), "--labels", "csac", "--env-seed", "1", "--out", str(png)])
+    with pytest.raises(SystemExit, match="no trial of 'sac'"):
+        grid.main([str(out), "--labels", "sac", "--out", str(png)])

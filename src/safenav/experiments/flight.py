@@ -66,6 +66,25 @@ def render_episode(
 ) -> dict:
     """Fly episode ``episode`` of the fixed scenario and write ``out`` (GIF), and ``record``
     (MCAP, stamped with the simulation time) when given; returns its stats."""
+    frames, stats = fly_frames(checkpoint, policy, preset, env_seed, episode, record)
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    # Hold the last frame for a second so the outcome is visible.
+    frames += [frames[-1]] * fps
+    write_gif(out, frames, fps)
+    return stats
+
+
+@torch.no_grad()
+def fly_frames(
+    checkpoint: Path | None = None,
+    policy: str = "checkpoint",
+    preset: str | None = None,
+    env_seed: int = 1,
+    episode: int = 0,
+    record: Path | None = None,
+) -> tuple[list, dict]:
+    """The rendered frames (top-down RGB arrays, the last with the outcome) and the stats of
+    episode ``episode`` of the fixed scenario of map ``env_seed``, flown by the policy."""
     fn, cfg = resolve_policy(checkpoint, policy)
     cfg, starts, goals = fixed_test_scenario(scenario_config(cfg, preset), env_seed, episode + 1)
     env = SafeNavVectorEnv(1, config=cfg, output="torch", autoreset_mode="Disabled",
@@ -90,11 +109,7 @@ def render_episode(
             recorder.close()
     if recorder is not None and recorder.error:
         raise SafenavRuntimeError(f"--record {record}: {recorder.error}")
-    Path(out).parent.mkdir(parents=True, exist_ok=True)
-    # Hold the last frame for a second so the outcome is visible.
-    frames += [frames[-1]] * fps
-    write_gif(out, frames, fps)
-    return stats
+    return frames, stats
 
 
 def _fly_episode(env, act, cfg, frames: list, recorder, obs) -> dict:
@@ -163,4 +178,5 @@ def record_step(recorder, env, action, index: int = 0) -> None:
                     ranges=ranges, movers=movers.numpy())  # fmt: skip
 
 
-__all__ = ["POLICIES", "episode_scene", "record_step", "render_episode", "resolve_policy"]
+__all__ = ["POLICIES", "episode_scene", "fly_frames", "record_step", "render_episode",
+           "resolve_policy"]  # fmt: skip

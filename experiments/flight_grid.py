@@ -1,0 +1,136 @@
+"""The same validation flights, one row per algorithm: what a success rate hides, at a glance.
+
+For each label of a ``safenav reproduce`` output (``OUT/runs/LABEL/seedS/policy.pt``) it takes the
+seed whose last validation evaluation is the median of the label's seeds (``OUT/trials/*.json``:
+chosen on validation maps only, never on the test), flies the given episodes of one validation map
+with it, and writes
+
+- ``--out PNG``: a grid of each flight's last frame (the trail shows the whole path, the corner
+  the outcome), one row per label, one column per episode;
+- ``--gif GIF`` (optional): the same flights side by side as they happen, one tile per label, for
+  the first episode given.
+
+    .venv/bin/python experiments/flight_grid.py results/paper --labels csac sac ppo sac_lag \\
+        ppo_lag --also results/csac --env-seed 12345 --episodes 0 1 2 3 \\
+        --out results/paper/figures/flights-val.png --gif results/paper/figures/flights-val.gif
+
+Test and held-out maps (env seeds 1-6) are refused: this is a look at the policies, not a report.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, ImageDraw
+
+from safenav.experiments.flight import fly_frames
+from safenav.experiments.selection import RESERVED_SEEDS
+
+
+def median_seed(out: Path, label: str) -> tuple[int, float]:
+    """The seed of ``label`` whose last validation success is the (lower) median of its seeds."""
+    finals = {}
+    for path in sorted((out / "trials").glob(f"{label}-s*.json")):
+        rec = json.loads(path.read_text())
+        curve = rec.get("validation_curve") or []
+        if rec.get("algo") == label and curve:
+            finals[int(rec["seed"])] = float(curve[-1]["success_rate"])
+    if not finals:
+        raise SystemExit(f"{out}/trials: no trial of {label!r} with a validation curve")
+    target = statistics.median_low(finals.values())
+    seed = min(s for s, v in finals.items() if v == target)
+    return seed, target
+
+
+def caption(image: np.ndarray, text: str) -> np.ndarray:
+    """``image`` with a white band above it holding ``text``."""
+    img = Image.fromarray(image)
+    band = Image.new("RGB", (img.width, 22), "white")
+    ImageDraw.Draw(band).text((6, 5), text, fill="black")
+    out = Image.new("RGB", (img.width, img.height + band.height), "white")
+    out.paste(band, (0, 0))
+    out.paste(img, (0, band.height))
+    return np.asarray(out)
+
+
+def tile(rows: list[list[np.ndarray]], scale: float) -> np.ndarray:
+    """One image of equally sized ``rows`` of frames, each frame scaled by ``scale``."""
+    h, w = rows[0][0].shape[:2]
+    size = (int(w * scale), int(h * scale))
+    grid = Image.new("RGB", (size[0] * len(rows[0]), size[1] * len(rows)), "white")
+    for r, row in enumerate(rows):
+        for c, frame in enumerate(row):
+            grid.paste(
+                Image.fromarray(frame).resize(size, Image.LANCZOS), (c * size[0], r * size[1])
+            )
+    return np.asarray(grid)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("out_dir", type=Path, help="a safenav reproduce output directory")
+    parser.add_argument("--labels", nargs="+", required=True)
+    parser.add_argument("--env-seed", type=int, default=12345, help="a validation map")
+    parser.add_argument("--episodes", type=int, nargs="+", default=[0, 1, 2, 3])
+    parser.add_argument("--out", type=Path, required=True, help="the grid (PNG)")
+    parser.add_argument("--gif", type=Path, help="the first episode's flights side by side (GIF)")
+    parser.add_argument("--scale", type=float, default=0.5, help="size of each tile (of 600 px)")
+    parser.add_argument(
+        "--gif-seconds", type=float, default=30.0, help="how much of each flight the GIF shows (s)"
+    )
+    parser.add_argument("--also", type=Path, nargs="*", default=[],
+                        help="other reproduce outputs whose runs/ may hold a label's run "
+                             "(e.g. results/csac, whose trials results/paper copied)")  # fmt: skip
+    args = parser.parse_args(argv)
+    if args.env_seed in RESERVED_SEEDS:
+        raise SystemExit(f"env seed {args.env_seed} is a test or held-out map: look at the "
+                         "policies on validation maps")  # fmt: skip
+    rows, movies, summary = [], [], {}
+    for label in args.labels:
+        seed, final = median_seed(args.out_dir, label)
+        candidates = [
+            d / "runs" / label / f"seed{seed}" / "policy.pt" for d in (args.out_dir, *args.also)
+        ]
+        policy = next((c for c in candidates if c.exists()), candidates[0])
+        if not policy.exists():
+            raise SystemExit(f"{policy}: missing (the run directories are not committed; "
+                             "rerun the trial or point at the machine that ran it)")  # fmt: skip
+        row = []
+        for i, episode in enumerate(args.episodes):
+            frames, stats = fly_frames(policy, env_seed=args.env_seed, episode=episode)
+            outcome = (
+                "goal" if stats["success"] else "collision" if stats["collision"] else "timeout"
+            )
+            title = f"{label} seed {seed} (median of validation, {final:.2f}): episode {episode}, {outcome}"
+            row.append(caption(frames[-1], title))
+            summary.setdefault(label, {"seed": seed, "validation_success": final})[episode] = stats
+            if i == 0:
+                movies.append([caption(f, f"{label} seed {seed}") for f in frames])
+            print(f"{label} seed {seed} episode {episode}: {outcome}, {stats['time']:.1f} s")
+        rows.append(row)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(tile(rows, args.scale)).save(args.out, optimize=True)
+    print(f"wrote {args.out}")
+    if args.gif is not None:
+        # the first --gif-seconds of each flight (a timeout's last half-minute of hovering shows
+        # nothing new), every third 0.1 s step at 10 frames a second: three times real time
+        length = min(max(len(m) for m in movies), int(args.gif_seconds * 10)) + 9
+        frames = [
+            tile([[m[min(t, len(m) - 1)] for m in movies]], args.scale) for t in range(0, length, 3)
+        ]
+        # one fixed palette for every frame (web colours keep the trail's red and the goal's
+        # green, which an adaptive palette merges away) and no dithering: a few MB, not tens
+        images = [Image.fromarray(f).convert("P", palette=Image.Palette.WEB, dither=Image.Dither.NONE)
+                  for f in frames]  # fmt: skip
+        images[0].save(args.gif, save_all=True, append_images=images[1:], duration=100, loop=0,
+                       optimize=True)  # fmt: skip
+        print(f"wrote {args.gif} ({len(frames)} frames)")
+    args.out.with_suffix(".json").write_text(json.dumps(summary, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
