@@ -66,6 +66,9 @@ def test_aggregate_compares_csac_with_each_baseline_on_paired_episodes():
     text = agg.render_markdown(results)
     assert "## CSAC against each baseline" in text and "| SAC | collision |" in text
     assert "## Interquartile mean (IQM)" in text
+    # the summary the README quotes: mean with the bootstrap CI over seeds, and the verdict
+    summary = next(line for line in text.splitlines() if line.startswith("| SAC | 3 |"))
+    assert "CSAC: success" in summary and "collision -22 pp, not resolved" in summary
 
 
 def test_aggregate_compares_only_labels_of_the_same_budget():
