@@ -171,6 +171,11 @@ def test_run_identity(tmp_path):
     assert agg.run_identity(tmp_path / "b") == ("ppo", 2)
     (tmp_path / "csac" / "seed4").mkdir(parents=True)
     assert agg.run_identity(tmp_path / "csac" / "seed4") == ("csac", 4)
+    # a reproduce trial stopped before its reproduce.json: its label, not its config's algo
+    stopped = tmp_path / "out" / "runs" / "csac_paper" / "seed1"
+    stopped.mkdir(parents=True)
+    (stopped / "config.json").write_text(json.dumps({"train": {"algo": "csac", "seed": 1}}))
+    assert agg.run_identity(stopped) == ("csac_paper", 1)
 
 
 # -- the sweep's plan ---------------------------------------------------------------------------

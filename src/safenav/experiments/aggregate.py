@@ -226,11 +226,16 @@ def read_json(path: Path) -> dict[str, Any] | None:
 def run_identity(run_dir: Path) -> tuple[str, int | None]:
     """``(algo label, seed)`` of a run directory.
 
-    Read from ``reproduce.json`` (written by ``safenav reproduce``), then ``config.json`` (keys
-    ``algo``/``seed`` at the top level or one level down), then the directory names
-    (``.../<algo>/seed<S>``).
+    Read from ``reproduce.json`` (written by ``safenav reproduce``), then the layout of a
+    ``reproduce`` output (``runs/<label>/seed<S>``: a trial stopped before it wrote
+    ``reproduce.json`` is still its label's, not its algorithm's: ``csac_paper``, not ``csac``),
+    then ``config.json`` (keys ``algo``/``seed`` at the top level or one level down), then the
+    directory names (``.../<algo>/seed<S>``).
     """
+    seed_dir = run_dir.name.startswith("seed") and run_dir.name[4:].isdigit()
     for name in ("reproduce.json", "config.json"):
+        if name == "config.json" and seed_dir and run_dir.parent.parent.name == "runs":
+            return run_dir.parent.name, int(run_dir.name[4:])
         data = read_json(run_dir / name) or {}
         candidates = [data] + [v for v in data.values() if isinstance(v, dict)]
         algo = next((d["label"] for d in candidates if isinstance(d.get("label"), str)), None)
@@ -238,10 +243,9 @@ def run_identity(run_dir: Path) -> tuple[str, int | None]:
         seed = next((d["seed"] for d in candidates if isinstance(d.get("seed"), int)), None)
         if algo:
             return algo, seed
-    seed = None
-    if run_dir.name.startswith("seed") and run_dir.name[4:].isdigit():
+    if seed_dir:
         return run_dir.parent.name, int(run_dir.name[4:])
-    return run_dir.name, seed
+    return run_dir.name, None
 
 
 def seed_record(
