@@ -232,10 +232,11 @@ def run_identity(run_dir: Path) -> tuple[str, int | None]:
     then ``config.json`` (keys ``algo``/``seed`` at the top level or one level down), then the
     directory names (``.../<algo>/seed<S>``).
     """
-    seed_dir = run_dir.name.startswith("seed") and run_dir.name[4:].isdigit()
-    for name in ("reproduce.json", "config.json"):
-        if name == "config.json" and seed_dir and run_dir.parent.parent.name == "runs":
-            return run_dir.parent.name, int(run_dir.name[4:])
+    dir_seed = (
+        int(run_dir.name[4:]) if run_dir.name[:4] == "seed" and run_dir.name[4:].isdigit() else None
+    )
+    in_sweep = dir_seed is not None and run_dir.parent.parent.name == "runs"
+    for name in ("reproduce.json",) if in_sweep else ("reproduce.json", "config.json"):
         data = read_json(run_dir / name) or {}
         candidates = [data] + [v for v in data.values() if isinstance(v, dict)]
         algo = next((d["label"] for d in candidates if isinstance(d.get("label"), str)), None)
@@ -243,8 +244,8 @@ def run_identity(run_dir: Path) -> tuple[str, int | None]:
         seed = next((d["seed"] for d in candidates if isinstance(d.get("seed"), int)), None)
         if algo:
             return algo, seed
-    if seed_dir:
-        return run_dir.parent.name, int(run_dir.name[4:])
+    if dir_seed is not None:
+        return run_dir.parent.name, dir_seed
     return run_dir.name, None
 
 
@@ -511,7 +512,7 @@ def summary_table(results: dict[str, Any]) -> list[str]:
         return f"{pct(mean)} ({100 * boot[0]:.1f}–{100 * boot[1]:.1f})" if boot else pct(mean)
 
     def versus(name: str) -> str:
-        key = next((k for k in comparisons if k.endswith(f"_vs_{name}")), None)
+        key = next((k for k in comparisons if k.split("_vs_", 1)[1] == name), None)
         if key is None:
             return "—"
         cells = []
