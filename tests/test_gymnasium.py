@@ -423,7 +423,7 @@ def test_bench_refuses_unknown_tasks_and_algorithms(tmp_path, capsys):
 
 
 @pytest.mark.slow
-# 20k SAC steps: ~4-7 min alone on the 2-core CPU, over 10 beside a training run
+# 20k SAC steps took 452 s beside a training run, over the default 600 s beside training and other tests
 @pytest.mark.timeout(1800)
 def test_sac_on_pendulum_with_its_recipe_alone(tmp_path, capsys):
     """``safenav train --algo sac --env Pendulum-v1 --total-steps 20000``: the recipe's
