@@ -119,12 +119,20 @@ def test_trial_records_stand_in_for_missing_run_dirs(tmp_path):
         rec = seed_record(run)
         assert rec["validation_curve"][0]["env_steps"] == 5_000
         (root / "trials" / f"{rec['algo']}-s{rec['seed']}.json").write_text(json.dumps(rec))
+    # An unfinished trial (a run directory, no record yet) is not one more seed of its algorithm.
+    learning_run(root / "runs" / "csac" / "seed9", "csac", 9, steps=10_000, final_success=0.1,
+                 constrained=True, eval_every=5_000)  # fmt: skip
     both = plots.find_runs([root])
     assert len(both) == 8 and all(r.run_dir.name.startswith("seed") for r in both)
+    assert ("csac", 9) not in {(r.algo, r.seed) for r in both}
+    # Given on its own (no sweep around it), the same directory is plotted.
+    alone = plots.find_runs([root / "runs" / "csac" / "seed9"])
+    assert [(r.algo, r.seed) for r in alone] == [("csac", 9)]
     import shutil
 
     shutil.rmtree(root / "runs")
     runs = plots.find_runs([root])
+    assert len(runs) == 8
     assert sorted((r.algo, r.seed) for r in runs) == sorted((r.algo, r.seed) for r in both)
     csac0 = next(r for r in runs if (r.algo, r.seed) == ("csac", 0))
     assert csac0.progress["global_step"].tolist() == [5_000, 10_000, 15_000, 20_000]

@@ -66,9 +66,14 @@ def find_runs(paths: Sequence[str | Path]) -> list[Run]:
     """Every run directory (one holding ``progress.csv``) among or below ``paths``, and every
     trial record (``trials/*.json`` of a ``safenav reproduce`` output, or such a file given
     directly) whose algorithm and seed no run directory has: a fresh clone of a sweep has its
-    committed trial files but not its (ignored) run directories."""
+    committed trial files but not its (ignored) run directories.
+
+    Below a directory that holds trial records (a ``safenav reproduce`` output), a run directory
+    without a record is an unfinished (running or interrupted) trial and is left out: its curve
+    would count as one more seed, cut short."""
     dirs: list[Path] = []
     records: list[Path] = []
+    sweeps: set[Path] = set()
     for p in map(Path, paths):
         if not p.exists():
             raise SafenavError(f"{p} does not exist: pass run directories or a reproduce --out")
@@ -78,18 +83,23 @@ def find_runs(paths: Sequence[str | Path]) -> list[Run]:
             dirs.append(p)
         else:
             dirs += sorted(f.parent for f in p.rglob("progress.csv"))
-            records += sorted(f for f in p.rglob("trials/*.json"))
+            found = sorted(f for f in p.rglob("trials/*.json"))
+            records += found
+            sweeps.update(f.parent.parent for f in found)
+    from_records = [r for r in map(run_from_record, dict.fromkeys(records)) if r is not None]
+    recorded = {(r.algo, r.seed) for r in from_records}
     runs = []
     for d in dict.fromkeys(dirs):
         progress = read_progress(d)
         if not progress or len(progress.get("global_step", ())) == 0:
             continue
         algo, seed = run_identity(d)
+        if (algo, seed) not in recorded and any(s in d.parents for s in sweeps):
+            continue  # an unfinished trial of a sweep
         runs.append(Run(algo, seed, d, progress, read_json(d / "eval.json")))
     have = {(r.algo, r.seed) for r in runs}
-    for path in dict.fromkeys(records):
-        run = run_from_record(path)
-        if run is not None and (run.algo, run.seed) not in have:
+    for run in from_records:
+        if (run.algo, run.seed) not in have:
             runs.append(run)
             have.add((run.algo, run.seed))
     if not runs:
