@@ -115,6 +115,19 @@ class OracleConfig:
     memory: int = 1
     """With ``lidar``: the hit points of the last ``memory`` range images (each placed in the world
     from where it was taken; an episode starts with none), 1 = the current image only."""
+    cruise: float | None = None
+    """Altitude (m) to hold while the goal is farther than ``cruise_until`` horizontally: the
+    cost-to-go there is the horizontal one plus ``|z - cruise|`` (a Euclidean combination would
+    weigh 1 m of altitude 20 m from the goal at 2.5 cm); None: the goal's altitude throughout.
+    Low enough, the level beam sees every pillar's side (the shortest is 1 m) instead of losing a
+    low pillar's top below the lowest beam as the UAV closes in. Use with ``ignore_ground``."""
+    cruise_until: float = 5.0
+    """Horizontal distance (m) from the goal within which ``cruise`` gives way to the goal's
+    altitude (at 0.75 m/s of climb and 1.6 m/s ahead, 2 m of climb takes about 4 m)."""
+    ignore_ground: bool = False
+    """With ``lidar``: beams that hit the ground (z < 5 cm) give no obstacle point (the altitude
+    band is checked on its own). Without it, flying low, the downward beam's ground hits a few
+    metres ahead count as obstacles and push the planner up."""
     near_pillars: int = 24
     """Pillars checked per episode: the nearest footprints (24 cover about 7 m at the paper
     density; a 2-3 s rollout reaches 4-6 m)."""
@@ -382,6 +395,8 @@ class OraclePlanner:
         hits = None
         if c.sense == "lidar":
             now = beam_hits(obs["lidar"], env.pos, env.yaw, ec)  # every env: the memory is per env
+            if c.ignore_ground:
+                now = torch.where(now[..., 2:] < 0.05, FAR, now)
             if c.memory == 1:
                 self.seen = now
             elif self.seen is None:  # a new evaluation: nothing seen before its first image
@@ -441,6 +456,10 @@ class OraclePlanner:
             ctg = (horiz * horiz + delta[..., 2] ** 2).sqrt()
         else:
             ctg = delta.norm(dim=-1)
+        if c.cruise is not None:  # far from the goal: horizontal cost-to-go + |z - cruise|
+            horiz = (ctg * ctg - delta[..., 2] ** 2).clamp(min=0).sqrt()
+            far = delta[..., :2].norm(dim=-1) > c.cruise_until
+            ctg = torch.where(far, horiz + (c.cruise - p[..., 2]).abs(), ctg)
         score = torch.where(reach < never, -(never - reach) * ec.dt, ctg)
         score = score + W_MARGIN * intrude + c.w_clear * (c.clear_cap - least).clamp(min=0)
         score = score + c.w_smooth * (cmds - self.prev_cmd[ids, None]).norm(dim=-1)
@@ -563,6 +582,11 @@ def main(argv: list[str] | None = None) -> dict:
         help="instead: sort the collisions of --episodes episodes of this validation "
         "map (experiments/collision_causes.py) and write them to --json",
     )
+    ap.add_argument("--cruise", type=float, default=d.cruise,
+                    help="m: altitude to hold until --cruise-until m from the goal")  # fmt: skip
+    ap.add_argument("--cruise-until", type=float, default=d.cruise_until)
+    ap.add_argument("--ignore-ground", action="store_true",
+                    help="with --sense lidar: ground hits are not obstacles")  # fmt: skip
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
@@ -572,7 +596,9 @@ def main(argv: list[str] | None = None) -> dict:
                           mover_margin=args.mover_margin, w_clear=args.w_clear,
                           w_smooth=args.w_smooth, privileged_range=args.privileged_range,
                           progress=args.progress, forecast=args.forecast, sense=args.sense,
-                          memory=args.memory, fill_gaps=args.fill_gaps)  # fmt: skip
+                          memory=args.memory, fill_gaps=args.fill_gaps, cruise=args.cruise,
+                          cruise_until=args.cruise_until,
+                          ignore_ground=args.ignore_ground)  # fmt: skip
     if args.causes is not None:
         if args.causes in RESERVED_SEEDS:
             raise SystemExit(f"env seed {args.causes} is a test or held-out map")
