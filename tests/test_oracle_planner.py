@@ -144,3 +144,23 @@ def test_lidar_sensing_flies_the_easy_map():
     planned = evaluate(oracle.OraclePlanner(oracle.OracleConfig(sense="lidar")), cfg,
                        env_seed=12345, episodes=16)  # fmt: skip
     assert planned["success_rate"] >= 0.6
+
+
+def test_cruise_holds_its_altitude_until_near_the_goal():
+    """``cruise`` brings the UAV down to the cruise altitude on the way and up to the goal's at
+    the end; ``ignore_ground`` is what lets it fly low (ground hits are no obstacle points)."""
+    torch.set_num_threads(1)
+    env, obs = _env(8)
+    config = oracle.OracleConfig(sense="lidar", cruise=0.6, ignore_ground=True,
+                                 climbs=(-0.75, -0.25, 0.0, 0.25, 0.75))  # fmt: skip
+    planner = oracle.OraclePlanner(config)
+    heights, far = [], []
+    for _ in range(80):
+        obs, *_ = env.step(planner(obs, env))
+        heights.append(env.pos[:, 2].clone())
+        far.append((env.goal - env.pos)[:, :2].norm(dim=-1) > config.cruise_until + 2)
+    z, far = torch.stack(heights[40:]), torch.stack(far[40:])
+    assert far.any() and (z[far] - 0.6).abs().max() < 0.35
+    # without the option, the downward beams' ground hits are obstacle points like any other
+    pts = oracle.beam_hits(obs["lidar"], env.pos, env.yaw, env.cfg)
+    assert (pts[..., 2].abs() < 0.05).any()
