@@ -448,17 +448,18 @@ class OraclePlanner:
 
         # Cost-to-go at the horizon's end; minus the time left for those that reach the goal.
         delta = goal[:, None] - p
+        flat = delta[..., :2].norm(dim=-1)  # straight horizontal distance to the goal
         if c.progress_kind == "geodesic":
             geo = sample_field(
                 self.fields[self.field_index[ids]], p[..., :2], ec.half, c.grid_resolution
             )
-            horiz = torch.maximum(geo, delta[..., :2].norm(dim=-1))
+            horiz = torch.maximum(geo, flat)
             ctg = (horiz * horiz + delta[..., 2] ** 2).sqrt()
         else:
+            horiz = flat
             ctg = delta.norm(dim=-1)
         if c.cruise is not None:  # far from the goal: horizontal cost-to-go + |z - cruise|
-            horiz = (ctg * ctg - delta[..., 2] ** 2).clamp(min=0).sqrt()
-            far = delta[..., :2].norm(dim=-1) > c.cruise_until
+            far = flat > c.cruise_until
             ctg = torch.where(far, horiz + (c.cruise - p[..., 2]).abs(), ctg)
         score = torch.where(reach < never, -(never - reach) * ec.dt, ctg)
         score = score + W_MARGIN * intrude + c.w_clear * (c.clear_cap - least).clamp(min=0)
