@@ -342,6 +342,32 @@ def test_reward_collision_is_paid_at_collision_steps_only():
         make_config("easy", reward_collision=1.0)
 
 
+@pytest.mark.parametrize(
+    "x, z, extra",
+    [
+        (-3.0, 2.0, -8.0 * (2.0 - 0.9) ** 2),  # far, in the start-goal band: cruise band penalty
+        (-3.0, 0.6, 8.0 * (1.8 - 0.6) ** 2),  # far, low: the start-goal band's penalty is lifted
+        (5.0, 0.6, 0.0),  # within cruise_until (5 m): NavRL's band as before
+    ],
+)
+def test_cruise_height_moves_the_height_band_only_far_from_the_goal(x, z, extra):
+    """``cruise_height`` (a named departure) swaps the height penalty's band for cruise_height +-
+    0.3 m while the goal is farther than ``cruise_until`` horizontally, and changes nothing else."""
+    rewards = []
+    for cruise in (0.0, 0.6):
+        env = hand_env(cruise_height=cruise)
+        place(env, (-3.0, 0.0, 2.0), goal=(8.0, 0.0, 2.0))  # start-goal band [1.8, 2.2]
+        env.pos[0] = torch.tensor([x, 0.0, z])
+        _, r, _, _, info = hover_step(env)
+        rewards.append((float(r[0]), float(info["cost"][0])))
+    (r0, c0), (r1, c1) = rewards
+    assert c0 == c1 == 0.0
+    assert r1 - r0 == pytest.approx(extra, abs=1e-3)
+    for bad in (0.4, 3.8, -1.0):
+        with pytest.raises(ValueError, match="cruise_height"):
+            make_config("easy", cruise_height=bad)
+
+
 def test_truncation_is_not_termination():
     env = SafeNavVectorEnv(1, preset="easy", output="torch", max_episode_seconds=1.0, num_static=0,
                            num_dynamic=0)  # fmt: skip

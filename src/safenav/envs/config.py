@@ -11,6 +11,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+CRUISE_HALF_BAND = 0.3
+"""Half width (m) of the height penalty's band around ``EnvConfig.cruise_height``."""
+
 
 @dataclass(frozen=True)
 class EnvConfig:
@@ -116,6 +119,15 @@ class EnvConfig:
     """Weight of the penalty on the change of velocity between steps (NavRL)."""
     w_height: float = 8.0
     """Weight of the penalty on leaving the start-goal altitude band (NavRL)."""
+    cruise_height: float = 0.0
+    """0 = NavRL's height penalty band, the start-goal band, throughout (the default). > 0, a
+    departure from NavRL's reward: while the goal is farther than ``cruise_until`` metres
+    horizontally, the band is ``cruise_height`` +- ``CRUISE_HALF_BAND`` (0.3 m) instead, so that the
+    UAV cruises low, where the level beams see the side of every pillar (each is >= 1 m tall) and
+    none is lost below the lowest beam (docs/csac-v1.md, "Altitude, not memory")."""
+    cruise_until: float = 5.0
+    """Horizontal distance to the goal (m) below which the start-goal band applies again when
+    ``cruise_height`` > 0."""
     reward_collision: float = 0.0
     """Reward at a collision step (<= 0). 0 = none (the paper: collisions are the cost's, never the
     reward's). NavRL's +1 per step survival bonus, dropped here, made a crash cost the rest of
@@ -177,7 +189,7 @@ class EnvConfig:
             "control_hz", "velocity_time_constant", "max_acceleration", "lidar_range",
             "grid_resolution", "dyn_speed_period", "dyn_local_range", "goal_tolerance",
             "min_goal_distance", "max_episode_seconds", "reward_goal", "w_velocity", "w_static",
-            "w_dynamic", "w_smooth", "w_height", "reward_collision",
+            "w_dynamic", "w_smooth", "w_height", "reward_collision", "cruise_height", "cruise_until",
         ):  # fmt: skip
             finite(name)
         for name in ("num_static", "num_dynamic", "physics_substeps", "lidar_h_beams",
@@ -227,6 +239,16 @@ class EnvConfig:
         lo, hi = self.start_height_range
         if not (self.z_min < lo <= hi < self.z_max):
             bad("start_height_range", "must lie strictly inside (z_min, z_max)")
+        if self.cruise_height and not (
+            self.z_min < self.cruise_height - CRUISE_HALF_BAND
+            and self.cruise_height + CRUISE_HALF_BAND < self.z_max
+        ):
+            bad(
+                "cruise_height",
+                f"must be 0 (off) or keep +-{CRUISE_HALF_BAND} m inside (z_min, z_max)",
+            )
+        if self.cruise_until < 0:
+            bad("cruise_until", "must be >= 0")
         if self.grid_resolution > self.lidar_range / 4:
             bad("grid_resolution", "must be at most lidar_range / 4")
         # Pillars may cover at most 30 % of the map (less the sites' clear discs) so that placement

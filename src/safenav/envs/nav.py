@@ -18,7 +18,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from safenav.envs import rng
-from safenav.envs.config import EnvConfig, make_config, observation_shapes
+from safenav.envs.config import CRUISE_HALF_BAND, EnvConfig, make_config, observation_shapes
 from safenav.envs.dynamics import (
     goal_frame_to_world,
     move_obstacles,
@@ -190,7 +190,8 @@ class SafeNavVectorEnv(VectorEnv):
     ## Rewards
     NavRL's shaping: velocity toward the goal (m/s) + mean log(beam distance / range) + mean
     log(clearance / range) of the tracked obstacles - 0.1 |v_t - v_{t-1}| - 8 x squared excursion
-    outside the start-goal altitude band (+-0.2 m) + 20 on reaching the goal. NavRL's +1 per
+    outside the start-goal altitude band (+-0.2 m; far from the goal ``cruise_height`` +- 0.3 m
+    instead if set, a named departure) + 20 on reaching the goal. NavRL's +1 per
     step is dropped: with success ending the episode it would pay loitering. ``reward_collision``
     (default 0) adds a reward at a collision step: -100 is the survival stream a crash loses in
     NavRL (about 1 / (1 - 0.99)), in terminal form.
@@ -736,8 +737,13 @@ class SafeNavVectorEnv(VectorEnv):
         r_static = torch.log((aux["ranges"] / cfg.lidar_range).clamp(1e-3, 1.0)).mean((1, 2))
         r_dyn = torch.log((aux["tracked_clear"] / cfg.lidar_range).clamp(1e-3, 1.0)).mean(-1)
         p_smooth = (self.vel - self.prev_vel).norm(dim=-1)
-        above = (z - self.band[:, 1]).clamp(min=0)
-        below = (self.band[:, 0] - z).clamp(min=0)
+        band_lo, band_hi = self.band[:, 0], self.band[:, 1]
+        if cfg.cruise_height > 0:  # a named departure from NavRL (EnvConfig.cruise_height)
+            far = (self.goal[:, :2] - self.pos[:, :2]).norm(dim=-1) > cfg.cruise_until
+            band_lo = torch.where(far, cfg.cruise_height - CRUISE_HALF_BAND, band_lo)
+            band_hi = torch.where(far, cfg.cruise_height + CRUISE_HALF_BAND, band_hi)
+        above = (z - band_hi).clamp(min=0)
+        below = (band_lo - z).clamp(min=0)
         p_height = above * above + below * below
         reward = (cfg.w_velocity * r_vel + cfg.w_static * r_static + cfg.w_dynamic * r_dyn
                   - cfg.w_smooth * p_smooth - cfg.w_height * p_height + cfg.reward_goal * success.float()
