@@ -353,6 +353,15 @@ def test_bench_gym_on_a_tiny_budget_writes_its_files_and_resumes(tmp_path, capsy
     assert config["run"]["save_buffer"]  # so the resumed SAC kept its replay buffer
 
 
+def _sigint_as_from_a_terminal() -> None:
+    """In the child before exec: SIGINT's default disposition, so that Python installs its Ctrl-C
+    handler also when this test run inherited SIGINT ignored (``nohup make test &``: a shell's
+    background jobs start with it ignored, and the bench would then never see the SIGINT)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.parametrize(("sig", "code"), [("SIGTERM", 143), ("SIGINT", 130)])
 def test_bench_stopped_by_a_signal_stops_its_trials_with_a_checkpoint(tmp_path, sig, code):
     """``kill BENCH_PID`` used to leave its trials training as orphans, and a rerun then started a
@@ -371,7 +380,7 @@ def test_bench_stopped_by_a_signal_stops_its_trials_with_a_checkpoint(tmp_path, 
                               "MountainCarContinuous-v0", "--algos", "sac", "--seeds", "1",
                               "--steps", "1000000", "--out", str(out), "--no-progress"],
                              env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                             text=True)  # fmt: skip
+                             text=True, preexec_fn=_sigint_as_from_a_terminal)  # fmt: skip
     deadline = time.monotonic() + 120
     while not (run_dir / "progress.csv").is_file():  # the trial trains
         assert bench.poll() is None and time.monotonic() < deadline, bench.communicate()[1]
