@@ -208,7 +208,7 @@ VERDICTS: dict[str, dict[str, int]] = {
     # train
     "train --num-envs": MEMORY, "train --seed": {"0": ACCEPTED}, "train --total-steps": POSITIVE,
     "train --torch-threads": {"0": ACCEPTED}, "train --log-every": POSITIVE,
-    "train --eval-every": NONNEG, "train --eval-episodes": MEMORY,
+    "train --eval-every": NONNEG, "train --eval-episodes": MEMORY, "train --report-episodes": {},
     "train --checkpoint-every": POSITIVE, "train --map-refresh-every": NONNEG,
     "train --density.start": {"0": ACCEPTED}, "train --density.end": {"0": ACCEPTED},
     "train --density.ramp-fraction": POSITIVE, "train --density.success-threshold": {"0": ACCEPTED},

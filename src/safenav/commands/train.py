@@ -21,7 +21,7 @@ from safenav.common.config import RunConfig
 ALGOS = ("csac", "sac", "ppo", "ppo_lag", "sac_lag")
 # Options a resumed run may change; every other option comes from the run's config.json.
 RESUMABLE = ("total_steps", "device", "torch_threads", "log_every", "eval_every", "eval_episodes",
-             "checkpoint_every", "tensorboard", "save_buffer")  # fmt: skip
+             "checkpoint_every", "tensorboard", "save_buffer", "report_episodes")  # fmt: skip
 
 
 @app.command(name="train")
@@ -100,10 +100,10 @@ def _report_and_select(algo: str, run: RunConfig, run_dir: Path, result: dict) -
     print(f"safenav train: {algo} finished at step {result['global_step']} ({result['updates']} "
           f"updates)\n  {recent}\n  run dir {run_dir}")  # fmt: skip
     if run.select:
-        finish_run(run_dir, run.device)
+        finish_run(run_dir, run.device, run.report_episodes)
 
 
-def finish_run(run_dir: Path, device: str = "cpu") -> dict:
+def finish_run(run_dir: Path, device: str = "cpu", report_episodes: int = 200) -> dict:
     """``--select``: the run's policy chosen on validation maps only (``RUN_DIR/policy.pt``,
     ``selection.json``), then reported on the test scenario and the held-out maps
     (``RUN_DIR/final.json``; :mod:`safenav.experiments.selection`)."""
@@ -112,7 +112,7 @@ def finish_run(run_dir: Path, device: str = "cpu") -> dict:
 
     t0 = time.perf_counter()
     selection = select_final_policy(run_dir, device=device)
-    report = report_policy(run_dir / "policy.pt", device=device)
+    report = report_policy(run_dir / "policy.pt", episodes=report_episodes, device=device)
     final = {"policy": str(run_dir / "policy.pt"), "selection": selection,
              **report, "report_wall_clock_s": round(time.perf_counter() - t0, 1)}  # fmt: skip
     write_json(run_dir / "final.json", final)

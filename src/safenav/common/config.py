@@ -18,6 +18,8 @@ from safenav.common.curriculum import DensityCurriculumConfig
 MAX_SEED = 2**31 - 1
 """Seeds (training, env) lie in [0, MAX_SEED]: NumPy and torch take them, and the seeds derived
 from them (``train_env_seed``) stay within int64."""
+MAX_REPORT_EPISODES = 10_000
+"""Most episodes per scenario in ``--select``'s final report (beyond: a typo, hours of flights)."""
 
 
 @dataclass(frozen=True)
@@ -74,6 +76,9 @@ class RunConfig:
     """End the run by choosing its policy on validation maps only (greedy soup of the policies
     kept in its last half; implies keep_policies): ``RUN_DIR/policy.pt`` and ``selection.json``,
     then its report on the test scenario and held-out maps in ``RUN_DIR/final.json``."""
+    report_episodes: int = 200
+    """With ``select``: episodes of the final report on the test scenario and on each held-out map
+    (200: the paper's test; fewer only for quick checks)."""
     save_buffer: bool = False
     """Store the replay buffer in checkpoint.pt (large); without it a resume refills it first."""
     matmul_precision: Literal["highest", "high", "medium"] = "highest"
@@ -88,6 +93,10 @@ class RunConfig:
         for name in ("num_envs", "total_steps", "log_every", "checkpoint_every", "eval_episodes"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name.replace('_', '-')}={getattr(self, name)} must be >= 1")
+        if not 1 <= self.report_episodes <= MAX_REPORT_EPISODES:
+            raise ValueError(
+                f"report-episodes={self.report_episodes} must lie in [1, {MAX_REPORT_EPISODES}]"
+            )
         if self.eval_every < 0 or self.torch_threads < 0 or self.map_refresh_every < 0:
             raise ValueError("eval-every, torch-threads and map-refresh-every must be >= 0")
         if not 0 <= self.seed <= MAX_SEED:
