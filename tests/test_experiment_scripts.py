@@ -1,6 +1,6 @@
 """The diagnostic scripts of ``experiments/`` that docs/csac.md and docs/csac-v1.md quote run on a
 tiny CSAC run: ``checkpoint_sweep.py`` (with ``--sampled``), ``cost_critic_bias.py``,
-``flight_grid.py``, ``speed_profile.py`` and ``timeout_paths.py``."""
+``flight_grid.py``, ``speed_profile.py``, ``timeout_paths.py`` and ``altitude_profile.py``."""
 
 from __future__ import annotations
 
@@ -168,3 +168,21 @@ def test_flight_grid_flies_the_median_seed_of_each_label(tiny_run, tmp_path):
         grid.main([str(out), "--labels", "csac", "--env-seed", "1", "--out", str(png)])
     with pytest.raises(SystemExit, match="no trial of 'sac'"):
         grid.main([str(out), "--labels", "sac", "--out", str(png)])
+
+
+def test_altitude_profile_counts_only_the_steps_flown_far_from_the_goal(tiny_run, tmp_path):
+    alt = script("altitude_profile")
+    near = alt.profile(tiny_run / "best.pt", env_seed=12345, episodes=4, far=0.0)
+    far = alt.profile(tiny_run / "best.pt", env_seed=12345, episodes=4, far=100.0)
+    result = tmp_path / "eval.json"
+    main(["eval", str(tiny_run / "best.pt"), "--episodes", "4", "--env-seed", "12345",
+          "--json", str(result)])  # fmt: skip
+    times = json.loads(result.read_text())["per_episode"]["time"]
+    # every step each episode flew, none of the hovering after its end; far=0: all of them
+    assert near["flown_steps"] == near["far_steps"] == round(sum(times) / 0.1)
+    assert far["far_steps"] == 0 and far["flown_steps"] == near["flown_steps"] > 0
+    assert math.isnan(far["far_z_mean"]) and math.isnan(far["far_below_1m"])  # no step that far
+    assert 0.2 <= near["far_z_p10"] <= near["far_z_p50"] <= near["far_z_p90"] <= 4.0
+    assert 0.0 <= near["far_below_1m"] <= 1.0
+    with pytest.raises(SystemExit):
+        alt.main([str(tiny_run / "best.pt"), "--env-seed", "1"])
