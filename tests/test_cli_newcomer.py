@@ -72,6 +72,17 @@ def test_eval_negative_episodes_and_a_directory_as_json(capsys, ckpt, tmp_path):
     assert code == 2 and f"--json {tmp_path / 'eval.json'}" in one_error(err)  # the fix
 
 
+@pytest.mark.parametrize(
+    ("seed", "role"),
+    [(1, "the test scenario"), (4, "a held-out map"), (12346, "a validation map"), (77, "the map")],
+)
+def test_eval_names_the_role_of_the_map_it_flew(capsys, ckpt, seed, role):
+    """The table's title said "fixed test scenario" for any env seed, validation maps included."""
+    code, out, _ = run(capsys, ["eval", str(ckpt), "--preset", "easy", "--episodes", "1",
+                                "--env-seed", str(seed)])  # fmt: skip
+    assert code == 0 and f"{role}: env seed {seed}, 1 episodes" in " ".join(out.split())
+
+
 def test_render_fps_zero_and_unwritable_out(capsys, ckpt, tmp_path, monkeypatch):
     flown = []
     monkeypatch.setattr("safenav.experiments.flight.render_episode",

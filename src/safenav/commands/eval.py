@@ -71,7 +71,12 @@ def eval_(
     result["env"] = ENV_ID
     if policy == "checkpoint":
         result["trained_on"] = str(fn.meta.get("env_id", ""))
-    table = Table(title=f"fixed test scenario: env seed {env_seed}, {episodes} episodes")
+    from safenav.experiments.selection import HELDOUT_SEEDS, TEST_SEED, VALIDATION_SEEDS
+
+    role = ("the test scenario" if env_seed == TEST_SEED else "a held-out map"
+            if env_seed in HELDOUT_SEEDS else "a validation map" if env_seed in VALIDATION_SEEDS
+            else "the map")  # fmt: skip
+    table = Table(title=f"{role}: env seed {env_seed}, {episodes} episodes")
     table.add_column("metric")
     table.add_column("value", justify="right")
     for key in ("success_rate", "collision_rate", "timeout_rate", "mean_time_to_goal",
