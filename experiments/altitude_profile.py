@@ -91,8 +91,11 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['collision_dynamic_rate']:.3f} / {r['collision_bounds_rate']:.3f} | "
               f"{r['far_z_mean']:.2f} ({r['far_z_p10']:.2f}-{r['far_z_p50']:.2f}-"
               f"{r['far_z_p90']:.2f}) | {r['far_below_1m']:.2f} |", flush=True)  # fmt: skip
-    if args.json:
-        args.json.write_text(json.dumps(rows, indent=1) + "\n")
+    if args.json:  # strict JSON: null where no step was that far from the goal
+        clean = [
+            {k: None if isinstance(v, float) and v != v else v for k, v in r.items()} for r in rows
+        ]
+        args.json.write_text(json.dumps(clean, indent=1, allow_nan=False) + "\n")
     return 0
 
 

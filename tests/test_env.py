@@ -343,19 +343,20 @@ def test_reward_collision_is_paid_at_collision_steps_only():
 
 
 @pytest.mark.parametrize(
-    "x, z, extra",
+    "x, z, until, extra",
     [
-        (-3.0, 2.0, -8.0 * (2.0 - 0.9) ** 2),  # far, in the start-goal band: cruise band penalty
-        (-3.0, 0.6, 8.0 * (1.8 - 0.6) ** 2),  # far, low: the start-goal band's penalty is lifted
-        (5.0, 0.6, 0.0),  # within cruise_until (5 m): NavRL's band as before
+        (-3.0, 2.0, 5.0, -8.0 * (2.0 - 0.9) ** 2),  # far, in the start-goal band: cruise penalty
+        (-3.0, 0.6, 5.0, 8.0 * (1.8 - 0.6) ** 2),  # far, low: the start-goal band's penalty lifted
+        (5.0, 0.6, 5.0, 0.0),  # within cruise_until (5 m): NavRL's band as before
+        (5.0, 0.6, 3.2, 0.0),  # 3.0 m away horizontally (3.3 m in 3-D): the distance is horizontal
     ],
 )
-def test_cruise_height_moves_the_height_band_only_far_from_the_goal(x, z, extra):
+def test_cruise_height_moves_the_height_band_only_far_from_the_goal(x, z, until, extra):
     """``cruise_height`` (a named departure) swaps the height penalty's band for cruise_height +-
     0.3 m while the goal is farther than ``cruise_until`` horizontally, and changes nothing else."""
     rewards = []
     for cruise in (0.0, 0.6):
-        env = hand_env(cruise_height=cruise)
+        env = hand_env(cruise_height=cruise, cruise_until=until)
         place(env, (-3.0, 0.0, 2.0), goal=(8.0, 0.0, 2.0))  # start-goal band [1.8, 2.2]
         env.pos[0] = torch.tensor([x, 0.0, z])
         _, r, _, _, info = hover_step(env)
@@ -366,6 +367,9 @@ def test_cruise_height_moves_the_height_band_only_far_from_the_goal(x, z, extra)
     for bad in (0.4, 3.8, -1.0):
         with pytest.raises(ValueError, match="cruise_height"):
             make_config("easy", cruise_height=bad)
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(ValueError, match="cruise_until"):
+            make_config("easy", cruise_until=bad)
 
 
 def test_truncation_is_not_termination():

@@ -153,3 +153,17 @@ def test_a_run_too_short_to_keep_a_policy_is_reported_on_its_final_one(tmp_path)
     assert record["method"] == "final policy (no policy kept)" and record["chosen_steps"] == [400]
     assert json.loads((run_dir / "selection.json").read_text()) == record
     assert (run_dir / "policy.pt").is_file()
+
+
+def test_report_episodes_is_a_whole_number_and_needs_select():
+    """A recipe or config.json is not typed like the command line: 2.5 or true used to pass the
+    checks and fail (or report 1 episode) only after the whole training."""
+    from safenav.common.config import RunConfig
+
+    assert RunConfig(report_episodes=5, select=True).report_episodes == 5
+    for kw, why in (({"report_episodes": 2.5, "select": True}, "must be an integer"),
+                    ({"report_episodes": True, "select": True}, "must be an integer"),
+                    ({"report_episodes": 0, "select": True}, r"must lie in \[1, "),
+                    ({"report_episodes": 5}, "add --select"), ({"seed": 3.0}, "seed=3.0")):  # fmt: skip
+        with pytest.raises(ValueError, match=why):
+            RunConfig(**kw)

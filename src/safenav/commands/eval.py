@@ -32,7 +32,8 @@ def eval_(
 
     Args:
         checkpoint: Policy or training checkpoint, or a run directory (its checkpoint.pt).
-        env_seed: Env seed of the test scenario's map (1 = the paper protocol's).
+        env_seed: Env seed of the map to fly: 1 = the test scenario (the paper protocol's), 2-6 the
+            held-out maps, 12345-12348 the validation maps (the title says which).
         episodes: Episodes to fly, all at once (one env each); the protocol flies 200.
         shield: Correct the actions with the velocity-obstacle safety shield.
         json_out: Also write the metrics here as JSON (no value: null); the directory must exist.

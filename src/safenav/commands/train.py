@@ -44,8 +44,8 @@ def train(
     checkpoint.pt (written atomically). --csac.* options set csac, sac (the same minus the cost
     side) and sac_lag (the same with OmniSafe's Lagrangian switches); --ppo.* set ppo and ppo_lag
     (PPO wants many envs: e.g. --num-envs 256). A directory that holds a run that trained is
-    refused unless --resume DIR (continue it: its config.json is used; --total-steps, --device
-    and the logging options may change) or --overwrite (replace it); one whose run failed before
+    refused unless --resume DIR (continue it: its config.json is used; --total-steps, --device,
+    --report-episodes and the logging options may change) or --overwrite (replace it); one whose run failed before
     training is reused. Default run dir: runs/<algo>-<env>-s<seed>-<time>.
 
     --config NAME|PATH starts from a recipe: one shipped with safenav (csac, csac-paper,
@@ -58,7 +58,8 @@ def train(
     (--csac.learning-starts) is refused. csac, sac_lag and ppo_lag read the cost from
     info["cost"]; on an env without it they warn that they reduce to sac / ppo, and
     --cost-fn module:function supplies one (safenav.common.costs). --select ends the run by choosing its policy on validation maps only
-    (RUN_DIR/policy.pt) and reporting it on the test and held-out scenarios (RUN_DIR/final.json).
+    (RUN_DIR/policy.pt) and reporting it on the test and held-out scenarios (RUN_DIR/final.json;
+    --report-episodes per scenario, 200 by default).
 
     Step counts take 1000000, 1e6, 1_000_000 or 1M. Everything is checked before the run
     directory is written, including the memory the run needs (refused with the estimate).

@@ -78,7 +78,8 @@ class RunConfig:
     then its report on the test scenario and held-out maps in ``RUN_DIR/final.json``."""
     report_episodes: int = 200
     """With ``select``: episodes of the final report on the test scenario and on each held-out map
-    (200: the paper's test; fewer only for quick checks)."""
+    (200: the paper's test; fewer only for quick checks; a ``safenav reproduce`` rerun keeps the
+    reports of its finished trials whatever this says now)."""
     save_buffer: bool = False
     """Store the replay buffer in checkpoint.pt (large); without it a resume refills it first."""
     matmul_precision: Literal["highest", "high", "medium"] = "highest"
@@ -90,6 +91,12 @@ class RunConfig:
     """Obstacle-density curriculum (SafeNav-v1 only)."""
 
     def __post_init__(self) -> None:
+        counts = ("num_envs", "total_steps", "log_every", "checkpoint_every", "eval_episodes",
+                  "report_episodes", "eval_every", "torch_threads", "map_refresh_every", "seed")  # fmt: skip
+        for name in counts:  # a recipe file or config.json is not typed like the command line
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise ValueError(f"{name.replace('_', '-')}={value!r} must be an integer")
         for name in ("num_envs", "total_steps", "log_every", "checkpoint_every", "eval_episodes"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name.replace('_', '-')}={getattr(self, name)} must be >= 1")
@@ -97,6 +104,8 @@ class RunConfig:
             raise ValueError(
                 f"report-episodes={self.report_episodes} must lie in [1, {MAX_REPORT_EPISODES}]"
             )
+        if self.report_episodes != 200 and not self.select:
+            raise ValueError("report-episodes sets --select's final report; add --select")
         if self.eval_every < 0 or self.torch_threads < 0 or self.map_refresh_every < 0:
             raise ValueError("eval-every, torch-threads and map-refresh-every must be >= 0")
         if not 0 <= self.seed <= MAX_SEED:

@@ -213,6 +213,9 @@ class EnvConfig:
             bad("lidar_history", "must be at most 8 (range images in the observation)")
         if not 0 <= self.lidar_memory <= 100:
             bad("lidar_memory", "must lie in [0, 100] control steps (0 = no memory image)")
+        for name in ("w_smooth", "w_height"):
+            if getattr(self, name) < 0:
+                bad(name, "must be >= 0 (a penalty's weight; a negative one pays for it)")
         if self.reward_collision > 0:
             bad("reward_collision", "must be <= 0 (a penalty; a positive value pays crashes)")
         if not 0.0 <= self.density <= 1.0:
