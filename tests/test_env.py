@@ -372,6 +372,26 @@ def test_cruise_height_moves_the_height_band_only_far_from_the_goal(x, z, until,
             make_config("easy", cruise_until=bad)
 
 
+def test_cruise_ramp_moves_the_band_linearly_between_cruise_and_goal():
+    """With ``cruise_ramp`` the band's bounds go linearly from the cruise band (beyond
+    cruise_until + ramp) to the start-goal band (within cruise_until): no penalty cliff."""
+    penalties = []
+    for x in (-3.0, 1.0, 3.5):  # 11, 7 and 4.5 m from the goal: all, half and none of the cruise
+        rewards = []
+        for cruise in (0.0, 0.6):
+            env = hand_env(cruise_height=cruise, cruise_until=5.0, cruise_ramp=4.0)
+            place(env, (-3.0, 0.0, 2.0), goal=(8.0, 0.0, 2.0))  # start-goal band [1.8, 2.2]
+            env.pos[0] = torch.tensor([x, 0.0, 0.6])
+            rewards.append(float(hover_step(env)[1][0]))
+        penalties.append(rewards[0] - rewards[1])  # the cruise penalty minus NavRL's
+    lo_half = 1.8 + 0.5 * (0.3 - 1.8)  # the lower bound halfway: 1.05 m
+    assert penalties == pytest.approx(
+        [-8.0 * 1.2**2, -8.0 * 1.2**2 + 8.0 * (lo_half - 0.6) ** 2, 0.0], abs=1e-3
+    )
+    with pytest.raises(ValueError, match="cruise_ramp"):
+        make_config("easy", cruise_ramp=-1.0)
+
+
 def test_truncation_is_not_termination():
     env = SafeNavVectorEnv(1, preset="easy", output="torch", max_episode_seconds=1.0, num_static=0,
                            num_dynamic=0)  # fmt: skip

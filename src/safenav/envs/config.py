@@ -128,6 +128,11 @@ class EnvConfig:
     cruise_until: float = 5.0
     """Horizontal distance to the goal (m) below which the start-goal band applies again when
     ``cruise_height`` > 0."""
+    cruise_ramp: float = 0.0
+    """With ``cruise_height`` > 0: over this many metres beyond ``cruise_until`` the band's bounds
+    move linearly from the cruise band to the start-goal band (climbing 1.9 m over a 5 m ramp at
+    2 m/s takes 0.8 m/s). 0 = a step at ``cruise_until``: a penalty cliff there for a UAV cruising
+    low under a high goal (up to 8 x 1.7^2 per step), measured as ``cruise06``."""
     reward_collision: float = 0.0
     """Reward at a collision step (<= 0). 0 = none (the paper: collisions are the cost's, never the
     reward's). NavRL's +1 per step survival bonus, dropped here, made a crash cost the rest of
@@ -190,6 +195,7 @@ class EnvConfig:
             "grid_resolution", "dyn_speed_period", "dyn_local_range", "goal_tolerance",
             "min_goal_distance", "max_episode_seconds", "reward_goal", "w_velocity", "w_static",
             "w_dynamic", "w_smooth", "w_height", "reward_collision", "cruise_height", "cruise_until",
+            "cruise_ramp",
         ):  # fmt: skip
             finite(name)
         for name in ("num_static", "num_dynamic", "physics_substeps", "lidar_h_beams",
@@ -252,6 +258,8 @@ class EnvConfig:
             )
         if self.cruise_until < 0:
             bad("cruise_until", "must be >= 0")
+        if self.cruise_ramp < 0:
+            bad("cruise_ramp", "must be >= 0")
         if self.grid_resolution > self.lidar_range / 4:
             bad("grid_resolution", "must be at most lidar_range / 4")
         # Pillars may cover at most 30 % of the map (less the sites' clear discs) so that placement

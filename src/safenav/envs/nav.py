@@ -739,9 +739,16 @@ class SafeNavVectorEnv(VectorEnv):
         p_smooth = (self.vel - self.prev_vel).norm(dim=-1)
         band_lo, band_hi = self.band[:, 0], self.band[:, 1]
         if cfg.cruise_height > 0:  # a named departure from NavRL (EnvConfig.cruise_height)
-            far = (self.goal[:, :2] - self.pos[:, :2]).norm(dim=-1) > cfg.cruise_until
-            band_lo = torch.where(far, cfg.cruise_height - CRUISE_HALF_BAND, band_lo)
-            band_hi = torch.where(far, cfg.cruise_height + CRUISE_HALF_BAND, band_hi)
+            beyond = (self.goal[:, :2] - self.pos[:, :2]).norm(dim=-1) - cfg.cruise_until
+            # share of the cruise band: 1 far out, 0 near the goal; a ramp, or a step without one
+            # (a step is a penalty cliff at cruise_until for a UAV that cruises low: cruise06)
+            far = (
+                (beyond / cfg.cruise_ramp).clamp(0, 1)
+                if cfg.cruise_ramp > 0
+                else (beyond > 0).float()
+            )
+            band_lo = band_lo + far * (cfg.cruise_height - CRUISE_HALF_BAND - band_lo)
+            band_hi = band_hi + far * (cfg.cruise_height + CRUISE_HALF_BAND - band_hi)
         above = (z - band_hi).clamp(min=0)
         below = (band_lo - z).clamp(min=0)
         p_height = above * above + below * below
