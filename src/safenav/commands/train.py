@@ -45,8 +45,8 @@ def train(
     side) and sac_lag (the same with OmniSafe's Lagrangian switches); --ppo.* set ppo and ppo_lag
     (PPO wants many envs: e.g. --num-envs 256). A directory that holds a run that trained is
     refused unless --resume DIR (continue it: its config.json is used; --total-steps, --device,
-    --report-episodes and the logging options may change) or --overwrite (replace it); one whose run failed before
-    training is reused. Default run dir: runs/<algo>-<env>-s<seed>-<time>.
+    --report-episodes and the logging options may change) or --overwrite (replace it); one whose
+    run failed before training is reused. Default run dir: runs/<algo>-<env>-s<seed>-<time>.
 
     --config NAME|PATH starts from a recipe: one shipped with safenav (csac, csac-paper,
     csac-maxcost, sac, sac-lag, ppo, ppo-lag, ...) or a TOML file of your own; options given on
