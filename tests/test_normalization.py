@@ -172,6 +172,42 @@ def test_reward_scaler_divides_by_the_std_of_the_discounted_return_not_of_the_re
     assert quiet(torch.tensor([1.0, 0.0]), no).tolist() == [CLIP, 0.0]
 
 
+@pytest.mark.parametrize("num_envs", [1, 3])
+def test_the_numpy_env_side_is_the_torch_computation_bit_for_bit(num_envs):
+    """On the CPU the env side runs through NumPy views of the buffers (speed); it must give the
+    float64 statistics and float32 outputs of the torch operations exactly, and follow buffers
+    that ``.to()`` replaced or ``load_state_dict`` overwrote."""
+    gen = torch.Generator().manual_seed(0)
+    fast, slow = ObsNormalizer({"obs": (4,)}), ObsNormalizer({"obs": (4,)})
+    fast_r, slow_r = RewardScaler(num_envs, 0.99), RewardScaler(num_envs, 0.99)
+    for step in range(60):
+        x = torch.randn(num_envs, 4, generator=gen) * torch.tensor([1.0, 10.0, 1e3, 1e-3]) + 5.0
+        r = torch.randn(num_envs, generator=gen) * 3.0
+        done = torch.rand(num_envs, generator=gen) < 0.1
+        fast.update({"obs": x})
+        for rms in slow.stats:
+            with torch.no_grad():
+                rms._update_torch(x.to(torch.float64))
+        for a, b in zip(fast.stats, slow.stats, strict=True):
+            for name in ("mean", "var", "count"):
+                assert torch.equal(getattr(a, name), getattr(b, name)), (step, name)
+        assert torch.equal(fast.env_side({"obs": x})["obs"], slow({"obs": x})["obs"])
+        got = fast_r(r, done)
+        with torch.no_grad():  # RewardScaler.forward's torch branch, written out
+            slow_r.returns.mul_(0.99).add_(r.to(torch.float64))
+            slow_r.return_rms._update_torch(slow_r.returns)
+            std = torch.sqrt(slow_r.return_rms.var + EPSILON)
+            slow_r.returns[done] = 0.0
+            want = (r / std.to(r.dtype)).clamp(-CLIP, CLIP)
+        assert torch.equal(got, want) and got.dtype == torch.float32
+        assert torch.equal(fast_r.returns, slow_r.returns)
+        if step == 20:  # buffers replaced: the cached views must follow
+            fast = fast._apply(lambda t: t.clone())  # what .to(device) does to every buffer
+        if step == 40:
+            fast.load_state_dict(slow.state_dict())
+    assert float(fast.stats[0].count) == pytest.approx(60 * num_envs + PRIOR)
+
+
 # ------------------------------------------------------------------------ the run around them
 def test_evaluation_uses_the_training_statistics_frozen_and_reports_raw_returns(tmp_path):
     from safenav.training import Trainer, algo_config
