@@ -300,6 +300,14 @@ if verb == "eval":
 run, total, seed = pathlib.Path(arg("--run-dir")), int(arg("--total-steps")), int(arg("--seed"))
 if "--fail" in args:
     print("boom: something broke"); sys.exit(3)
+if "--hang" in args:  # runs until stopped; answers SIGTERM as the trainer does (checkpoint, 143)
+    import os, signal, time
+    run.mkdir(parents=True, exist_ok=True)
+    def stop(signum, frame):
+        (run.parent / f"stopped-{{seed}}").write_text(""); sys.exit(143)
+    signal.signal(signal.SIGTERM, stop)
+    (run.parent / f"hang-{{seed}}.pid").write_text(str(os.getpid()))
+    time.sleep(600)
 if "--killed-once" in args and not (run.parent / f"killed-{{seed}}").exists():
     run.parent.mkdir(parents=True, exist_ok=True)
     (run.parent / f"killed-{{seed}}").write_text("")  # as the OOM killer would: SIGKILL

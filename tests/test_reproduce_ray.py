@@ -1,13 +1,19 @@
 """safenav reproduce on a local Ray instance, with a stand-in trainer (seconds, no learning).
 
 Checks the Ray side: trials as tasks with their CPUs, results.json/md and figures written, a
-rerun skips finished trials without starting Ray, a failed trial is reported and the others kept.
+rerun skips finished trials without starting Ray, a failed trial is reported and the others kept,
+a sweep stopped by SIGTERM stops its trainers.
 The same sweep with the real ``safenav train`` is test_reproduce_e2e.py.
 """
 
 from __future__ import annotations
 
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
 
 import pytest
 
@@ -98,3 +104,52 @@ def test_cpus_per_trial_larger_than_any_node_is_refused(tmp_path, fake_python): 
     cfg.cpus_per_trial = 3
     with pytest.raises(SafenavError, match="exceeds the 2 CPUs of the local Ray instance"):
         rep.run_sweep(cfg)
+
+
+DRIVER = """
+import sys
+from pathlib import Path
+from safenav.experiments import reproduce as rep
+cfg = rep.SweepConfig(out=Path(sys.argv[1]), algos=("hang",), variants=("hang=sac --hang",),
+                      seeds=1, total_steps=("1000",), preset="easy", cpus_per_trial=1, num_cpus=2,
+                      eval_episodes=10, progress=False, python=sys.argv[2], command="test")
+rep.run_sweep(cfg)
+"""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def test_a_sweep_stopped_by_sigterm_stops_its_trainers(tmp_path, fake_python):  # noqa: F811
+    """`kill` of a running `safenav reproduce` (a background job's stop: SIGINT is ignored there)
+    leaves no trainer running: the local Ray instance goes with its driver, and the trainer, bound
+    to its worker (``die_with_parent``), gets SIGTERM (its checkpoint) and exits."""
+    out = tmp_path / "out"
+    runs = out / "runs" / "hang"
+    log = (tmp_path / "driver.log").open("w")
+    driver = subprocess.Popen([sys.executable, "-c", DRIVER, str(out), fake_python],
+                              stdout=log, stderr=subprocess.STDOUT, start_new_session=True)  # fmt: skip
+    try:
+        deadline = time.time() + 180
+        while not (runs / "hang-0.pid").exists():
+            assert driver.poll() is None and time.time() < deadline, (
+                tmp_path / "driver.log"
+            ).read_text()
+            time.sleep(0.5)
+        time.sleep(0.5)  # the pid is written just after the SIGTERM handler is set
+        trainer = int((runs / "hang-0.pid").read_text())
+        driver.send_signal(signal.SIGTERM)
+        assert driver.wait(timeout=120) != 0
+        deadline = time.time() + 30
+        while _alive(trainer) and time.time() < deadline:
+            time.sleep(0.5)
+        assert not _alive(trainer), "an orphan trainer runs on"
+        assert (runs / "stopped-0").exists(), "the trainer was killed, not stopped by SIGTERM"
+    finally:
+        if driver.poll() is None:
+            os.killpg(driver.pid, signal.SIGKILL)
