@@ -448,6 +448,14 @@ def test_cpu_hours_estimate_and_eta(tmp_path, fake_python):
     assert (
         cpu_s == pytest.approx(7.5e5) and source == "this sweep's finished trials (training time)"
     )
+    # a trial of another recipe (a --variants label) costs what that recipe was measured at
+    paper = dataclasses.replace(todo[0], label="csac_paper", run_dir=tmp_path / "runs" / "p" / "s0",
+                                train_args=("--eval-every", "1000", "--config", "csac-paper"))  # fmt: skip
+    assert rep.trial_recipe(paper) == "csac-paper" and rep.trial_recipe(todo[0]) is None
+    assert rep.trial_recipe(dataclasses.replace(paper, train_args=("--config=csac",))) == "csac"
+    cpu_s, _ = rep.estimate_cpu_seconds([paper], [done], states([paper]))
+    assert cpu_s == pytest.approx(1e6 * rep.CPU_S_PER_STEP_BY_RECIPE["csac-paper"])
+    assert rep.CPU_S_PER_STEP_BY_RECIPE["csac-paper"] > 10 * rates["csac"]
     line = rep.eta_line(1, 4, 250, 1000, 600.0, now=0.0)
     assert line == "1 of 4 trials done; about 30.0 min left (ETA 00:30 UTC)"
     assert rep.eta_line(0, 4, 0, 1000, 5.0) == "0 of 4 trials done"

@@ -640,6 +640,23 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
 CPU_S_PER_STEP: dict[str, float] = {"csac": 2.2e-3, "sac": 1.5e-3, "sac_lag": 2.2e-3,
                                     "ppo": 4.0e-4, "ppo_lag": 4.0e-4}  # fmt: skip
 
+#: The same for trials that train from another recipe (``--config NAME`` in their arguments),
+#: where it costs otherwise than its algorithm's default. csac-paper: 16 envs and 0.25 updates
+#: per env step (8 x the csac recipe's updates per env step): 68-73 env steps/s on 2 CPUs alone
+#: (csac_paper seed 1, 10k-50k steps, 2026-11-27), where the estimate by algorithm said 1/13 of it.
+CPU_S_PER_STEP_BY_RECIPE: dict[str, float] = {"csac-paper": 2.9e-2}
+
+
+def trial_recipe(trial: Trial) -> str | None:
+    """The recipe a trial's ``--config`` names (the last one given), or None."""
+    name, args = None, list(trial.train_args)
+    for i, arg in enumerate(args):
+        if arg == "--config" and i + 1 < len(args):
+            name = args[i + 1]
+        elif arg.startswith("--config="):
+            name = arg.split("=", 1)[1]
+    return name
+
 
 def estimate_cpu_seconds(todo: list[Trial], done: list[Trial],
                          states: dict[str, str]) -> tuple[float, str]:  # fmt: skip
@@ -647,7 +664,7 @@ def estimate_cpu_seconds(todo: list[Trial], done: list[Trial],
     remaining steps (a resumed one has fewer; ``states`` from :func:`trial_state`) at its
     algorithm's rate, measured on the finished
     trials of ``done`` where there are any (their records' wall clock x CPUs / env steps), else
-    :data:`CPU_S_PER_STEP`."""
+    :data:`CPU_S_PER_STEP_BY_RECIPE` for the recipe it names, else :data:`CPU_S_PER_STEP`."""
     measured: dict[str, list[float]] = {}  # by label: variants of one algorithm differ
     for t in done:
         rec = read_json(t.record_path) or {}
@@ -660,7 +677,9 @@ def estimate_cpu_seconds(todo: list[Trial], done: list[Trial],
             rate = sum(measured[t.label]) / len(measured[t.label])
             sources.add("this sweep's finished trials (training time)")
         else:
-            rate = CPU_S_PER_STEP.get(t.algo, max(CPU_S_PER_STEP.values()))
+            rate = CPU_S_PER_STEP_BY_RECIPE.get(trial_recipe(t) or "") or CPU_S_PER_STEP.get(
+                t.algo, max(CPU_S_PER_STEP.values())
+            )
             sources.add("measured on the 2-core development machine")
         total += rate * max(0, t.total_steps - steps_done(t, states[t.name]))
     return total, " and ".join(sorted(sources)) or "-"
@@ -781,6 +800,7 @@ def _print_summary(console: Any, results: dict[str, Any], files: list[Path]) -> 
 
 __all__ = [
     "CPU_S_PER_STEP",
+    "CPU_S_PER_STEP_BY_RECIPE",
     "DEFAULT_TOTAL_STEPS",
     "PAPER_ALGOS",
     "PAPER_SEEDS",
@@ -802,5 +822,6 @@ __all__ = [
     "resolve_total_steps",
     "run_sweep",
     "run_trial",
+    "trial_recipe",
     "trial_state",
 ]
