@@ -153,3 +153,4 @@ def test_a_sweep_stopped_by_sigterm_stops_its_trainers(tmp_path, fake_python):  
     finally:
         if driver.poll() is None:
             os.killpg(driver.pid, signal.SIGKILL)
+        log.close()
