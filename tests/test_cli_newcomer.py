@@ -152,6 +152,22 @@ def test_sim_vehicle_port_in_use_and_fly_port_out_of_range(capsys):
         assert code == 2 and "70000" in one_error(err) and "65535" in err
 
 
+def test_a_fly_process_ends_without_teardown_and_keeps_its_status_and_output():
+    """``safenav fly`` as its own process leaves through ``exit_now`` (no interpreter teardown,
+    which took ~1 s with torch loaded): its error line and exit status still arrive."""
+    import subprocess
+    import sys
+
+    from safenav.cli import exit_status
+
+    assert [exit_status(c) for c in (None, 0, 3, 143)] == [0, 0, 3, 143]
+    cmd = [sys.executable, "-c", "from safenav.cli import main; main()", "fly", "--rate", "5",
+           "--policy", "p.onnx", "--goal", "1", "2", "1.5"]  # fmt: skip
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.count("safenav: error:") == 1 and "--rate" in done.stderr
+
+
 def test_train_device_and_out_of_memory_refused_with_the_figure(capsys, tmp_path):
     run_dir = tmp_path / "run"
     code, _, err = run(capsys, ["train", "--device", "tpu", "--run-dir", str(run_dir)])
