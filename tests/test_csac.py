@@ -16,7 +16,7 @@ from safenav.algos.config import CSACConfig
 from safenav.algos.csac import CSAC
 from safenav.algos.losses import reward_target
 from safenav.common.buffer import ReplayBuffer
-from safenav.envs.vector import TorchVecEnv, make_vec_env
+from safenav.envs.vector import TorchVecEnv, make_vec_env, obs_layout
 from safenav.nn.config import NetConfig
 
 NAV = {"state": (8,), "lidar": (4, 36), "dynamic": (5, 10)}
@@ -55,6 +55,58 @@ def test_next_step_autoreset_marks_the_reset_step_invalid():
     assert steps[3].valid.tolist() == [False, False]  # the interleaved reset step: no transition
     assert steps[4].valid.tolist() == [True, True]
     assert steps[4].real_next_obs["obs"].flatten().tolist() == [1.0, 1.0]
+
+
+def _vector(kind: str) -> SyncVectorEnv:
+    if kind == "pendulum":  # random rewards, truncation at 200, normalised below
+        return make_vec_env("Pendulum-v1", 3)
+    cls = DictCounterEnv if kind == "dict" else CounterEnv
+    mode = AutoresetMode.NEXT_STEP if kind == "next_step" else AutoresetMode.SAME_STEP
+    return SyncVectorEnv([lambda: cls(True), lambda: cls(False)], autoreset_mode=mode)
+
+
+@pytest.mark.parametrize("kind", ["same_step", "next_step", "dict", "pendulum"])
+def test_numpy_step_is_the_torch_step_bit_for_bit(kind):
+    """TorchVecEnv steps a NumPy vector env through NumPy (``numpy_step``): every field of every
+    step, episodes included, equals the torch path's, with observation and reward normalisation
+    (whose statistics must end equal too)."""
+    from safenav.common.normalize import make_normalization
+
+    def build(numpy_step: bool) -> TorchVecEnv:
+        envs = _vector(kind)
+        norm = make_normalization(obs_layout(envs.single_observation_space), envs.num_envs, 0.99,
+                                  True, True)  # fmt: skip
+        env = TorchVecEnv(envs, "cpu", norm)
+        assert env.numpy_step
+        env.numpy_step = numpy_step
+        return env
+
+    fast, slow = build(True), build(False)
+    fast.reset(seed=3), slow.reset(seed=3)
+    rng = np.random.default_rng(0)
+    ended = 0
+    for _ in range(450 if kind == "pendulum" else 12):
+        action = torch.as_tensor(
+            rng.uniform(-1.2, 1.2, (fast.num_envs, fast.action_dim)), dtype=torch.float32
+        )
+        a, b = fast.step(action), slow.step(action)
+        for field in ("reward", "cost", "terminated", "truncated", "valid"):
+            x, y = getattr(a, field), getattr(b, field)
+            assert x.dtype == y.dtype and torch.equal(x, y), field
+        for field in ("next_obs", "real_next_obs"):
+            x, y = getattr(a, field), getattr(b, field)
+            assert x.keys() == y.keys() and all(x[k].dtype == y[k].dtype and torch.equal(x[k], y[k])
+                                                for k in x), field  # fmt: skip
+        assert (a.episodes is None) == (b.episodes is None)
+        if a.episodes is not None:
+            ended += 1
+            for k, x in a.episodes.items():
+                assert x.dtype == b.episodes[k].dtype and torch.equal(x.nan_to_num(-7.0),
+                                                                      b.episodes[k].nan_to_num(-7.0)), k  # fmt: skip
+    assert ended >= 2
+    for (k, x), y in zip(fast.normalization.state_dict().items(),
+                         slow.normalization.state_dict().values(), strict=True):  # fmt: skip
+        assert torch.equal(x, y), k
 
 
 def test_actions_are_mapped_onto_the_env_box():

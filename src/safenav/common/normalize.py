@@ -230,10 +230,13 @@ class EnvNormalization(nn.Module):
 
     def step(self, next_obs: dict[str, torch.Tensor], real_next_obs: dict[str, torch.Tensor],
              reward: torch.Tensor, done: torch.Tensor):  # fmt: skip
-        """``(next_obs, real_next_obs, reward)`` of one vector step, normalised."""
+        """``(next_obs, real_next_obs, reward)`` of one vector step, normalised (``real_next_obs``
+        may be ``next_obs`` itself, when no episode ended: then so is the result's)."""
         if self.obs is not None:
             self.obs.update(next_obs)
-            next_obs, real_next_obs = self.obs.env_side(next_obs), self.obs.env_side(real_next_obs)
+            same = real_next_obs is next_obs  # no episode ended: normalised once, the same values
+            next_obs = self.obs.env_side(next_obs)
+            real_next_obs = next_obs if same else self.obs.env_side(real_next_obs)
         if self.reward is not None:
             reward = self.reward(reward, done)
         return next_obs, real_next_obs, reward

@@ -216,6 +216,30 @@ def _pick(info: dict, key: str, i: int):
     return info[key][i]
 
 
+def _info_costs(info: dict, done, same_step: bool, n: int) -> np.ndarray:
+    """``info["cost"]`` of each env as float32, 0 where none; a ``SyncVectorEnv`` keeps a
+    finished env's step info in ``final_info`` (SAME_STEP)."""
+    cost = np.zeros(n, dtype=np.float32)
+    final_info = info.get("final_info", {})
+    for i in range(n):
+        c = _pick(final_info, "cost", i) if bool(done[i]) and same_step else None
+        c = _pick(info, "cost", i) if c is None else c
+        if c is not None:
+            cost[i] = float(c)
+    return cost
+
+
+def _info_success(info: dict, ids: list[int]) -> np.ndarray:
+    """``success`` (or ``is_success``) of the envs ``ids`` as float32, NaN where none."""
+    success = np.full(len(ids), np.nan, dtype=np.float32)
+    for j, i in enumerate(ids):
+        s = _pick(info, "success", i)
+        s = _pick(info, "is_success", i) if s is None else s
+        if s is not None:
+            success[j] = float(s)
+    return success
+
+
 class TorchVecEnv:
     """The tensor view of a vector env described in the module docstring."""
 
@@ -234,6 +258,8 @@ class TorchVecEnv:
         self._high = torch.as_tensor(act.high, dtype=torch.float32, device=self.device)
         self._torch_actions = is_safenav_vector(envs)
         self._unit = bool(torch.all(self._low == -1) and torch.all(self._high == 1))
+        self.numpy_step = self.device.type == "cpu" and not self._torch_actions
+        """Step through :meth:`_step_numpy` (a NumPy vector env on the CPU); same results."""
         self.autoreset_mode = AutoresetMode(
             envs.metadata.get("autoreset_mode", AutoresetMode.NEXT_STEP)
         )
@@ -283,6 +309,8 @@ class TorchVecEnv:
         return True
 
     def step(self, action: torch.Tensor) -> Step:
+        if self.numpy_step:
+            return self._step_numpy(action)
         obs, reward, terminated, truncated, info = self.envs.step(self._to_env(action))
         n, dev = self.num_envs, self.device
         next_obs = self._obs(obs)
@@ -300,12 +328,7 @@ class TorchVecEnv:
         if isinstance(info.get("cost"), torch.Tensor):  # native torch vector env (SafeNav)
             cost = info["cost"].to(dev, torch.float32)
         elif "cost" in info or "final_info" in info:
-            final_info = info.get("final_info", {})
-            for i in range(n):
-                c = _pick(final_info, "cost", i) if bool(done[i]) and same_step else None
-                c = _pick(info, "cost", i) if c is None else c
-                if c is not None:
-                    cost[i] = float(c)
+            cost = torch.from_numpy(_info_costs(info, done, same_step, n)).to(dev)
 
         # the true s' of every transition
         real_next = {k: v.clone() for k, v in next_obs.items()}
@@ -331,18 +354,13 @@ class TorchVecEnv:
         if bool(ended.any()):
             ids = ended.nonzero().squeeze(-1)
             ep = info.get("episode") if isinstance(info.get("episode"), dict) else None
-            success = torch.full((len(ids),), float("nan"), device=dev)
             collision = (self._cost[ids] > 0).float()
             if ep is not None and "success" in ep:  # SafeNav reports its own episode statistics
                 success = self._t(ep["success"])[ids].float()
                 collision = self._t(ep["collision"])[ids].float()
             else:
                 final_info = info.get("final_info", {}) if same_step else info
-                for j, i in enumerate(ids.tolist()):
-                    s = _pick(final_info, "success", i)
-                    s = _pick(final_info, "is_success", i) if s is None else s
-                    if s is not None:
-                        success[j] = float(s)
+                success = torch.from_numpy(_info_success(final_info, ids.tolist())).to(dev)
             episodes = {"return": self._ret[ids].clone(), "cost": self._cost[ids].clone(),
                         "length": self._len[ids].clone(), "success": success, "collision": collision,
                         "timeout": (truncated[ids] & ~terminated[ids]).float()}  # fmt: skip
@@ -360,6 +378,78 @@ class TorchVecEnv:
             valid,
             episodes,
         )
+
+    def _step_numpy(self, action: torch.Tensor) -> Step:
+        """:meth:`step` for a NumPy vector env on the CPU, operation for operation in NumPy on
+        views of the same float32 / bool buffers (bit for bit the torch path's result, tested):
+        one MuJoCo step costs ~0.4 ms, and the torch path's ~40 operations on tensors of one
+        env, ~10 us of dispatch each, cost about as much again."""
+        obs, reward, terminated, truncated, info = self.envs.step(self._to_env(action))
+        n = self.num_envs
+        f32 = np.float32
+        if self._box_obs:
+            next_obs = {"obs": np.asarray(obs, dtype=f32)}
+        else:
+            next_obs = {k: np.asarray(obs[k], dtype=f32) for k in self.obs_shapes}
+        reward = np.asarray(reward, dtype=f32)
+        terminated, truncated = (
+            np.asarray(terminated, dtype=bool),
+            np.asarray(truncated, dtype=bool),
+        )
+        done = terminated | truncated
+        same_step = self.autoreset_mode == AutoresetMode.SAME_STEP
+        prev_done = self._prev_done.numpy()
+        valid = np.ones(n, dtype=bool) if same_step else ~prev_done
+
+        cost = _info_costs(info, done, same_step, n)
+
+        real_next = next_obs  # the same object until a final observation differs
+        if same_step and bool(done.any()) and info.get("final_obs") is not None:
+            real_next = {k: v.copy() for k, v in next_obs.items()}
+            final, mask = info["final_obs"], info.get("_final_obs", done)
+            for i in np.nonzero(np.asarray(mask))[0].tolist():
+                one = {k: final[k][i] for k in final} if isinstance(final, dict) else final[i]
+                for k in real_next:
+                    real_next[k][i] = np.asarray(
+                        one[k] if isinstance(one, dict) else one, dtype=f32
+                    )
+
+        v = valid.astype(f32)
+        ret, ep_cost, length = self._ret.numpy(), self._cost.numpy(), self._len.numpy()
+        ret += reward * v
+        ep_cost += cost * v
+        length += v
+        ended = done & valid
+        episodes = None
+        if bool(ended.any()):
+            ids = np.nonzero(ended)[0]
+            ep = info.get("episode") if isinstance(info.get("episode"), dict) else None
+            collision = (ep_cost[ids] > 0).astype(f32)
+            if ep is not None and "success" in ep:
+                success = np.asarray(ep["success"], dtype=f32)[ids]
+                collision = np.asarray(ep["collision"], dtype=f32)[ids]
+            else:
+                success = _info_success(
+                    info.get("final_info", {}) if same_step else info, ids.tolist()
+                )
+            episodes = {name: torch.from_numpy(x) for name, x in (
+                ("return", ret[ids]), ("cost", ep_cost[ids]), ("length", length[ids]),
+                ("success", success), ("collision", collision),
+                ("timeout", (truncated[ids] & ~terminated[ids]).astype(f32)))}  # fmt: skip
+            ret[ids], ep_cost[ids], length[ids] = 0.0, 0.0, 0.0
+        prev_done[:] = done
+        to_torch = torch.from_numpy
+        next_t = {k: to_torch(x) for k, x in next_obs.items()}
+        real_t = next_t if real_next is next_obs else {k: to_torch(x) for k, x in real_next.items()}
+        reward_t = to_torch(reward)
+        if self.normalization is not None:  # after the episode statistics: those stay raw
+            next_t, real_t, reward_t = self.normalization.step(
+                next_t, real_t, reward_t, to_torch(done)
+            )
+        if real_t is next_t:  # two tensors, as the torch path gives
+            real_t = {k: x.clone() for k, x in next_t.items()}
+        return Step(next_t, reward_t * to_torch(v), to_torch(cost * v), to_torch(terminated & valid),
+                    to_torch(truncated & valid), real_t, to_torch(valid), episodes)  # fmt: skip
 
     def close(self) -> None:
         self.envs.close()
