@@ -1,6 +1,7 @@
 """The diagnostic scripts of ``experiments/`` that docs/csac.md and docs/csac-v1.md quote run on a
 tiny CSAC run: ``checkpoint_sweep.py`` (with ``--sampled``), ``cost_critic_bias.py``,
-``flight_grid.py``, ``speed_profile.py``, ``timeout_paths.py`` and ``altitude_profile.py``."""
+``flight_grid.py``, ``speed_profile.py``, ``timeout_paths.py`` and ``altitude_profile.py``; and
+``vecenv_overhead.py`` (docs/gymnasium.md) on Pendulum-v1."""
 
 from __future__ import annotations
 
@@ -186,3 +187,16 @@ def test_altitude_profile_counts_only_the_steps_flown_far_from_the_goal(tiny_run
     assert 0.0 <= near["far_below_1m"] <= 1.0
     with pytest.raises(SystemExit):
         alt.main([str(tiny_run / "best.pt"), "--env-seed", "1"])
+
+
+def test_vecenv_overhead_times_the_three_ways(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "overhead.json"
+    monkeypatch.setattr(sys, "argv", ["vecenv_overhead.py", "--env", "Pendulum-v1", "--steps", "20",
+                                      "--repeats", "2", "--json", str(out)])  # fmt: skip
+    script("vecenv_overhead").main()
+    figures = json.loads(out.read_text())
+    assert figures["env"] == "Pendulum-v1" and figures["normalize"] is True
+    printed = capsys.readouterr().out
+    for way in ("raw", "numpy", "torch"):
+        assert len(figures[way]["repeats_ms"]) == 2 and figures[way]["median_ms"] > 0
+        assert f"{way}: " in printed
