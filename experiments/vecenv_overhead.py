@@ -24,11 +24,11 @@ from safenav.common.normalize import make_normalization
 from safenav.envs.vector import TorchVecEnv, make_vec_env, obs_layout
 
 
-def time_steps(step, steps: int) -> float:
-    """Milliseconds per call of ``step()``."""
+def time_steps(step, action, steps: int) -> float:
+    """Milliseconds per call of ``step(action)``."""
     start = time.perf_counter()
     for _ in range(steps):
-        step()
+        step(action)
     return (time.perf_counter() - start) / steps * 1e3
 
 
@@ -56,11 +56,11 @@ def main() -> None:
         envs = make_vec_env(args.env, 1)
         envs.reset(seed=0)
         zeros = np.zeros((1, *envs.single_action_space.shape), np.float32)
-        times["raw"].append(time_steps(lambda: envs.step(zeros), args.steps))
+        times["raw"].append(time_steps(envs.step, zeros, args.steps))
         for mode in ("numpy", "torch"):
             env = wrapper(args.env, mode == "numpy", not args.no_normalize)
             action = torch.zeros(1, env.action_dim)
-            times[mode].append(time_steps(lambda: env.step(action), args.steps))
+            times[mode].append(time_steps(env.step, action, args.steps))
     summary = {k: {"median_ms": float(np.median(v)), "repeats_ms": v} for k, v in times.items()}
     for k, v in summary.items():
         print(f"{k:>6}: {v['median_ms']:.3f} ms per env step  ({', '.join(f'{x:.2f}' for x in v['repeats_ms'])})")
