@@ -63,7 +63,9 @@ def main() -> None:
             times[mode].append(time_steps(env.step, action, args.steps))
     summary = {k: {"median_ms": float(np.median(v)), "repeats_ms": v} for k, v in times.items()}
     for k, v in summary.items():
-        print(f"{k:>6}: {v['median_ms']:.3f} ms per env step  ({', '.join(f'{x:.2f}' for x in v['repeats_ms'])})")
+        print(
+            f"{k:>6}: {v['median_ms']:.3f} ms per env step  ({', '.join(f'{x:.2f}' for x in v['repeats_ms'])})"
+        )
     if args.json:
         args.json.write_text(json.dumps({"env": args.env, "steps": args.steps,
                                          "normalize": not args.no_normalize, **summary}, indent=1))  # fmt: skip
