@@ -115,7 +115,8 @@ def fly(
         so_far = (f" ({known['collisions']} collision{'s' if known['collisions'] != 1 else ''}, "
                   f"min clearance {known.get('min_clearance_m')} m)"
                   if known.get("collisions") is not None else "")  # fmt: skip
-        print(f"safenav fly: aborted: {err}{so_far}", file=sys.stderr, flush=True)
+        gif_note = f"; flight GIF {known['gif']}" if known.get("gif") else ""
+        print(f"safenav fly: aborted: {err}{so_far}{gif_note}", file=sys.stderr, flush=True)
         raise SystemExit(EXIT_ABORTED) from None
     from safenav.common.jsonout import dumps, write_json
 

@@ -144,6 +144,12 @@ def run_demo(
                 flight = ctl.fly()
             except FlightAborted as err:
                 err.summary = {**ctl.log.summary(), "collisions": ctl.log.truth.get("collisions")}
+                if gif is not None and ctl.snapshots:  # an aborted flight is one to watch too
+                    try:
+                        render_flight_gif(gif, cfg, world_seed, ctl.snapshots, start, goal)
+                        err.summary["gif"] = str(gif)
+                    except Exception as gif_err:  # noqa: BLE001 -- the abort is what to report
+                        log.warning("no flight GIF: %s", gif_err)
                 raise
             finally:
                 link.close()
