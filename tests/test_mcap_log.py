@@ -336,6 +336,8 @@ def test_fly_demo_record(tmp_path):
     summary = json.loads(js.read_text())
     assert summary["outcome"] in ("aborted", "reached_goal", "collided", "not_reached")
     # the flight's GIF is written whatever the outcome (an aborted one is one to watch too)
-    assert (tmp_path / "f.gif").stat().st_size > 10_000 and summary["gif"] == str(tmp_path / "f.gif")
+    assert (tmp_path / "f.gif").stat().st_size > 10_000 and summary["gif"] == str(
+        tmp_path / "f.gif"
+    )
     if summary["outcome"] == "aborted":
         assert f"flight GIF {tmp_path / 'f.gif'}" in proc.stderr.strip().splitlines()[-1]
