@@ -140,22 +140,25 @@ def run_demo(
                 goal_tolerance=cfg.goal_tolerance, max_flight_s=max_flight_time,
             ), perception=("127.0.0.1", pport), recorder=recorder)  # fmt: skip
             t0 = time.monotonic()
+            aborted = None
             try:
                 flight = ctl.fly()
             except FlightAborted as err:
                 err.summary = {**ctl.log.summary(), "collisions": ctl.log.truth.get("collisions")}
-                if gif is not None and ctl.snapshots:  # an aborted flight is one to watch too
-                    try:
-                        render_flight_gif(gif, cfg, world_seed, ctl.snapshots, start, goal)
-                        err.summary["gif"] = str(gif)
-                    except Exception as gif_err:  # noqa: BLE001 -- the abort is what to report
-                        log.warning("no flight GIF: %s", gif_err)
-                raise
+                aborted = err
             finally:
                 link.close()
                 if recorder is not None:
                     recorder.close()  # never raises: a failure is in recorder.error
             wall = time.monotonic() - t0
+    if aborted is not None:  # an aborted flight is one to watch too; the link is closed first
+        if gif is not None and ctl.snapshots:
+            try:
+                render_flight_gif(gif, cfg, world_seed, ctl.snapshots, start, goal)
+                aborted.summary["gif"] = str(gif)
+            except Exception as gif_err:  # noqa: BLE001 -- the abort is what to report
+                log.warning("no flight GIF: %s", gif_err)
+        raise aborted
     truth = flight.truth
     summary = {
         "reached_goal": flight.reached_goal,
