@@ -30,7 +30,8 @@ out=${1:?usage: gpu_regime.sh OUT_DIR [SEED] [DEADLINE_S] [RESUME_TO]}
 seed=${2:-2}
 deadline=${3:-470}
 resume_to=${4:-2.5M}
-run=/tmp/gpu-regime-s$seed
+# One run dir per OUT_DIR, so that two of these can share a GPU (each is launch-bound).
+run=/tmp/gpu-regime-$(basename "$out")-s$seed
 start=$(date +%s)
 mkdir -p "$out"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$out/gpu.txt"
