@@ -5,6 +5,9 @@ BIN    := $(VENV)/bin
 # The CPU build of torch; override elsewhere, e.g. `make test TORCH=torch` on a GPU machine.
 TORCH  ?= torch==2.13.0
 PYTEST_ARGS ?=
+# `make test` runs the suite on this many pytest-xdist workers (2: the development and CI machines
+# have 2 cores; more workers than cores slow the real-time flight tests). TEST_WORKERS=0: serial.
+TEST_WORKERS ?= 2
 
 .PHONY: setup demo test test-slow test-floors lint bench clean
 
@@ -21,7 +24,7 @@ demo: setup
 	$(BIN)/python -m safenav.demo
 
 test: setup
-	$(BIN)/python -m pytest -m "not slow" -q $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -m "not slow" -q -n $(TEST_WORKERS) $(PYTEST_ARGS)
 
 test-slow: setup
 	$(BIN)/python -m pytest -m slow -q $(PYTEST_ARGS)

@@ -1,11 +1,25 @@
-"""Shared test fixtures."""
+"""Shared test fixtures, and the order of the suite under pytest-xdist."""
 
 from __future__ import annotations
+
+import os
 
 import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # `make test` runs two workers on a 2-core machine: two torch thread pools of two threads each
+    # would oversubscribe it (see one_thread below).
+    torch.set_num_threads(1)
+
+
+def pytest_collection_modifyitems(config, items):
+    """The tests marked ``long`` (15 s or more each) first, so that under xdist the two workers
+    share them and finish together on the short ones, instead of one long test running alone at
+    the end."""
+    items.sort(key=lambda item: item.get_closest_marker("long") is None)  # stable sort
 
 
 @pytest.fixture

@@ -146,6 +146,7 @@ def test_training_resets_never_start_inside_a_moving_obstacle():
     assert float(gap.amin()) >= env.cfg.start_clearance - 1e-3
 
 
+@pytest.mark.long
 def test_the_border_follower_cannot_score_by_going_around():
     """The loophole probe succeeds in an empty arena (so it is a competent border follower) and
     fails in the cluttered one: no obstacle-free way round the field exists."""

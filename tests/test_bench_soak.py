@@ -22,6 +22,7 @@ def test_rss_sampler_sees_an_allocation() -> None:
     del block
 
 
+@pytest.mark.long
 def test_tiny_soak_writes_its_figures(tmp_path) -> None:
     out = bench_soak(tmp_path / "soak.json", env_steps=4096, updates=200, num_envs=64,
                      preset="easy", buffer_size=600)  # fmt: skip

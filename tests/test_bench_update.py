@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from safenav.bench.update import bench_update
 
 
+@pytest.mark.long
 def test_bench_update_smoke(tmp_path):
     out = tmp_path / "update.json"
     result = bench_update(out, repeats=1, updates=2, threads=1)

@@ -442,6 +442,7 @@ def test_base_command_line_is_accepted(verb, stubbed, capsys):
     assert code == ACCEPTED, err
 
 
+@pytest.mark.long
 @pytest.mark.parametrize("verb", list(VERBS))
 def test_fuzz_every_option(verb, stubbed, capsys, monkeypatch):
     ws = stubbed

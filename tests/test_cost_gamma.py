@@ -38,6 +38,7 @@ def fixed_point(cost_gamma: float | None) -> float:
         return float(agent.qc(x, buf.actions).mean())
 
 
+@pytest.mark.long
 def test_cost_critics_converge_under_their_own_discount():
     # 1 / (1 - 0.5) = 2; under the reward's 0.99 the same data would say 100
     assert fixed_point(0.5) == pytest.approx(2.0, abs=0.2)

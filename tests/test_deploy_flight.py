@@ -89,6 +89,7 @@ def fly_args(policy: Path, port: int, pport: int, *extra: str) -> list[str]:
             "--takeoff-altitude", "1.5", "--max-flight-time", "40", *extra]  # fmt: skip
 
 
+@pytest.mark.long
 @pytest.mark.timeout(120)
 def test_closed_loop_reaches_goal_and_lands(policy: Path, tmp_path: Path) -> None:
     port, pport = free_port(), free_port(socket_kind_tcp())

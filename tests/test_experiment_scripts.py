@@ -36,6 +36,7 @@ def tiny_run(tmp_path_factory) -> Path:
     return run_dir
 
 
+@pytest.mark.long
 def test_checkpoint_sweep_flies_every_policy_and_sampled_actions(tiny_run, tmp_path, monkeypatch):
     out = tmp_path / "sweep.json"
     monkeypatch.setattr(sys, "argv", ["checkpoint_sweep.py", str(tiny_run / "policies"),

@@ -313,6 +313,7 @@ def test_velocity_tasks_cost_is_their_velocity_over_the_threshold(task):
 # ------------------------------------------------------------------------------ the benchmark
 
 
+@pytest.mark.long
 def test_bench_gym_on_a_tiny_budget_writes_its_files_and_resumes(tmp_path, capsys):
     out = tmp_path / "gym"
     argv = ["bench", "gym", "--tasks", "Pendulum-v1", "--algos", "sac", "--seeds", "1", "--steps", "400",
@@ -399,6 +400,7 @@ def test_bench_stopped_by_a_signal_stops_its_trials_with_a_checkpoint(tmp_path, 
         fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
 
 
+@pytest.mark.long
 @MUJOCO
 def test_bench_safe_on_a_tiny_budget(tmp_path, capsys):
     out = tmp_path / "safe"

@@ -311,6 +311,7 @@ def test_render_record(tmp_path, capsys):
     assert len(movers) == 6 and {m.type for m in movers} <= {1, 3}  # easy: 6 moving obstacles
 
 
+@pytest.mark.long
 @pytest.mark.timeout(240)
 def test_fly_demo_record(tmp_path):
     """``safenav fly --demo --record F.mcap`` (scripted actor, easy world, a short flight: the

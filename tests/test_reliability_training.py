@@ -246,6 +246,7 @@ def check_completed(algo: str, run_dir: Path, reference_run: Path, resumed_from:
     assert load_policy(run_dir).meta["global_step"] == TOTAL
 
 
+@pytest.mark.long
 @pytest.mark.parametrize("algo", ["csac", "ppo"])
 def test_sigkilled_training_resumes_to_completion(reference, tmp_path, algo):
     run_dir = tmp_path / "killed"

@@ -2,8 +2,8 @@
 local Ray instance — 2 algorithms x 1 seed, 2000 env steps, easy preset, 1 CPU per trial —
 produces results.json, results.md and both of the paper's figures.
 
-Budget: about 90 s on the 2-core development machine (Ray start ~5 s, 2 trials at once, each
-trains ~15 s and flies its report and evaluation ~60 s). Several seeds: test_reproduce_ray.py.
+Budget: about 60 s on the 2-core development machine (Ray start ~10 s, 2 trials at once, each
+trains ~15 s and flies its report and evaluation ~20 s). Several seeds: test_reproduce_ray.py.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ pytestmark = pytest.mark.skipif(
 )
 
 
+@pytest.mark.long
 def test_tiny_reproduce_end_to_end(tmp_path):
     pytest.importorskip("ray")
     from safenav.cli import main
@@ -26,10 +27,13 @@ def test_tiny_reproduce_end_to_end(tmp_path):
     out = tmp_path / "repro"
     # 2000 steps (16 envs) logged every 250 give Fig. 3 a few points; a warm-up of 1000 steps
     # (a budget within the warm-up is refused) leaves a few gradient updates. The final report
-    # flies 5 episodes per scenario, not 200 (6 x 200 took 2.5 of the test's 3 minutes a trial).
+    # flies 5 episodes per scenario, not 200 (6 x 200 took 2.5 of the test's 3 minutes a trial),
+    # and episodes last 10 s, not the preset's 30 (an untrained policy times out: the report's 6
+    # scenarios took 60 of the test's 100 s).
     main(["reproduce", "--algos", "csac", "sac", "--seeds", "1", "--total-steps", "2000",
           "--preset", "easy", "--cpus-per-trial", "1", "--num-cpus", "2", "--eval-episodes",
-          "10", "--train-args=--log-every 250 --csac.learning-starts 1000 --report-episodes 5",
+          "10", "--train-args=--log-every 250 --csac.learning-starts 1000 --report-episodes 5 "
+          "--env-kwargs max_episode_seconds 10",
           "--out", str(out)])  # fmt: skip
     data = json.loads((out / "results.json").read_text())
     assert list(data["algos"]) == ["csac", "sac"]

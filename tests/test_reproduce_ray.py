@@ -30,6 +30,7 @@ def sweep(tmp_path, python, **kw) -> rep.SweepConfig:
                            command="safenav reproduce (test)", **kw)  # fmt: skip
 
 
+@pytest.mark.long
 def test_sweep_on_local_ray_then_rerun_skips(tmp_path, fake_python, monkeypatch):  # noqa: F811
     cfg = sweep(tmp_path, fake_python)
     results = rep.run_sweep(cfg)

@@ -50,6 +50,7 @@ FAST = ["--num-envs", "4", "--log-every", "100", "--eval-every", "200", "--eval-
         "--csac.updates-per-step", "0.25", "--csac.net.hidden", "32", "32"]  # fmt: skip
 
 
+@pytest.mark.long
 def test_training_and_selection_never_fly_the_test_or_heldout_maps(tmp_path, world_seeds):
     run_dir = tmp_path / "run"
     main(["train", "--algo", "csac", "--preset", "easy", "--seed", "2", "--total-steps", "600",
@@ -119,6 +120,7 @@ def test_report_needs_a_safenav_policy(tmp_path):
     assert selection.TEST_SEED == 1
 
 
+@pytest.mark.long
 def test_train_select_ends_with_a_validation_choice_and_its_report(tmp_path, monkeypatch, capsys):
     """``safenav train --select``: policy.pt chosen on validation, final.json with the test and
     held-out report (fewer episodes here to stay fast)."""

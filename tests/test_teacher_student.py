@@ -8,6 +8,7 @@ import json
 import sys
 from pathlib import Path
 
+import pytest
 import torch
 
 from safenav.algos.policy import load_policy
@@ -52,6 +53,7 @@ def test_teacher_restarts_only_the_envs_whose_episode_changed(monkeypatch) -> No
     assert torch.equal(teacher._goals, env.goal)
 
 
+@pytest.mark.long
 def test_tiny_dagger_run_writes_readable_students(tmp_path: Path) -> None:
     log = ts.main(["--out", str(tmp_path), "--iterations", "2", "--envs", "4", "--steps", "6",
                    "--updates", "3", "--val-episodes", "4", "--threads", "1",

@@ -186,6 +186,7 @@ def test_csac_ablation_switches_reach_the_run(tmp_path):
     assert any(k.startswith("qc.extractor.") for k in state)  # the cost critics own one
 
 
+@pytest.mark.long
 def test_csac_measured_cost_scale_logs_its_threshold_and_resumes(tmp_path, monkeypatch):
     """``--csac.cost-scale measured``: d_Q = d * E[Q_C] / episode cost from the run's own data,
     logged, carried in the checkpoint, restored by --resume."""
