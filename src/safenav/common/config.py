@@ -69,6 +69,10 @@ class RunConfig:
     """SafeNav-v1: env steps (all envs together) between redraws of the training maps (new
     seeds); 0 = keep them. Raised to num_envs x the episode's time limit where it is shorter, so
     each env can finish an episode per map set (the run says so)."""
+    map_refresh_mode: Literal["all", "per-env"] = "all"
+    """SafeNav-v1, how the training maps are redrawn: all = every env starts an episode in the new
+    maps at once (the episodes in flight are cut); per-env = each env ends its episode in the old
+    map and starts the next in the new one (none cut; the env then holds two map sets)."""
     keep_policies: bool = False
     """Also keep the policy of every periodic evaluation as ``policies/step_<N>.pt`` (policy-only,
     ~0.6 MB each), to compare a run's policies afterwards (experiments/checkpoint_sweep.py)."""
@@ -108,6 +112,8 @@ class RunConfig:
             raise ValueError("report-episodes sets --select's final report; add --select")
         if self.eval_every < 0 or self.torch_threads < 0 or self.map_refresh_every < 0:
             raise ValueError("eval-every, torch-threads and map-refresh-every must be >= 0")
+        if self.map_refresh_mode not in ("all", "per-env"):
+            raise ValueError(f"map-refresh-mode={self.map_refresh_mode!r} must be all or per-env")
         if not 0 <= self.seed <= MAX_SEED:
             raise ValueError(f"seed={self.seed} must lie in [0, {MAX_SEED}]")
         if "density" in self.env_kwargs:

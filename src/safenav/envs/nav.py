@@ -332,6 +332,10 @@ class SafeNavVectorEnv(VectorEnv):
         self.episode_counter = torch.zeros(n, dtype=torch.int64, device=dev)
         self.env_seed = torch.zeros(n, dtype=torch.int64, device=dev)
         self.world_idx = torch.arange(n, device=dev) % self.num_worlds
+        # redraw_maps: envs that move to the newest map set when their next episode starts, that
+        # set (0 or 1: world slots [set * W, set * W + W)), its seed; _mixed while envs fly in both.
+        self._pending = torch.zeros(n, dtype=torch.bool, device=dev)
+        self._map_set, self._map_set_seed, self._mixed = 0, 0, False
         self.straight = torch.zeros(n, device=dev)  # start-goal distance of the episode
         self._stats = {k: torch.zeros(n, device=dev) for k in
                        ("return", "cost", "path_length", "speed_sum", "border_steps",
@@ -364,6 +368,9 @@ class SafeNavVectorEnv(VectorEnv):
             raise ValueError(f"set_worlds needs {w} worlds (num_worlds), got {len(worlds)}")
         self.worlds = list(worlds)
         self._fresh_worlds = True
+        self.world_idx = torch.arange(self.num_envs, device=dev) % w  # one map set again
+        self._pending.zero_()
+        self._map_set, self._map_set_seed, self._mixed = 0, int(worlds[0].seed), False
         self.env_seed = torch.arange(self.num_envs, dtype=torch.int64, device=dev) + worlds[0].seed
         as_t = lambda f, dtype=torch.float32: torch.as_tensor(  # noqa: E731
             np.stack([f(wd) for wd in self.worlds]), dtype=dtype, device=dev
@@ -394,6 +401,80 @@ class SafeNavVectorEnv(VectorEnv):
     @property
     def density(self) -> float:
         return self.cfg.density
+
+    def redraw_maps(self, seed: int) -> None:
+        """Draw a new map set (map ``w`` from ``seed + w``, as ``reset(seed=seed)``) without
+        cutting any episode: each env flies its current episode to its end in its old map and
+        starts the next one in the new map of its slot (its episodes then drawn from ``seed + i``,
+        counted from 0, as after a reset). The env holds two map sets at a time (2 x the maps'
+        memory from the first call on); a second redraw before every env has moved to the
+        previous one is refused (:meth:`can_redraw_maps`; at most the time limit,
+        ``max_episode_steps`` steps, after a redraw). ``reset(seed=...)`` and :meth:`set_worlds` return to one map set."""
+        if not self.worlds:
+            raise RuntimeError("call reset() before redraw_maps()")
+        w = self.num_worlds
+        new = 1 - self._map_set
+        if not self.can_redraw_maps():
+            raise RuntimeError(
+                "redraw_maps: some envs still fly maps from two redraws ago; wait until "
+                "can_redraw_maps() (each env has ended the episode it flew at the last redraw)"
+            )
+        fresh = [generate_world(self.cfg, int(seed) + i) for i in range(w)]
+        if len(self.worlds) == w:  # the first redraw: make room for a second map set
+            self.worlds = self.worlds + fresh
+            grow = lambda t: torch.cat([t, t.clone()])  # noqa: E731  (slots W..2W overwritten below)
+            for name in ("pillar_xy", "pillar_half", "pillar_height", "dyn_origin", "dyn_width",
+                         "dyn_is_cuboid", "world_seed", "site_along", "dyn_pos", "dyn_goal",
+                         "dyn_vel", "dyn_speed", "dyn_goal_counter"):  # fmt: skip
+                setattr(self, name, grow(getattr(self, name)))
+        else:
+            self.worlds[new * w : new * w + w] = fresh
+        slots = slice(new * w, new * w + w)
+        dev = self.device
+        as_t = lambda f, dtype=torch.float32: torch.as_tensor(  # noqa: E731
+            np.stack([f(wd) for wd in fresh]), dtype=dtype, device=dev
+        )
+        self.pillar_xy[slots] = as_t(lambda wd: wd.pillar_xy)
+        self.pillar_half[slots] = as_t(lambda wd: wd.pillar_half)
+        self.pillar_height[slots] = as_t(lambda wd: wd.pillar_height)
+        self.dyn_origin[slots] = as_t(lambda wd: wd.dyn_origin)
+        self.dyn_width[slots] = as_t(lambda wd: wd.dyn_width)
+        self.dyn_is_cuboid[slots] = as_t(lambda wd: wd.dyn_is_cuboid, torch.bool)
+        self.world_seed[slots] = torch.tensor(
+            [wd.seed for wd in fresh], dtype=torch.int64, device=dev
+        )
+        self.site_along[slots] = as_t(lambda wd: wd.site_along)
+        self._apply_density()
+        # The new maps' moving obstacles start at their origins (as after set_worlds), on the
+        # shared clock of speed epochs.
+        self.dyn_goal_counter[slots] = 0
+        self.dyn_pos[slots] = self.dyn_origin[slots]
+        self.dyn_goal[slots] = self._obstacle_goal(self.dyn_goal_counter)[slots]
+        self.dyn_vel[slots] = 0.0
+        period = max(1, int(round(self.cfg.dyn_speed_period * self.cfg.control_hz)))
+        self.dyn_speed[slots] = sample_obstacle_speeds(
+            self.world_seed[slots, None], self._obstacle_id[None, :],
+            torch.tensor(self.world_step // period), *self.cfg.dyn_speed_range,
+        )  # fmt: skip
+        self._map_set, self._map_set_seed, self._mixed = new, int(seed), True
+        self._pending.fill_(True)
+
+    def can_redraw_maps(self) -> bool:
+        """Whether :meth:`redraw_maps` may run: every env has moved to the last map set drawn."""
+        return not self._mixed
+
+    def _move_to_new_maps(self, ids: torch.Tensor) -> None:
+        """Envs ``ids``, about to start an episode: those a redraw left pending fly the new map
+        of their slot from now on, their episodes counted from 0 with seed ``seed + i``."""
+        if not self._mixed:
+            return
+        move = ids[self._pending[ids]]
+        if move.numel():
+            self.world_idx[move] = self._map_set * self.num_worlds + move % self.num_worlds
+            self.env_seed[move] = self._map_set_seed + move
+            self.episode_counter[move] = 0
+            self._pending[move] = False
+        self._mixed = bool(self._pending.any())
 
     def _obstacle_goal(self, counter: torch.Tensor) -> torch.Tensor:
         cfg = self.cfg
@@ -510,6 +591,7 @@ class SafeNavVectorEnv(VectorEnv):
             if mask is not None:
                 starts, goals = starts[ids.cpu()], goals[ids.cpu()]
         self._fresh_worlds = False
+        self._move_to_new_maps(ids)
         self._start_episodes(ids, starts, goals)
         # All envs: an env outside the mask gets the observation of its unchanged state again.
         obs, aux = self._sense()
@@ -609,10 +691,13 @@ class SafeNavVectorEnv(VectorEnv):
         lets obstacle tensors ``(W, P)`` broadcast without gathering a copy per env.
         """
         cfg = self.cfg
+        if ids is None and self._mixed:  # envs in two map sets (redraw_maps): gather per env
+            ids = torch.arange(self.num_envs, device=self.device)
         if ids is None:
             r, w = self.num_envs // self.num_worlds, self.num_worlds
+            first = self._map_set * w if len(self.worlds) > w else 0  # every env in one map set
             sel = lambda t: t.view(r, w, *t.shape[1:])  # noqa: E731
-            per_map = lambda t, n: t[:, :n].unsqueeze(0)  # noqa: E731
+            per_map = lambda t, n: t[first : first + w, :n].unsqueeze(0)  # noqa: E731
         else:
             sel = lambda t: t[ids]  # noqa: E731
             world_ids = self.world_idx[ids]
@@ -802,6 +887,7 @@ class SafeNavVectorEnv(VectorEnv):
                 info["_final_obs"] = done.clone()
                 ids = done.nonzero().squeeze(-1)
                 self.episode_counter[ids] += 1
+                self._move_to_new_maps(ids)
                 self._start_episodes(ids)
                 new_obs, new_aux = self._sense(ids)
                 if cfg.lidar_history > 1:

@@ -308,6 +308,13 @@ class TorchVecEnv:
         fn(density)
         return True
 
+    def redraw_maps(self, seed: int) -> None:
+        """Forward to SafeNav's ``redraw_maps`` (new maps, each env moving at its next episode)."""
+        self.envs.unwrapped.redraw_maps(seed)
+
+    def can_redraw_maps(self) -> bool:
+        return self.envs.unwrapped.can_redraw_maps()
+
     def step(self, action: torch.Tensor) -> Step:
         if self.numpy_step:
             return self._step_numpy(action)

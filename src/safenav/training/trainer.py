@@ -298,10 +298,19 @@ class Trainer:
             self.display.note(
                 f"step {step}: d {change['d_old']:.3g} -> {change['d']:.3g} ({change['stage']})"
             )
-        if self.refresh_every and step // self.refresh_every > self.refresh:  # new maps, episodes
+        mode = self.run_cfg.map_refresh_mode
+        due = self.refresh_every and step // self.refresh_every > self.refresh
+        # per-env: a redraw waits until every env has left the maps of two redraws ago (at most
+        # one time limit after the last; the interval is at least that many steps per env).
+        if due and (mode == "all" or self.env.can_redraw_maps()):  # new maps
             self.refresh = step // self.refresh_every
-            self.obs = self.env.reset(seed=self.run_cfg.train_env_seed(self.refresh))
-            self.learner.maps_changed()
+            seed = self.run_cfg.train_env_seed(self.refresh)
+            if mode == "per-env":  # each env at its next episode
+                self.env.redraw_maps(seed)
+            else:  # every env now: the episodes in flight end here
+                self.obs = self.env.reset(seed=seed)
+                self.learner.maps_changed()
+            self.logger.event(step, "maps", seed=seed, mode=mode)
         new_density = self.density.step(step)
         if new_density is not None and self.env.set_density(new_density):
             self.logger.event(step, "density", density=new_density)
