@@ -93,6 +93,7 @@ def test_a_second_redraw_waits_for_every_env_and_reset_returns_to_one_map_set():
         assert torch.equal(o1[k], o2[k]), k
 
 
+@pytest.mark.long
 def test_train_with_per_env_map_refresh(tmp_path):
     from safenav.cli import main
 
