@@ -409,7 +409,8 @@ class SafeNavVectorEnv(VectorEnv):
         counted from 0, as after a reset). The env holds two map sets at a time (2 x the maps'
         memory from the first call on); a second redraw before every env has moved to the
         previous one is refused (:meth:`can_redraw_maps`; at most the time limit,
-        ``max_episode_steps`` steps, after a redraw). ``reset(seed=...)`` and :meth:`set_worlds` return to one map set."""
+        ``max_episode_steps`` steps, after a redraw). ``reset(seed=...)`` and :meth:`set_worlds`
+        return to one map set."""
         if not self.worlds:
             raise RuntimeError("call reset() before redraw_maps()")
         w = self.num_worlds
