@@ -59,7 +59,7 @@ def test_redraw_cuts_no_episode_and_moves_each_env_at_its_next_episode():
         if bool(moved.all()):
             break
     assert bool(moved.all()), "every env should end an 80-step episode within 200 steps"
-    assert not env._mixed
+    assert env.can_redraw_maps()
     # one map set again: the broadcast observation equals the per-env one
     fast, _ = env._sense()
     each, _ = env._sense(torch.arange(N))
@@ -75,7 +75,7 @@ def test_a_second_redraw_waits_for_every_env_and_reset_returns_to_one_map_set():
         env.redraw_maps(60)  # no env has moved yet
     for _ in range(200):
         env.step(torch.zeros(N, 3))
-        if not env._mixed:
+        if env.can_redraw_maps():
             break
     assert env.can_redraw_maps()
     env.redraw_maps(60)  # the first set's slots, drawn anew
@@ -83,12 +83,10 @@ def test_a_second_redraw_waits_for_every_env_and_reset_returns_to_one_map_set():
     assert torch.equal(env.world_seed[:W], 60 + torch.arange(W))
     assert torch.equal(env.world_seed[W:], 50 + torch.arange(W))
     env.reset(seed=7)
-    assert len(env.worlds) == W and env.pillar_xy.shape[0] == W and not env._mixed
+    assert len(env.worlds) == W and env.pillar_xy.shape[0] == W and env.can_redraw_maps()
     assert torch.equal(env.world_idx, torch.arange(N) % W)
-    fresh = SafeNavVectorEnv(num_envs=N, preset="easy", output="torch", num_worlds=W,
-                             max_episode_seconds=8.0)  # fmt: skip
     o1, _ = env.reset(seed=7)
-    o2, _ = fresh.reset(seed=7)
+    o2, _ = make_env().reset(seed=7)
     for k in o1:
         assert torch.equal(o1[k], o2[k]), k
 

@@ -372,20 +372,24 @@ class SafeNavVectorEnv(VectorEnv):
         self._pending.zero_()
         self._map_set, self._map_set_seed, self._mixed = 0, int(worlds[0].seed), False
         self.env_seed = torch.arange(self.num_envs, dtype=torch.int64, device=dev) + worlds[0].seed
-        as_t = lambda f, dtype=torch.float32: torch.as_tensor(  # noqa: E731
-            np.stack([f(wd) for wd in self.worlds]), dtype=dtype, device=dev
-        )
-        self.pillar_xy = as_t(lambda wd: wd.pillar_xy)
-        self.pillar_half = as_t(lambda wd: wd.pillar_half)
-        self.pillar_height = as_t(lambda wd: wd.pillar_height)
-        self.dyn_origin = as_t(lambda wd: wd.dyn_origin)
-        self.dyn_width = as_t(lambda wd: wd.dyn_width)
-        self.dyn_is_cuboid = as_t(lambda wd: wd.dyn_is_cuboid, torch.bool)
-        self.world_seed = torch.tensor([wd.seed for wd in worlds], dtype=torch.int64, device=dev)
-        self.site_along = as_t(lambda wd: wd.site_along)
+        for name, t in self._map_tensors(self.worlds).items():
+            setattr(self, name, t)
         self._obstacle_id = torch.arange(cfg.num_dynamic, device=dev)
         self._apply_density()
         self._reset_obstacles()
+
+    def _map_tensors(self, worlds: list[World]) -> dict[str, torch.Tensor]:
+        """The per-map tensors of ``worlds``, one row per map (``world_seed`` from ``World.seed``)."""
+        out = {
+            name: torch.as_tensor(np.stack([getattr(wd, name) for wd in worlds]),
+                                  dtype=torch.bool if name == "dyn_is_cuboid" else torch.float32,
+                                  device=self.device)
+            for name in ("pillar_xy", "pillar_half", "pillar_height", "dyn_origin", "dyn_width",
+                         "dyn_is_cuboid", "site_along")
+        }  # fmt: skip
+        out["world_seed"] = torch.tensor([wd.seed for wd in worlds], dtype=torch.int64,
+                                         device=self.device)  # fmt: skip
+        return out
 
     def _apply_density(self) -> None:
         self.n_static, self.n_dynamic = self.cfg.active_static, self.cfg.active_dynamic
@@ -421,42 +425,19 @@ class SafeNavVectorEnv(VectorEnv):
                 "can_redraw_maps() (each env has ended the episode it flew at the last redraw)"
             )
         fresh = [generate_world(self.cfg, int(seed) + i) for i in range(w)]
-        if len(self.worlds) == w:  # the first redraw: make room for a second map set
-            self.worlds = self.worlds + fresh
-            grow = lambda t: torch.cat([t, t.clone()])  # noqa: E731  (slots W..2W overwritten below)
-            for name in ("pillar_xy", "pillar_half", "pillar_height", "dyn_origin", "dyn_width",
-                         "dyn_is_cuboid", "world_seed", "site_along", "dyn_pos", "dyn_goal",
-                         "dyn_vel", "dyn_speed", "dyn_goal_counter"):  # fmt: skip
-                setattr(self, name, grow(getattr(self, name)))
+        maps, slots = self._map_tensors(fresh), slice(new * w, new * w + w)
+        if len(self.worlds) == w:  # the first redraw: room for a second map set
+            self.worlds += fresh
+            for name, t in maps.items():
+                setattr(self, name, torch.cat([getattr(self, name), t]))
+            for name in ("dyn_pos", "dyn_goal", "dyn_vel", "dyn_speed", "dyn_goal_counter"):
+                setattr(self, name, torch.cat([getattr(self, name)] * 2))  # new rows reset below
         else:
-            self.worlds[new * w : new * w + w] = fresh
-        slots = slice(new * w, new * w + w)
-        dev = self.device
-        as_t = lambda f, dtype=torch.float32: torch.as_tensor(  # noqa: E731
-            np.stack([f(wd) for wd in fresh]), dtype=dtype, device=dev
-        )
-        self.pillar_xy[slots] = as_t(lambda wd: wd.pillar_xy)
-        self.pillar_half[slots] = as_t(lambda wd: wd.pillar_half)
-        self.pillar_height[slots] = as_t(lambda wd: wd.pillar_height)
-        self.dyn_origin[slots] = as_t(lambda wd: wd.dyn_origin)
-        self.dyn_width[slots] = as_t(lambda wd: wd.dyn_width)
-        self.dyn_is_cuboid[slots] = as_t(lambda wd: wd.dyn_is_cuboid, torch.bool)
-        self.world_seed[slots] = torch.tensor(
-            [wd.seed for wd in fresh], dtype=torch.int64, device=dev
-        )
-        self.site_along[slots] = as_t(lambda wd: wd.site_along)
+            self.worlds[slots] = fresh
+            for name, t in maps.items():
+                getattr(self, name)[slots] = t
         self._apply_density()
-        # The new maps' moving obstacles start at their origins (as after set_worlds), on the
-        # shared clock of speed epochs.
-        self.dyn_goal_counter[slots] = 0
-        self.dyn_pos[slots] = self.dyn_origin[slots]
-        self.dyn_goal[slots] = self._obstacle_goal(self.dyn_goal_counter)[slots]
-        self.dyn_vel[slots] = 0.0
-        period = max(1, int(round(self.cfg.dyn_speed_period * self.cfg.control_hz)))
-        self.dyn_speed[slots] = sample_obstacle_speeds(
-            self.world_seed[slots, None], self._obstacle_id[None, :],
-            torch.tensor(self.world_step // period), *self.cfg.dyn_speed_range,
-        )  # fmt: skip
+        self._reset_obstacles(slots)
         self._map_set, self._map_set_seed, self._mixed = new, int(seed), True
         self._pending.fill_(True)
 
@@ -485,23 +466,35 @@ class SafeNavVectorEnv(VectorEnv):
             CUBOID_Z_RANGE, CYLINDER_HEIGHT / 2,
         )  # fmt: skip
 
-    def _reset_obstacles(self) -> None:
-        cfg = self.cfg
-        self.world_step = 0
-        self.dyn_goal_counter = torch.zeros(self.num_worlds, cfg.num_dynamic, dtype=torch.int64,
-                                            device=self.device)  # fmt: skip
-        self.dyn_pos = self.dyn_origin.clone()
-        self.dyn_goal = self._obstacle_goal(self.dyn_goal_counter)
-        self.dyn_vel = torch.zeros_like(self.dyn_pos)
-        self.dyn_speed = sample_obstacle_speeds(
-            self.world_seed[:, None], self._obstacle_id[None, :], torch.zeros((), dtype=torch.int64),
-            *cfg.dyn_speed_range,
+    @property
+    def _speed_period(self) -> int:
+        """Steps between resampled obstacle speeds (``dyn_speed_period`` seconds)."""
+        return max(1, int(round(self.cfg.dyn_speed_period * self.cfg.control_hz)))
+
+    def _reset_obstacles(self, slots: slice | None = None) -> None:
+        """The moving obstacles of the maps in ``slots`` back at their origins, on the shared
+        clock of speed epochs; ``None``: every map, and the clock back to 0 (a new map set)."""
+        if slots is None:
+            self.world_step = 0
+            shape = (len(self.worlds), self.cfg.num_dynamic)
+            self.dyn_goal_counter = torch.zeros(shape, dtype=torch.int64, device=self.device)
+            self.dyn_pos, self.dyn_goal, self.dyn_vel = (torch.empty_like(self.dyn_origin)
+                                                         for _ in range(3))  # fmt: skip
+            self.dyn_speed = torch.empty(shape, device=self.device)
+            slots = slice(None)
+        self.dyn_goal_counter[slots] = 0
+        self.dyn_pos[slots] = self.dyn_origin[slots]
+        self.dyn_goal[slots] = self._obstacle_goal(self.dyn_goal_counter)[slots]
+        self.dyn_vel[slots] = 0.0
+        self.dyn_speed[slots] = sample_obstacle_speeds(
+            self.world_seed[slots, None], self._obstacle_id[None, :],
+            torch.tensor(self.world_step // self._speed_period), *self.cfg.dyn_speed_range,
         )  # fmt: skip
 
     def _step_obstacles(self) -> None:
         cfg = self.cfg
         self.world_step += 1
-        period = max(1, int(round(cfg.dyn_speed_period * cfg.control_hz)))
+        period = self._speed_period
         if self.world_step % period == 0:
             self.dyn_speed = sample_obstacle_speeds(
                 self.world_seed[:, None], self._obstacle_id[None, :],
@@ -696,7 +689,7 @@ class SafeNavVectorEnv(VectorEnv):
             ids = torch.arange(self.num_envs, device=self.device)
         if ids is None:
             r, w = self.num_envs // self.num_worlds, self.num_worlds
-            first = self._map_set * w if len(self.worlds) > w else 0  # every env in one map set
+            first = self._map_set * w  # every env flies a map of the current set
             sel = lambda t: t.view(r, w, *t.shape[1:])  # noqa: E731
             per_map = lambda t, n: t[first : first + w, :n].unsqueeze(0)  # noqa: E731
         else:
