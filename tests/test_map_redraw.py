@@ -107,3 +107,26 @@ def test_train_with_per_env_map_refresh(tmp_path):
     assert json.loads((run / "config.json").read_text())["run"]["map_refresh_mode"] == "per-env"
     rows = (run / "progress.csv").read_text().splitlines()
     assert len(rows) > 1 and np.isfinite(float(rows[-1].split(",")[1]))
+
+
+def test_the_memory_estimate_counts_both_map_sets_of_per_env_redraws(monkeypatch):
+    """A per-env run holds the old and the new maps (2 x the maps' memory, ``redraw_maps``); the
+    estimate that refuses a run too large for the machine counts both."""
+    import safenav.common.checks as checks
+    from safenav.algos.config import CSACConfig
+    from safenav.commands.train import check_training_memory
+    from safenav.common.config import RunConfig
+    from safenav.common.memory import env_bytes
+    from safenav.envs.vector import env_spaces
+
+    obs_shapes, action_dim, env_cfg = env_spaces("SafeNav-v1", "easy")
+    one, two = env_bytes(64, env_cfg), env_bytes(64, env_cfg, map_sets=2)
+    maps = min(env_cfg.num_worlds or 16, 64) * (env_cfg.map_size / env_cfg.grid_resolution) ** 2
+    assert two - one == pytest.approx(maps * 16) and maps > 0
+    seen = []
+    monkeypatch.setattr(checks, "check_memory", lambda need, *a, **k: seen.append(need))
+    cfg = CSACConfig()
+    for mode in ("all", "per-env"):
+        run = RunConfig(num_envs=64, total_steps=100_000, preset="easy", map_refresh_mode=mode)
+        check_training_memory("csac", run, cfg, obs_shapes, action_dim, env_cfg)
+    assert seen[1] - seen[0] == pytest.approx(two - one)

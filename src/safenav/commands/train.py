@@ -346,7 +346,8 @@ def check_training_memory(algo: str, run: RunConfig, cfg, obs_shapes, action_dim
     from safenav.common.memory import training_memory
 
     parts = training_memory(algo, run.num_envs, run.total_steps, cfg, obs_shapes, action_dim,
-                            env_cfg, run.eval_episodes if run.eval_every else 0)  # fmt: skip
+                            env_cfg, run.eval_episodes if run.eval_every else 0,
+                            2 if run.map_refresh_mode == "per-env" and run.map_refresh_every else 1)  # fmt: skip
     if available is None and run.device.startswith("cuda"):
         import torch
 

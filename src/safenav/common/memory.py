@@ -6,7 +6,8 @@ The estimates are rough upper bounds (within a factor of about 2), not accountin
 
 - SafeNav env: ~64 KB per env (state, obstacles, sensing buffers; measured 29 KB/env on the easy
   and 55 KB/env on the paper preset at 2048 envs) plus 16 bytes per occupancy-grid cell of each
-  of its ``num_worlds`` maps; another Gymnasium env: ~16 KB per copy;
+  of its ``num_worlds`` maps, twice with per-env map redraws (the env then holds the old and the
+  new map set, ``SafeNavVectorEnv.redraw_maps``); another Gymnasium env: ~16 KB per copy;
 - replay buffer: ``capacity x (2 observations + action + 4 scalars)`` float32 (its storage is one
   tensor), plus the n-step columns when used; PPO rollout: ``rollout_steps x num_envs``
   transitions, twice (minibatch copies);
@@ -24,13 +25,14 @@ SAFENAV_ENV_BYTES = 64 * 1024
 GYM_ENV_BYTES = 16 * 1024
 
 
-def env_bytes(num_envs: int, env_config: Any | None) -> float:
-    """The vector env's memory (``env_config`` None: a non-SafeNav Gymnasium env)."""
+def env_bytes(num_envs: int, env_config: Any | None, map_sets: int = 1) -> float:
+    """The vector env's memory (``env_config`` None: a non-SafeNav Gymnasium env) holding
+    ``map_sets`` sets of maps at a time (2 with per-env redraws)."""
     if env_config is None:
         return num_envs * GYM_ENV_BYTES
     worlds = getattr(env_config, "num_worlds", 0) or min(num_envs, 16)
     cells = (env_config.map_size / env_config.grid_resolution) ** 2
-    return num_envs * SAFENAV_ENV_BYTES + min(worlds, num_envs) * cells * 16
+    return num_envs * SAFENAV_ENV_BYTES + map_sets * min(worlds, num_envs) * cells * 16
 
 
 def _mlp_params(sizes: list[int]) -> int:
@@ -57,10 +59,12 @@ def network_bytes(net: Any, obs_floats: int, action_dim: int, critics: int,
 
 def training_memory(algo: str, num_envs: int, total_steps: int, cfg: Any,
                     obs_shapes: dict[str, tuple[int, ...]], action_dim: int,
-                    env_config: Any | None, eval_episodes: int = 0) -> dict[str, float]:  # fmt: skip
-    """Bytes per part of a training run of ``algo`` with algorithm config ``cfg``."""
+                    env_config: Any | None, eval_episodes: int = 0,
+                    map_sets: int = 1) -> dict[str, float]:  # fmt: skip
+    """Bytes per part of a training run of ``algo`` with algorithm config ``cfg``; the training
+    envs hold ``map_sets`` map sets (2 with ``--map-refresh-mode per-env``)."""
     obs = sum(math.prod(s) for s in obs_shapes.values())
-    parts = {"envs": env_bytes(num_envs, env_config)}
+    parts = {"envs": env_bytes(num_envs, env_config, map_sets)}
     if algo in ("ppo", "ppo_lag"):
         per = obs + action_dim + 1 + 3 * 2 + 1
         parts["rollout"] = 2 * cfg.rollout_steps * num_envs * per * FLOAT
