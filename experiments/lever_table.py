@@ -6,8 +6,8 @@ seeds with a 95 % bootstrap CI (scipy), and how many seeds time out in at least 
 episodes (a policy that learned to stop, not to arrive)::
 
     .venv/bin/python experiments/lever_table.py \
-        recipe=results/csac/runs/csac/seed{1,2,3,4,5}/events.jsonl \
-        rc50=results/csac-v1/levers/rc50-s{1,2,3,4,5}-events.jsonl --upto 500000
+        recipe=results/csac/trials/csac-s{1,2,3,4,5}.json \
+        rc50=results/csac-v1/levers/rc50-s{1,2,3,4,5}-events.jsonl --upto 510000
 
 ``LABEL=FILE [FILE ...]``: the files of one lever (one per seed; the seed is read from the
 ``config.json`` beside each). ``--json OUT`` writes the same figures.
@@ -31,7 +31,17 @@ HOVER = 1 / 3  # timeout share at which a seed counts as having learned to stop
 def read_run(path: Path, upto: int) -> tuple[int | None, dict[int, tuple[float, float, float]]]:
     """The run's seed (from the ``config.json`` beside it: ``DIR/config.json`` or
     ``NAME-config.json`` for ``NAME-events.jsonl``) and its evaluations
-    ``{env_steps: (success, collision, timeout)}``."""
+    ``{env_steps: (success, collision, timeout)}``; or both from a committed trial file
+    (``safenav reproduce``'s ``trials/ALGO-sSEED.json``, its ``validation_curve``)."""
+    if path.suffix == ".json":
+        trial = json.loads(path.read_text())
+        return trial["seed"], {
+            point["env_steps"]: tuple(
+                float(point[f"{k}_rate"]) for k in ("success", "collision", "timeout")
+            )
+            for point in trial["validation_curve"]
+            if point["env_steps"] <= upto
+        }
     config = path.with_name(path.name.replace("events.jsonl", "config.json"))
     seed = json.loads(config.read_text())["run"]["seed"] if config.is_file() else None
     evals = {}

@@ -142,6 +142,19 @@ def test_lever_table_reads_each_seeds_validation_curve(tmp_path, capsys):
     assert low < 0.3 < high
     assert report["last"]["seeds_stopping"] == 1
     assert "| 1 | 0.000 / 0.900 / 0.100 | 0.100 / 0.400 / 0.500 |" in capsys.readouterr().out
+    # the same seeds from committed trial files (reproduce's validation_curve) read the same
+    trials = []
+    for seed in (1, 2, 3):
+        curve = [{"env_steps": e["global_step"], "success_rate": e["eval/success_rate"],
+                  "collision_rate": e["eval/collision_rate"], "timeout_rate": e["eval/timeout_rate"]}
+                 for e in map(json.loads, Path(files[seed - 1]).read_text().splitlines())
+                 if e["event"] == "eval"]  # fmt: skip
+        trials.append(tmp_path / f"csac-s{seed}.json")
+        trials[-1].write_text(json.dumps({"seed": seed, "validation_curve": curve}))
+    again = tmp_path / "again.json"
+    assert script("lever_table").main([f"lever={trials[0]}", *map(str, trials[1:]), "--upto",
+                                       "600000", "--json", str(again)]) == 0  # fmt: skip
+    assert json.loads(again.read_text()) == json.loads(out.read_text())
 
 
 def test_flight_grid_flies_the_median_seed_of_each_label(tiny_run, tmp_path):
