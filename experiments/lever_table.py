@@ -25,6 +25,7 @@ import numpy as np
 
 from safenav.experiments.stats import bootstrap_ci
 
+OUTCOMES = ("success", "collision", "timeout")  # the rates of each evaluation, in this order
 HOVER = 1 / 3  # timeout share at which a seed counts as having learned to stop
 
 
@@ -37,7 +38,7 @@ def read_run(path: Path, upto: int) -> tuple[int | None, dict[int, tuple[float, 
         trial = json.loads(path.read_text())
         return trial["seed"], {
             point["env_steps"]: tuple(
-                float(point[f"{k}_rate"]) for k in ("success", "collision", "timeout")
+                float(point[f"{k}_rate"]) for k in OUTCOMES
             )
             for point in trial["validation_curve"]
             if point["env_steps"] <= upto
@@ -49,7 +50,7 @@ def read_run(path: Path, upto: int) -> tuple[int | None, dict[int, tuple[float, 
         event = json.loads(line)
         if event["event"] == "eval" and event["global_step"] <= upto:
             evals[event["global_step"]] = tuple(
-                float(event[f"eval/{k}_rate"]) for k in ("success", "collision", "timeout")
+                float(event[f"eval/{k}_rate"]) for k in OUTCOMES
             )
     return seed, evals
 
@@ -99,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
             cells = ["{:.3f} / {:.3f} / {:.3f}".format(*ev[s]) if s in ev else "" for s in steps]
             print(f"| {seed} | " + " | ".join(cells) + " |")
         summary = {}
-        for k, name in enumerate(("success", "collision", "timeout")):
+        for k, name in enumerate(OUTCOMES):
             vals = [v[k] for v in last.values()]
             lo, hi = ci95(vals)
             summary[name] = {"mean": float(np.mean(vals)), "ci95": [lo, hi], "per_seed": vals}
