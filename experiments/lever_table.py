@@ -37,9 +37,7 @@ def read_run(path: Path, upto: int) -> tuple[int | None, dict[int, tuple[float, 
     if path.suffix == ".json":
         trial = json.loads(path.read_text())
         return trial["seed"], {
-            point["env_steps"]: tuple(
-                float(point[f"{k}_rate"]) for k in OUTCOMES
-            )
+            point["env_steps"]: tuple(float(point[f"{k}_rate"]) for k in OUTCOMES)
             for point in trial["validation_curve"]
             if point["env_steps"] <= upto
         }
@@ -49,9 +47,7 @@ def read_run(path: Path, upto: int) -> tuple[int | None, dict[int, tuple[float, 
     for line in path.read_text().splitlines():
         event = json.loads(line)
         if event["event"] == "eval" and event["global_step"] <= upto:
-            evals[event["global_step"]] = tuple(
-                float(event[f"eval/{k}_rate"]) for k in OUTCOMES
-            )
+            evals[event["global_step"]] = tuple(float(event[f"eval/{k}_rate"]) for k in OUTCOMES)
     return seed, evals
 
 
