@@ -352,6 +352,29 @@ def test_bench_gym_on_a_tiny_budget_writes_its_files_and_resumes(tmp_path, capsy
     assert (out / "trials" / names[0]).is_file()
     config = json.loads((out / "runs" / names[0][:-5] / "config.json").read_text())
     assert config["run"]["save_buffer"]  # so the resumed SAC kept its replay buffer
+    # the table is the suite's: a report for another selection keeps this row (and its SB3 column)
+    other = ["bench", "gym", "--tasks", "MountainCarContinuous-v0", "--sb3", "--steps", "400",
+             "--out", str(out), "--report-only"]  # fmt: skip
+    code, _, err = run(capsys, other)
+    assert code == 0, err
+    assert "| Pendulum-v1 | sac | 400 |" in (out / "table.md").read_text()
+    assert json.loads((out / "summary.json").read_text())["rows"][0]["sb3"]["seeds"] == [1]
+
+
+def test_bench_table_compares_wall_clocks_only_on_one_machine_and_day():
+    from safenav.bench.gym import markdown_table, summarize
+
+    def result(impl: str, seed: int, date: str) -> dict:
+        return {"trial": {"env": "Pendulum-v1", "algo": "sac", "impl": impl, "seed": seed,
+                          "steps": 400}, "final": {"return": -150.0 - seed, "cost": 0.0},
+                "wall_clock_s": 10.0 * seed, "machine": {"cpus": 2}, "date": date}  # fmt: skip
+
+    same = [result("safenav", 1, "d1"), result("sb3", 1, "d1")]
+    apart = [result("safenav", 1, "d1"), result("sb3", 1, "d2")]
+    rows = {name: summarize("gym", rs, 25.0) for name, rs in (("same", same), ("apart", apart))}
+    assert rows["same"][0]["same_machine"] and not rows["apart"][0]["same_machine"]
+    assert "10 s / 10 s |" in markdown_table("gym", rows["same"], 25.0)
+    assert "10 s / 10 s (other machine or day) |" in markdown_table("gym", rows["apart"], 25.0)
 
 
 def _sigint_as_from_a_terminal() -> None:

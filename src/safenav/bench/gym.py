@@ -8,8 +8,8 @@ family recipe, one torch thread, periodic deterministic evaluations) or one SB3 
 ``OUT/trials/<task>-<algo>-<impl>-<steps>-s<seed>.json`` (spec, final and periodic evaluations,
 training returns, wall clock, versions); a rerun skips every trial that has its file, continues
 an interrupted safenav run from its checkpoint (``OUT/runs/``), and finally writes
-``OUT/table.md``, ``OUT/curves.png`` and ``OUT/summary.json`` from all the trial files of the
-current selection. Child logs: ``OUT/logs/``.
+``OUT/table.md``, ``OUT/curves.png`` and ``OUT/summary.json`` from all the suite's trial files
+in OUT (those of earlier selections too). Child logs: ``OUT/logs/``.
 """
 
 from __future__ import annotations
@@ -147,6 +147,8 @@ def collect(trial: Trial, out: Path, wall_s: float) -> dict[str, Any]:
     """The trial file's content from a finished child's outputs."""
     import json
 
+    from safenav.experiments.reproduce import machine_description
+
     run_dir = out / "runs" / trial.name
     if trial.impl == "sb3":
         res = json.loads((run_dir / "result.json").read_text())
@@ -171,7 +173,7 @@ def collect(trial: Trial, out: Path, wall_s: float) -> dict[str, Any]:
         "final": {"return": curve[-1][1], "cost": curve[-1][2], "step": curve[-1][0]},
         "curve": curve, "train_curve": train_curve, "wall_clock_s": wall,
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(),
-                    "python": platform.python_version()},
+                    "python": platform.python_version(), "description": machine_description()},
         "versions": versions(), "date": time.strftime("%Y-%m-%d"),
         "eval_episodes": EVAL_EPISODES, **extra,
     }  # fmt: skip
@@ -300,14 +302,17 @@ def _run_queue(todo: list[Trial], running: dict, out: Path, cost_limit: float, j
 # ------------------------------------------------------------------------------ the report
 
 
-def load_results(trials: list[Trial], out: Path) -> list[dict[str, Any]]:
+def load_results(suite: str, out: Path) -> list[dict[str, Any]]:
+    """Every finished trial of ``suite`` in ``OUT/trials``, whichever run wrote it: the table is
+    the suite's, so running one task again does not drop the others' rows."""
     import json
 
     found = []
-    for t in trials:
-        path = out / "trials" / f"{t.name}.json"
-        if path.is_file():
-            found.append(json.loads(path.read_text()))
+    for path in sorted((out / "trials").glob("*.json")):
+        result = json.loads(path.read_text())
+        trial = result.get("trial", {})
+        if trial.get("suite") == suite and trial.get("env") in SUITES[suite]:
+            found.append(result)
     return found
 
 
@@ -340,6 +345,8 @@ def _count(n: int) -> str:
 def summarize(suite: str, results: list[dict[str, Any]], cost_limit: float) -> list[dict[str, Any]]:
     """One row per (task, algo, budget): mean ± std over seeds, safenav beside SB3 and the
     published reference."""
+    import json
+
     groups: dict[tuple[str, str, int], dict[str, list[dict]]] = {}
     for r in results:
         t = r["trial"]
@@ -356,6 +363,10 @@ def summarize(suite: str, results: list[dict[str, Any]], cost_limit: float) -> l
             wall, _ = _mean_std([x["wall_clock_s"] for x in rs])
             row[impl] = {"return": ret, "return_std": ret_std, "cost": cost, "cost_std": cost_std,
                          "wall_clock_s": wall, "seeds": sorted(x["trial"]["seed"] for x in rs)}  # fmt: skip
+        if len(impls) > 1:  # wall clocks compare only on one machine on one day
+            hosts = {(json.dumps(x.get("machine"), sort_keys=True), x.get("date"))
+                     for rs in impls.values() for x in rs}  # fmt: skip
+            row["same_machine"] = len(hosts) == 1
         if "safenav" in row and ref is not None and suite == "gym":
             row["within_10pct"] = within(row["safenav"]["return"], ref.value)
         if "safenav" in row and suite == "safe":
@@ -383,6 +394,7 @@ def markdown_table(suite: str, rows: list[dict[str, Any]], cost_limit: float) ->
             wall = f"{s['wall_clock_s']:.0f} s" if s else "-"
             if s and b:
                 wall += f" / {b['wall_clock_s']:.0f} s"
+                wall += "" if r.get("same_machine") else " (other machine or day)"
             lines.append(f"| {r['env']} | {r['algo']} | {_count(r['steps'])} | {pm(s, 'return')} | "
                          f"{_ref_text(ref, r['steps'])} | {ok} | {pm(b, 'return')} | {wall} |")  # fmt: skip
         return "\n".join(lines) + "\n"
@@ -448,9 +460,9 @@ def report(suite: str, trials: list[Trial], out: Path, cost_limit: float) -> lis
     from safenav.common.atomic import write_text_atomic
     from safenav.common.jsonout import write_json
 
-    results = load_results(trials, out)
+    results = load_results(suite, out)
     if not results:
-        raise SafenavRuntimeError(f"no finished trial in {out / 'trials'} for this selection")
+        raise SafenavRuntimeError(f"no finished trial of the {suite} suite in {out / 'trials'}")
     rows = summarize(suite, results, cost_limit)
     table = markdown_table(suite, rows, cost_limit)
     write_text_atomic(out / "table.md", table)
