@@ -3,7 +3,9 @@
 Reads the periodic evaluations (validation maps only) from training runs' ``events.jsonl`` and
 prints, per lever, each seed's success / collision / timeout at each evaluation, the mean over
 seeds with a 95 % bootstrap CI (scipy), and how many seeds time out in at least a third of their
-episodes (a policy that learned to stop, not to arrive)::
+episodes (a policy that learned to stop, not to arrive); for every lever after the first, the
+seed-paired difference from the first at the last evaluation (mean and 95 % bootstrap CI over the
+seeds both ran: training seeds are shared, so the pairing removes the seed's own luck)::
 
     .venv/bin/python experiments/lever_table.py \
         recipe=results/csac/trials/csac-s{1,2,3,4,5}.json \
@@ -56,6 +58,19 @@ def ci95(values: list[float]) -> tuple[float, float]:
     return tuple(bootstrap_ci(np.mean, values) or (float("nan"), float("nan")))
 
 
+def paired_difference(base: dict, other: dict) -> dict | None:
+    """``other`` minus ``base`` at the seeds both ran: per outcome the mean difference and its
+    95 % bootstrap CI (None below two shared seeds)."""
+    seeds = sorted(set(base) & set(other), key=str)
+    if len(seeds) < 2:
+        return None
+    out: dict = {"seeds": seeds}
+    for k, name in enumerate(OUTCOMES):
+        diffs = [other[s][k] - base[s][k] for s in seeds]
+        out[name] = {"mean": float(np.mean(diffs)), "ci95": list(ci95(diffs)), "per_seed": diffs}
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("levers", nargs="+", help="LABEL=FILE or further FILEs of the last LABEL")
@@ -75,6 +90,7 @@ def main(argv: list[str] | None = None) -> int:
         files[label].append(Path(item))
 
     report = {}
+    lasts: list[tuple[str, dict]] = []  # (label, {seed: last evaluation}) in the order given
     for label, paths in files.items():
         runs = {}
         for i, path in enumerate(paths):
@@ -113,6 +129,13 @@ def main(argv: list[str] | None = None) -> int:
         )
         report[label] = {"seeds": {str(s): {str(k): v for k, v in ev.items()} for s, ev in runs.items()},
                          "last": summary}  # fmt: skip
+        if len(lasts) and (paired := paired_difference(lasts[0][1], last)):
+            report[label]["paired_vs"] = {"label": lasts[0][0], **paired}
+            print(f"paired with {lasts[0][0]} on seeds {', '.join(map(str, paired['seeds']))}, "
+                  f"{label} minus {lasts[0][0]}: " + ", ".join(
+                      f"{name} {d['mean']:+.3f} ({d['ci95'][0]:+.3f} to {d['ci95'][1]:+.3f})"
+                      for name, d in paired.items() if name != "seeds"))  # fmt: skip
+        lasts.append((label, last))
     if args.json:
         args.json.write_text(json.dumps(report, indent=1))
     return 0

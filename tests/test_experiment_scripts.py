@@ -155,6 +155,23 @@ def test_lever_table_reads_each_seeds_validation_curve(tmp_path, capsys):
     assert script("lever_table").main([f"lever={trials[0]}", *map(str, trials[1:]), "--upto",
                                        "600000", "--json", str(again)]) == 0  # fmt: skip
     assert json.loads(again.read_text()) == json.loads(out.read_text())
+    # a second lever is paired with the first on the seeds both ran (here 1 and 3)
+    both = tmp_path / "both.json"
+    assert script("lever_table").main([f"base={trials[0]}", str(trials[2]), f"lever={files[0]}",
+                                       *files[1:], "--upto", "600000", "--json", str(both)]) == 0  # fmt: skip
+    paired = json.loads(both.read_text())["lever"]["paired_vs"]
+    assert paired["label"] == "base" and paired["seeds"] == [1, 3]
+    assert paired["success"] == {"mean": 0.0, "ci95": [0.0, 0.0], "per_seed": [0.0, 0.0]}
+    assert (
+        "paired with base on seeds 1, 3, lever minus base: success +0.000"
+        in capsys.readouterr().out
+    )
+    shifted = script("lever_table").paired_difference(
+        {1: (0.1, 0.5, 0.4), 2: (0.3, 0.4, 0.3), 4: (0.0, 0.0, 1.0)},
+        {1: (0.3, 0.5, 0.2), 2: (0.4, 0.5, 0.1), 3: (1.0, 0.0, 0.0)},
+    )
+    assert shifted["seeds"] == [1, 2] and shifted["success"]["mean"] == pytest.approx(0.15)
+    assert shifted["timeout"]["per_seed"] == pytest.approx([-0.2, -0.2])
 
 
 def test_flight_grid_flies_the_median_seed_of_each_label(tiny_run, tmp_path):
