@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
         files[label].append(Path(item))
 
     report = {}
-    lasts: list[tuple[str, dict]] = []  # (label, {seed: last evaluation}) in the order given
+    first: tuple[str, dict] | None = None  # the first label and {seed: its last evaluation}
     for label, paths in files.items():
         runs = {}
         for i, path in enumerate(paths):
@@ -129,13 +129,14 @@ def main(argv: list[str] | None = None) -> int:
         )
         report[label] = {"seeds": {str(s): {str(k): v for k, v in ev.items()} for s, ev in runs.items()},
                          "last": summary}  # fmt: skip
-        if len(lasts) and (paired := paired_difference(lasts[0][1], last)):
-            report[label]["paired_vs"] = {"label": lasts[0][0], **paired}
-            print(f"paired with {lasts[0][0]} on seeds {', '.join(map(str, paired['seeds']))}, "
-                  f"{label} minus {lasts[0][0]}: " + ", ".join(
+        if first is None:
+            first = (label, last)
+        elif paired := paired_difference(first[1], last):
+            report[label]["paired_vs"] = {"label": first[0], **paired}
+            print(f"paired with {first[0]} on seeds {', '.join(map(str, paired['seeds']))}, "
+                  f"{label} minus {first[0]}: " + ", ".join(
                       f"{name} {d['mean']:+.3f} ({d['ci95'][0]:+.3f} to {d['ci95'][1]:+.3f})"
                       for name, d in paired.items() if name != "seeds"))  # fmt: skip
-        lasts.append((label, last))
     if args.json:
         args.json.write_text(json.dumps(report, indent=1))
     return 0

@@ -147,7 +147,7 @@ def collect(trial: Trial, out: Path, wall_s: float) -> dict[str, Any]:
     """The trial file's content from a finished child's outputs."""
     import json
 
-    from safenav.experiments.reproduce import machine_description
+    from safenav.common.machine import machine_description
 
     run_dir = out / "runs" / trial.name
     if trial.impl == "sb3":

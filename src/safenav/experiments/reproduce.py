@@ -25,9 +25,7 @@ newer than its checkpoint is skipped; one with a checkpoint but unfinished is re
 
 from __future__ import annotations
 
-import contextlib
 import os
-import platform
 import shlex
 import signal
 import socket
@@ -41,6 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from safenav.common.jsonout import write_json
+from safenav.common.machine import machine_description
 from safenav.errors import SafenavError
 from safenav.experiments.aggregate import (
     aggregate,
@@ -465,29 +464,6 @@ def plan(cfg: SweepConfig) -> list[Trial]:
         for label in labels
         if seed in seeds_of[label]
     ]  # fmt: skip
-
-
-def machine_description() -> str:
-    """CPU model, core count, memory, OS, Python, torch (and GPU) of this machine, in one line."""
-    cpu = platform.processor() or platform.machine()
-    with contextlib.suppress(OSError):
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    mem = ""
-    with contextlib.suppress(OSError, ValueError, IndexError):
-        kib = int(Path("/proc/meminfo").read_text().split("\n")[0].split()[1])
-        mem = f", {kib / 2**20:.0f} GiB RAM"
-    parts = [f"{cpu}, {os.cpu_count()} CPUs{mem}", f"{platform.system()} {platform.release()}",
-             f"Python {platform.python_version()}"]  # fmt: skip
-    with contextlib.suppress(ImportError):
-        import torch
-
-        parts.append(f"torch {torch.__version__}")
-        if torch.cuda.is_available():
-            parts.append(torch.cuda.get_device_name(0))
-    return "; ".join(parts)
 
 
 def _init_ray(cfg: SweepConfig) -> tuple[bool, float]:
