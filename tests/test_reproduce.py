@@ -303,7 +303,8 @@ if "--fail" in args:
 if "--hang" in args:  # runs until stopped; answers SIGTERM as the trainer does (checkpoint, 143)
     import os, signal, time
     run.mkdir(parents=True, exist_ok=True)
-    def stop(signum, frame):
+    def stop(signum, frame):  # a real checkpoint (replay buffer and all) takes seconds to write
+        time.sleep(float(arg("--stop-seconds")) if "--stop-seconds" in args else 0)
         (run.parent / f"stopped-{{seed}}").write_text(""); sys.exit(143)
     signal.signal(signal.SIGTERM, stop)
     (run.parent / f"hang-{{seed}}.pid").write_text(str(os.getpid()))

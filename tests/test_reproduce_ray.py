@@ -111,7 +111,7 @@ DRIVER = """
 import sys
 from pathlib import Path
 from safenav.experiments import reproduce as rep
-cfg = rep.SweepConfig(out=Path(sys.argv[1]), algos=("hang",), variants=("hang=sac --hang",),
+cfg = rep.SweepConfig(out=Path(sys.argv[1]), algos=("hang",), variants=("hang=sac --hang --stop-seconds 5",),
                       seeds=1, total_steps=("1000",), preset="easy", cpus_per_trial=1, num_cpus=2,
                       eval_episodes=10, progress=False, python=sys.argv[2], command="test")
 rep.run_sweep(cfg)
@@ -128,8 +128,10 @@ def _alive(pid: int) -> bool:
 
 def test_a_sweep_stopped_by_sigterm_stops_its_trainers(tmp_path, fake_python):  # noqa: F811
     """`kill` of a running `safenav reproduce` (a background job's stop: SIGINT is ignored there)
-    leaves no trainer running: the local Ray instance goes with its driver, and the trainer, bound
-    to its worker (``die_with_parent``), gets SIGTERM (its checkpoint) and exits."""
+    leaves no trainer running, and each trainer stops with its checkpoint: the driver cancels its
+    trials as on Ctrl-C, each worker sends its trainer SIGTERM, and the driver waits for them
+    before Ray shuts down (its cleanup SIGKILLs a worker's children). The stand-in trainer takes
+    5 s to answer, as a checkpoint with a replay buffer does."""
     out = tmp_path / "out"
     runs = out / "runs" / "hang"
     log = (tmp_path / "driver.log").open("w")

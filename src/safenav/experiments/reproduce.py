@@ -192,6 +192,10 @@ class TrialKilled(TrialFailed):
 #: subprocess was killed (:class:`TrialKilled`, ``retry_exceptions``); each retry resumes.
 RETRIES = 2
 
+#: How long a stopped sweep waits for a trainer to write its checkpoint and exit before it is
+#: killed (its last periodic checkpoint stays). A checkpoint holds the replay buffer: seconds.
+STOP_WAIT_S = 300.0
+
 
 def _run_logged(cmd: list[str], log: Path, threads: int) -> float:
     """Run ``cmd`` with ``threads`` torch/OpenMP threads, output appended to ``log``.
@@ -212,11 +216,14 @@ def _run_logged(cmd: list[str], log: Path, threads: int) -> float:
         proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env,
                                 preexec_fn=preexec)  # fmt: skip
         try:
-            rc = proc.wait()
+            # Poll: Ray cancels a task by interrupting its thread between bytecodes, which a
+            # wait() blocked in waitpid would not see until the trainer ended on its own.
+            while (rc := proc.poll()) is None:
+                time.sleep(0.2)
         except BaseException:
-            proc.terminate()
+            proc.terminate()  # the trainer's SIGTERM: a checkpoint at this step, then exit 143
             try:
-                proc.wait(timeout=15)
+                proc.wait(timeout=STOP_WAIT_S)
             except subprocess.TimeoutExpired:
                 proc.kill()
             raise
@@ -527,12 +534,14 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
     todo = [t for t in trials if states[t.name] != "done"]
     sweep_t0 = time.perf_counter()
     started_ray, init_s = False, 0.0
+    sigterm: Any = None
     cluster: dict[str, Any] = {}
     outcomes: dict[str, dict[str, Any]] = {}
     failures: dict[str, str] = {}
     try:
         if todo:
             started_ray, init_s = _init_ray(cfg)
+            sigterm = _stop_on_sigterm()
             cluster = _check_resources(cfg)
             console.print(
                 f"[bold]reproduce[/]: {len(trials)} trials ({len(trials) - len(todo)} already "
@@ -546,6 +555,8 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
                           f"(rate: {source})")  # fmt: skip
             outcomes, failures = _run_on_ray(cfg, todo, states, console)
     finally:
+        if sigterm is not None:
+            signal.signal(signal.SIGTERM, sigterm)
         if started_ray:
             ray.shutdown()
     sweep_s = time.perf_counter() - sweep_t0
@@ -753,10 +764,44 @@ def _run_on_ray(cfg: SweepConfig, todo: list[Trial], states: dict[str, str], con
                                status=status if status != "done" else "finishing")  # fmt: skip
                 bar.update(overall, completed=steps_now())
         except KeyboardInterrupt:
-            for ref in pending:
-                ray.cancel(ref)
+            _stop_pending(list(pending), console)
             raise
     return outcomes, failures
+
+
+def _stop_on_sigterm() -> Any:
+    """Make SIGTERM (``kill``, a scheduler's preemption) stop the sweep as Ctrl-C does; returns
+    the handler it replaced (``None`` off the main thread, where no handler can be set).
+
+    ``ray.init`` gives the driver Ray's own handler, which exits at once; Ray's cleanup then
+    SIGKILLs each worker's child processes, so the trainers died without their checkpoint.
+    """
+    import threading
+
+    from safenav.common.stopping import Terminated
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def stop(signum: int, frame: Any) -> None:
+        raise Terminated()
+
+    return signal.signal(signal.SIGTERM, stop)
+
+
+def _stop_pending(refs: list[Any], console: Any, timeout_s: float = STOP_WAIT_S + 30) -> None:
+    """Cancel the trials still running or queued and wait until each has stopped: a running
+    one's worker sends its trainer SIGTERM and waits for the checkpoint (:func:`_run_logged`).
+    Ray must stay up meanwhile: its shutdown kills the workers' children."""
+    import ray
+
+    if not refs:
+        return
+    console.print(f"[bold]reproduce[/]: stopping {len(refs)} trial(s); each trainer writes a "
+                  "checkpoint, and the same command resumes them")  # fmt: skip
+    for ref in refs:
+        ray.cancel(ref)
+    ray.wait(refs, num_returns=len(refs), timeout=timeout_s)
 
 
 def _print_summary(console: Any, results: dict[str, Any], files: list[Path]) -> None:
