@@ -4,7 +4,6 @@ speed-up over a brute-force reference (every beam against every pillar) measured
 
 from __future__ import annotations
 
-import platform
 import statistics
 import time
 from pathlib import Path
@@ -15,6 +14,7 @@ from rich.progress import track
 from rich.table import Table
 
 from safenav.common.jsonout import write_json
+from safenav.common.machine import machine_description
 from safenav.envs.nav import SafeNavVectorEnv
 
 
@@ -94,7 +94,7 @@ def bench_env(
         "speedup_vs_bruteforce": grid_rate / brute_rate,
         **range_error(preset=preset),
         "torch_threads": torch.get_num_threads(),
-        "machine": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads",
+        "machine": f"{machine_description()}; {torch.get_num_threads()} threads",
         "date": time.strftime("%Y-%m-%d"),
     }
     table = Table(title=f"SafeNav-v1 ({preset}) env-steps/s, median of {repeats}")

@@ -35,6 +35,7 @@ import torch
 from torch import nn
 
 from safenav.common.jsonout import write_json
+from safenav.common.machine import machine_description
 from safenav.envs.config import EnvConfig, make_config
 
 TARGET_PIPELINE_P99_MS = 2.0
@@ -237,7 +238,8 @@ def bench_latency(
         "pipeline": {"cameras": len(sensor[0][1].depth), "depth_pixels_per_frame": depth_px,
                      "depth_stride": rcfg.depth_stride, "shield": True, "world": "paper, seed 1"},
         "machine": {"python": platform.python_version(), "torch": torch.__version__,
-                    "processor": platform.processor() or platform.machine()},
+                    "processor": platform.processor() or platform.machine(),
+                    "description": machine_description()},
     })  # fmt: skip
     if not quiet:
         print(f"{'backend':<14}{'p50 ms':>9}{'p99 ms':>9}")

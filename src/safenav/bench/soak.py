@@ -32,6 +32,7 @@ from typing import Any
 import torch
 
 from safenav.common.jsonout import write_json
+from safenav.common.machine import machine_description
 
 
 def rss_mb() -> float:
@@ -179,6 +180,7 @@ def bench_soak(
         out.update(soak_train(updates, preset, hidden, batch_size, buffer_size, num_envs=16))
     out["machine"] = {"python": platform.python_version(), "torch": torch.__version__,
                       "processor": platform.processor() or platform.machine(),
+                      "description": machine_description(),
                       "threads": torch.get_num_threads()}  # fmt: skip
     for k, v in out.items():
         if k != "machine":

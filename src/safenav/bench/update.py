@@ -18,7 +18,6 @@ on the machine hits all alike) and the medians reported.
 from __future__ import annotations
 
 import os
-import platform
 import statistics
 import time
 from pathlib import Path
@@ -28,6 +27,7 @@ import numpy as np
 import torch
 
 from safenav.common.jsonout import write_json
+from safenav.common.machine import machine_description
 
 SAFENAV_SHAPES = {"state": (8,), "lidar": (4, 36), "dynamic": (5, 10)}
 BATCH = 256
@@ -146,7 +146,7 @@ def bench_update(json_out: Path | None, repeats: int = 5, updates: int = 40,
     result.update({
         "batch_size": BATCH, "threads": threads, "repeats": repeats, "updates_per_trial": updates,
         "all_trials": rates, "torch": torch.__version__, "stable_baselines3": sb3_version,
-        "cpu": platform.processor() or platform.machine(), "device": device,
+        "cpu": machine_description(), "device": device,
         "architecture": "paper: 3-layer circular CNN on lidar (4x36) -> 128, MLP on dynamic (5x10) -> 64, "
                         "+ state 8 = 200 features; actor and critics 256x256; shared extractor",
         "sb3_architecture": "MlpPolicy net_arch [256, 256] on a flattened Box(202) observation",
