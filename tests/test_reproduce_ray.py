@@ -56,6 +56,9 @@ def test_sweep_on_local_ray_then_rerun_skips(tmp_path, fake_python, monkeypatch)
     calls = (out / "runs" / "csac" / "calls.txt").read_text().splitlines()
     assert len(calls) == 4  # two seeds: train + eval each
     assert csac["per_seed"][0]["run_dir"] == "runs/csac/seed0"
+    # the budget is declared on run-directory records too, as in the trial files: labels of
+    # different budgets are never compared (ppo_3m was once set against 1M CSAC this way)
+    assert {r["budget_env_steps"] for r in csac["per_seed"]} == {1000}
     # Rerun: everything is done, nothing runs again and Ray is not even started.
     import ray
 
@@ -78,6 +81,15 @@ def test_sweep_on_local_ray_then_rerun_skips(tmp_path, fake_python, monkeypatch)
         ours, kept = data["algos"][algo], cloned["algos"][algo]
         assert kept["seeds"] == 2 and kept["success_rate"] == ours["success_rate"]
         assert kept["ci95"] == ours["ci95"]
+    # A sweep of one label into the same OUT (a seed or a label at a time, as a session allows)
+    # still reports every finished trial there, in the comparison's order, and says which.
+    cfg.algos = ("sac",)
+    one = rep.run_sweep(cfg)
+    assert list(one["algos"]) == ["csac", "sac"] and one["algos"]["csac"]["seeds"] == 2
+    assert one["algos"]["csac"]["success_rate"] == data["algos"]["csac"]["success_rate"]
+    assert one["earlier_trials"] == ["csac-s0", "csac-s1"]
+    assert one["total_steps"] == {"sac": 1000, "csac": 1000}
+    assert "from earlier sweeps into the same directory" in (out / "results.md").read_text()
 
 
 def test_failed_trial_is_reported_and_the_rest_aggregated(tmp_path, fake_python):  # noqa: F811

@@ -668,6 +668,10 @@ def render_markdown(results: dict[str, Any]) -> str:
         if results.get(key):
             lines.append(f"{label}: `{results[key]}`  " if key == "command" else
                          f"{label}: {results[key]}  ")  # fmt: skip
+    if results.get("earlier_trials"):
+        lines.append(f"Also reported, from earlier sweeps into the same directory (each trial's "
+                     f"file in `trials/` holds its commands): "
+                     f"{', '.join(results['earlier_trials'])}  ")  # fmt: skip
     return "\n".join(lines).rstrip() + "\n"
 
 

@@ -320,6 +320,26 @@ def committed_record(trial: Trial) -> dict[str, Any] | None:
     return rec
 
 
+def earlier_trial_records(out: Path) -> list[dict[str, Any]]:
+    """The records in ``OUT/trials/`` (each names its label and seed; its own commands say how
+    it was made), e.g. of earlier sweeps into the same OUT."""
+    found = []
+    for path in sorted((out / "trials").glob("*.json")):
+        rec = read_json(path)
+        if rec and isinstance(rec.get("algo"), str) and isinstance(rec.get("seed"), int):
+            found.append(rec)
+    return found
+
+
+def report_order(rec: dict[str, Any]) -> tuple[int, str, int]:
+    """The paper comparison's labels in their order (its algorithms, then its variants), any
+    other label after them by name; seeds ascending."""
+    labels = PAPER_ALGOS + tuple(v.split("=", 1)[0] for v in PAPER_VARIANTS)
+    label = rec["algo"]
+    rank = labels.index(label) if label in labels else len(labels)
+    return rank, label if rank == len(labels) else "", int(rec.get("seed") or 0)
+
+
 def write_trial_record(trial: Trial, rec: dict[str, Any] | None = None) -> dict[str, Any]:
     """``OUT/trials/<label>-s<S>.json``: the trial's row of the results (test, held-out,
     selection, budget, wall-clock, arena metrics; ``rec``, the run's :func:`seed_record` when the
@@ -565,12 +585,19 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
     for t in trials:
         if t.name not in failures and (t.run_dir / "eval.json").exists():
             rec = seed_record(t.run_dir, algo=t.label, seed=t.seed)
+            # declared, as in the trial files: labels of different budgets are not compared
+            rec["budget_env_steps"] = t.total_steps
             if states[t.name] == "done" and t.name not in outcomes:
                 write_trial_record(t, rec)  # a trial of an earlier sweep: its file gains new fields
             rec["run_dir"] = os.path.relpath(t.run_dir, out)  # results stay valid when moved
             records.append(rec)
         elif t.name in kept:
             records.append(kept[t.name])
+    # Every finished trial of OUT is reported, not only this sweep's: a sweep of one label or
+    # seed at a time (what fits a session) would otherwise rewrite results.json with it alone.
+    ours = {(t.label, t.seed) for t in trials}
+    earlier = [rec for rec in earlier_trial_records(out) if (rec["algo"], rec["seed"]) not in ours]
+    records = sorted(records + earlier, key=report_order)
     submitted = [o for o in outcomes.values() if "submitted" in o]
     latency = [o["started"] - o["submitted"] for o in submitted]
     ray_meta = {
@@ -593,7 +620,9 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
         "env": "SafeNav-v1",
         "preset": cfg.preset,
         "selection": "validation" if cfg.select else "final checkpoint",
-        "total_steps": {t.label: t.total_steps for t in trials},
+        "total_steps": {t.label: t.total_steps for t in trials}
+        | {r["algo"]: r.get("budget_env_steps") or r.get("env_steps") for r in earlier},
+        "earlier_trials": sorted(f"{r['algo']}-s{r['seed']}" for r in earlier),
         "evaluation": {"env_seed": cfg.env_seed, "episodes": cfg.eval_episodes},
         "ray": ray_meta,
         "sweep_wall_clock_s": round(sweep_s, 1),
