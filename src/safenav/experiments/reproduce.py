@@ -25,6 +25,7 @@ newer than its checkpoint is skipped; one with a checkpoint but unfinished is re
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shlex
 import signal
@@ -197,11 +198,13 @@ RETRIES = 2
 STOP_WAIT_S = 300.0
 
 
-def _run_logged(cmd: list[str], log: Path, threads: int) -> float:
+def _run_logged(cmd: list[str], log: Path, threads: int, pid_file: Path | None = None) -> float:
     """Run ``cmd`` with ``threads`` torch/OpenMP threads, output appended to ``log``.
 
-    Returns the seconds it took; raises :class:`TrialFailed` on a non-zero exit. If this process
-    is interrupted (Ray cancelled the task), the child is terminated first.
+    Returns the seconds it took; raises :class:`TrialFailed` on a non-zero exit. While it runs,
+    ``pid_file`` holds ``HOST PID`` of the child (what a stopping sweep signals). If this process
+    is interrupted (Ray cancelled the task), the child is terminated first, unless the sweep has
+    signalled it already (``pid_file`` with ``.stop`` beside it): one SIGTERM, one checkpoint.
     """
     env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads),
            "COLUMNS": "120", "PYTHONUNBUFFERED": "1"}  # fmt: skip
@@ -215,18 +218,24 @@ def _run_logged(cmd: list[str], log: Path, threads: int) -> float:
         preexec = die_with_parent if sys.platform.startswith("linux") else None
         proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env,
                                 preexec_fn=preexec)  # fmt: skip
+        if pid_file is not None:
+            pid_file.write_text(f"{socket.gethostname()} {proc.pid}\n")
         try:
             # Poll: Ray cancels a task by interrupting its thread between bytecodes, which a
             # wait() blocked in waitpid would not see until the trainer ended on its own.
             while (rc := proc.poll()) is None:
                 time.sleep(0.2)
         except BaseException:
-            proc.terminate()  # the trainer's SIGTERM: a checkpoint at this step, then exit 143
+            if not (pid_file is not None and stop_marker(pid_file).exists()):
+                proc.terminate()  # the trainer's SIGTERM: a checkpoint at this step, exit 143
             try:
                 proc.wait(timeout=STOP_WAIT_S)
             except subprocess.TimeoutExpired:
                 proc.kill()
             raise
+        finally:
+            if pid_file is not None:
+                pid_file.unlink(missing_ok=True)
     seconds = time.perf_counter() - t0
     if rc != 0:
         tail = log.read_text(errors="replace").strip().splitlines()[-15:]
@@ -242,6 +251,11 @@ def _run_logged(cmd: list[str], log: Path, threads: int) -> float:
             f"exit code {rc} from: {shlex.join(cmd[1:])}\n" + "\n".join(tail)
         )
     return seconds
+
+
+def stop_marker(pid_file: Path) -> Path:
+    """Written by a stopping sweep before it signals the trainer named in ``pid_file``."""
+    return pid_file.with_suffix(".stop")
 
 
 def _write_json(path: Path, data: dict[str, Any]) -> None:
@@ -277,7 +291,14 @@ def run_trial(trial: Trial) -> dict[str, Any]:
             "resume": state == "resume",
         }
         try:
-            info["train_s"] = _run_logged(cmd, trial.log("train.log"), trial.cpus)
+            info["train_s"] = _run_logged(cmd, trial.log("train.log"), trial.cpus,
+                                          pid_file=trial.log("trainer.pid"))  # fmt: skip
+        except TrialKilled:
+            if stop_marker(trial.log("trainer.pid")).exists():  # the sweep stopped it: no retry
+                raise TrialFailed(
+                    f"{trial.name} stopped with a checkpoint; rerun to resume"
+                ) from None
+            raise
         finally:
             # Keep the record of every attempt, including failed ones, for the wall-clock total.
             marker = read_json(marker_path) or {}
@@ -734,6 +755,7 @@ def _run_on_ray(cfg: SweepConfig, todo: list[Trial], states: dict[str, str], con
     remote = ray.remote(run_trial)
     for trial in todo:  # a status left by an interrupted sweep would show before the task runs
         trial.log("status").unlink(missing_ok=True)
+        stop_marker(trial.log("trainer.pid")).unlink(missing_ok=True)
     started: set[str] = set()
     pending: dict[Any, Trial] = {}
     submitted: dict[str, float] = {}
@@ -793,7 +815,7 @@ def _run_on_ray(cfg: SweepConfig, todo: list[Trial], states: dict[str, str], con
                                status=status if status != "done" else "finishing")  # fmt: skip
                 bar.update(overall, completed=steps_now())
         except KeyboardInterrupt:
-            _stop_pending(list(pending), console)
+            _stop_pending(pending, console)
             raise
     return outcomes, failures
 
@@ -818,19 +840,54 @@ def _stop_on_sigterm() -> Any:
     return signal.signal(signal.SIGTERM, stop)
 
 
-def _stop_pending(refs: list[Any], console: Any, timeout_s: float = STOP_WAIT_S + 30) -> None:
-    """Cancel the trials still running or queued and wait until each has stopped: a running
-    one's worker sends its trainer SIGTERM and waits for the checkpoint (:func:`_run_logged`).
-    Ray must stay up meanwhile: its shutdown kills the workers' children."""
+def _stop_pending(pending: dict[Any, Trial], console: Any,
+                  timeout_s: float = STOP_WAIT_S + 30) -> None:  # fmt: skip
+    """Stop the trials still running or queued and wait until each has stopped; Ray must stay
+    up meanwhile, since its shutdown SIGKILLs the workers' children.
+
+    A trainer on this machine gets SIGTERM from here (its pid file), once: it writes its
+    checkpoint and exits 143, which its worker reports without a retry (the stop marker). Ray's
+    cancel alone did not always reach a running task (seen under load: the worker logged the
+    cancel and the trainer trained on); it still removes queued tasks, and running ones on
+    other nodes, whose workers send their trainers SIGTERM.
+    """
     import ray
 
-    if not refs:
+    if not pending:
         return
-    console.print(f"[bold]reproduce[/]: stopping {len(refs)} trial(s); each trainer writes a "
+    console.print(f"[bold]reproduce[/]: stopping {len(pending)} trial(s); each trainer writes a "
                   "checkpoint, and the same command resumes them")  # fmt: skip
-    for ref in refs:
+    host, local = socket.gethostname(), []
+    for trial in pending.values():
+        pid_file = trial.log("trainer.pid")
+        stop_marker(pid_file).write_text("")
+        with contextlib.suppress(OSError, ValueError):
+            where, pid = pid_file.read_text().split()
+            if where == host:
+                os.kill(int(pid), signal.SIGTERM)
+                local.append(int(pid))
+    for ref in pending:
         ray.cancel(ref)
-    ray.wait(refs, num_returns=len(refs), timeout=timeout_s)
+    deadline = time.monotonic() + timeout_s
+    while any(_running(pid) for pid in local) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    ray.wait(list(pending), num_returns=len(pending),
+             timeout=max(1.0, deadline - time.monotonic()))  # fmt: skip
+
+
+def _running(pid: int) -> bool:
+    """Whether ``pid`` is a process that has not exited (a zombie has)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+        return stat.rsplit(")", 1)[1].split()[0] not in ("Z", "X")
+    except (OSError, IndexError):
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        except PermissionError:
+            return True
+        return True
 
 
 def _print_summary(console: Any, results: dict[str, Any], files: list[Path]) -> None:
