@@ -814,10 +814,19 @@ def _run_on_ray(cfg: SweepConfig, todo: list[Trial], states: dict[str, str], con
                     bar.update(rows[trial.name], completed=now[trial.name],
                                status=status if status != "done" else "finishing")  # fmt: skip
                 bar.update(overall, completed=steps_now())
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as err:
+            from safenav.common.stopping import Terminated
+
             _stop_pending(pending, console)
+            if _SIGTERM_RECEIVED and not isinstance(err, Terminated):
+                # ray.wait turned the SIGTERM into its own KeyboardInterrupt: exit 143, not 130
+                raise Terminated() from None
             raise
     return outcomes, failures
+
+
+#: Set by the driver's SIGTERM handler (:func:`_stop_on_sigterm`).
+_SIGTERM_RECEIVED = False
 
 
 def _stop_on_sigterm() -> Any:
@@ -835,6 +844,8 @@ def _stop_on_sigterm() -> Any:
         return None
 
     def stop(signum: int, frame: Any) -> None:
+        global _SIGTERM_RECEIVED
+        _SIGTERM_RECEIVED = True
         raise Terminated()
 
     return signal.signal(signal.SIGTERM, stop)
