@@ -371,6 +371,11 @@ def test_trial_fresh_then_skipped_then_resumed_for_more_steps(tmp_path, fake_pyt
     rep.run_trial(longer)
     last_train = [c for c in calls.read_text().splitlines() if c != "eval"][-1]
     assert "--resume" in last_train
+    # a resumed run keeps its recipe (safenav train refuses --config with --resume)
+    recipe = make_trial(tmp_path, fake_python, train_args=("--config", "csac-paper", "--x"))
+    assert "--config" not in recipe.train_command(resume=True)
+    assert recipe.train_command(resume=False)[-3:] == ["--config", "csac-paper", "--x"]
+    assert rep.without_config(["--config=a", "--y", "--config", "b", "--z"]) == ["--y", "--z"]
     assert json.loads(longer.checkpoint.read_text())["resumed_from"] == 1000
     assert rep.trial_state(longer) == "done"
     marker = json.loads((trial.run_dir / "reproduce.json").read_text())

@@ -151,17 +151,34 @@ class Trial:
             cmd += ["--preset", self.preset]
         if self.select:
             cmd += ["--select"]
+        args = list(self.train_args)
         if resume:
             cmd += ["--resume", str(self.run_dir)]
+            args = without_config(
+                args
+            )  # the run's config.json holds its recipe; train refuses both
         elif overwrite:
             cmd += ["--overwrite"]
-        return cmd + list(self.train_args)
+        return cmd + args
 
     def eval_command(self) -> list[str]:
         """``python -m safenav eval CHECKPOINT ...`` writing ``eval.json`` into the run dir."""
         return [self.python or sys.executable, "-m", "safenav", "eval", str(self.policy),
                 "--env-seed", str(self.env_seed), "--episodes", str(self.eval_episodes),
                 "--device", self.device, "--json", str(self.run_dir / "eval.json")]  # fmt: skip
+
+
+def without_config(args: list[str]) -> list[str]:
+    """``args`` less every ``--config NAME`` / ``--config=NAME``."""
+    out, skip = [], False
+    for arg in args:
+        if skip:
+            skip = False
+        elif arg == "--config":
+            skip = True
+        elif not arg.startswith("--config="):
+            out.append(arg)
+    return out
 
 
 def trial_state(trial: Trial) -> str:
