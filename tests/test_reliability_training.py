@@ -546,3 +546,23 @@ def test_nan_loss_stops_ppo_and_keeps_the_last_good_checkpoint(tmp_path, capsys,
     monkeypatch.setattr(ppo, "clipped_policy_loss", loss)  # fixed: the run resumes from there
     main(resume_args("ppo", run_dir, "--total-steps", "256"))
     assert load_checkpoint(run_dir / "checkpoint.pt")["global_step"] == 256
+
+
+def test_process_running_tells_a_live_process_from_an_exited_one():
+    """What `safenav reproduce` waits on when it stops its trainers: an exited child that nobody
+    has reaped yet (a zombie, which `kill(pid, 0)` still finds) counts as stopped."""
+    from safenav.common.stopping import process_running
+
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        assert process_running(child.pid)
+        child.terminate()
+        deadline = time.time() + 10
+        while process_running(child.pid) and time.time() < deadline:
+            time.sleep(0.05)  # not reaped (no wait/poll) until the assertion below
+        assert not process_running(child.pid)
+        assert child.poll() is not None
+    finally:
+        child.kill()
+        child.wait()
+    assert not process_running(child.pid)

@@ -17,6 +17,7 @@ import time
 
 import pytest
 
+from safenav.common.stopping import process_running
 from safenav.experiments import reproduce as rep
 from test_reproduce import fake_python  # noqa: F401  (fixture)
 
@@ -134,14 +135,6 @@ except Terminated:  # what the CLI turns into exit 143
 """
 
 
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    return True
-
-
 def test_a_sweep_stopped_by_sigterm_stops_its_trainers(tmp_path, fake_python):  # noqa: F811
     """`kill` of a running `safenav reproduce` (a background job's stop: SIGINT is ignored there)
     leaves no trainer running, and each trainer stops with its checkpoint: the driver cancels its
@@ -165,9 +158,9 @@ def test_a_sweep_stopped_by_sigterm_stops_its_trainers(tmp_path, fake_python):  
         driver.send_signal(signal.SIGTERM)
         assert driver.wait(timeout=120) == 143  # terminated, not interrupted (130)
         deadline = time.time() + 30
-        while _alive(trainer) and time.time() < deadline:
+        while process_running(trainer) and time.time() < deadline:
             time.sleep(0.5)
-        assert not _alive(trainer), "an orphan trainer runs on"
+        assert not process_running(trainer), "an orphan trainer runs on"
         assert (runs / "stopped-0").exists(), "the trainer was killed, not stopped by SIGTERM"
     finally:
         if driver.poll() is None:

@@ -154,9 +154,8 @@ class Trial:
         args = list(self.train_args)
         if resume:
             cmd += ["--resume", str(self.run_dir)]
-            args = without_config(
-                args
-            )  # the run's config.json holds its recipe; train refuses both
+            # the run's config.json holds its recipe, and train refuses --config with --resume
+            args = without_config(args)
         elif overwrite:
             cmd += ["--overwrite"]
         return cmd + args
@@ -369,13 +368,16 @@ def earlier_trial_records(out: Path) -> list[dict[str, Any]]:
     return found
 
 
+#: The comparison's labels in report order: the paper's algorithms, then its variants.
+REPORT_LABELS = PAPER_ALGOS + tuple(v.split("=", 1)[0] for v in PAPER_VARIANTS)
+
+
 def report_order(rec: dict[str, Any]) -> tuple[int, str, int]:
     """The paper comparison's labels in their order (its algorithms, then its variants), any
     other label after them by name; seeds ascending."""
-    labels = PAPER_ALGOS + tuple(v.split("=", 1)[0] for v in PAPER_VARIANTS)
     label = rec["algo"]
-    rank = labels.index(label) if label in labels else len(labels)
-    return rank, label if rank == len(labels) else "", int(rec.get("seed") or 0)
+    rank = REPORT_LABELS.index(label) if label in REPORT_LABELS else len(REPORT_LABELS)
+    return rank, label if rank == len(REPORT_LABELS) else "", int(rec.get("seed") or 0)
 
 
 def write_trial_record(trial: Trial, rec: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -857,8 +859,10 @@ def _stop_on_sigterm() -> Any:
 
     from safenav.common.stopping import Terminated
 
+    global _SIGTERM_RECEIVED
     if threading.current_thread() is not threading.main_thread():
         return None
+    _SIGTERM_RECEIVED = False  # a sweep run before, in this process, may have set it
 
     def stop(signum: int, frame: Any) -> None:
         global _SIGTERM_RECEIVED
@@ -881,6 +885,8 @@ def _stop_pending(pending: dict[Any, Trial], console: Any,
     """
     import ray
 
+    from safenav.common.stopping import process_running
+
     if not pending:
         return
     console.print(f"[bold]reproduce[/]: stopping {len(pending)} trial(s); each trainer writes a "
@@ -897,25 +903,10 @@ def _stop_pending(pending: dict[Any, Trial], console: Any,
     for ref in pending:
         ray.cancel(ref)
     deadline = time.monotonic() + timeout_s
-    while any(_running(pid) for pid in local) and time.monotonic() < deadline:
+    while any(process_running(pid) for pid in local) and time.monotonic() < deadline:
         time.sleep(0.2)
     ray.wait(list(pending), num_returns=len(pending),
              timeout=max(1.0, deadline - time.monotonic()))  # fmt: skip
-
-
-def _running(pid: int) -> bool:
-    """Whether ``pid`` is a process that has not exited (a zombie has)."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-        return stat.rsplit(")", 1)[1].split()[0] not in ("Z", "X")
-    except (OSError, IndexError):
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            return False
-        except PermissionError:
-            return True
-        return True
 
 
 def _print_summary(console: Any, results: dict[str, Any], files: list[Path]) -> None:
