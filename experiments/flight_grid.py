@@ -14,6 +14,9 @@ with it, and writes
         ppo_lag --also results/csac --env-seed 12345 --episodes 0 1 2 3 \\
         --out results/paper/figures/flights-val.png --gif results/paper/figures/flights-val.gif
 
+``--shield-memory 0 1 10`` flies each label three times: without the shield, behind it, and
+behind the shield that remembers the last 10 range images (one row each).
+
 Test and held-out maps (env seeds 1-6) are refused: this is a look at the policies, not a report.
 """
 
@@ -82,6 +85,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--gif-seconds", type=float, default=30.0, help="how much of each flight the GIF shows (s)"
     )
+    parser.add_argument("--shield-memory", type=int, nargs="+", default=[0],
+                        help="one row per value for each label: 0 no shield, 1 the shield, N > 1 "
+                             "the shield with the range images of the last N steps")  # fmt: skip
     parser.add_argument("--also", type=Path, nargs="*", default=[],
                         help="other reproduce outputs whose runs/ may hold a label's run "
                              "(e.g. results/csac, whose trials results/paper copied)")  # fmt: skip
@@ -99,19 +105,28 @@ def main(argv: list[str] | None = None) -> None:
         if not policy.exists():
             raise SystemExit(f"{policy}: missing (the run directories are not committed; "
                              "rerun the trial or point at the machine that ran it)")  # fmt: skip
-        row = []
-        for i, episode in enumerate(args.episodes):
-            frames, stats = fly_frames(policy, env_seed=args.env_seed, episode=episode)
-            outcome = (
-                "goal" if stats["success"] else "collision" if stats["collision"] else "timeout"
+        for memory in args.shield_memory:
+            name = (
+                label
+                if memory == 0
+                else f"{label} + shield" + (f" (memory {memory})" if memory > 1 else "")
             )
-            title = f"{label} seed {seed} (median of validation, {final:.2f}): episode {episode}, {outcome}"
-            row.append(caption(frames[-1], title))
-            summary.setdefault(label, {"seed": seed, "validation_success": final})[episode] = stats
-            if i == 0:
-                movies.append([caption(f, f"{label} seed {seed}") for f in frames])
-            print(f"{label} seed {seed} episode {episode}: {outcome}, {stats['time']:.1f} s")
-        rows.append(row)
+            row = []
+            for i, episode in enumerate(args.episodes):
+                frames, stats = fly_frames(policy, env_seed=args.env_seed, episode=episode,
+                                           shield_memory=memory)  # fmt: skip
+                outcome = (
+                    "goal" if stats["success"] else "collision" if stats["collision"] else "timeout"
+                )
+                title = f"{name} seed {seed} (median of validation, {final:.2f}): episode {episode}, {outcome}"
+                row.append(caption(frames[-1], title))
+                summary.setdefault(name, {"seed": seed, "validation_success": final})[episode] = (
+                    stats
+                )
+                if i == 0:
+                    movies.append([caption(f, f"{name} seed {seed}") for f in frames])
+                print(f"{name} seed {seed} episode {episode}: {outcome}, {stats['time']:.1f} s")
+            rows.append(row)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(tile(rows, args.scale)).save(args.out, optimize=True)
     print(f"wrote {args.out}")

@@ -248,6 +248,8 @@ VERDICTS: dict[str, dict[str, int]] = {
     "train --ppo.log-std-init": {"-1": ACCEPTED, "0": ACCEPTED},  # in [-20, 20]
     # the other verbs
     "eval --env-seed": {"0": ACCEPTED}, "eval --episodes": MEMORY,
+    "eval --shield-memory": {"0": ACCEPTED},  # 0-100, and above 1 only with --shield
+    "render --shield-memory": {"0": ACCEPTED},
     "render --env-seed": {"0": ACCEPTED}, "render --episode": {"0": ACCEPTED}, "render --fps": {},
     "reproduce --seeds": {}, "reproduce --first-seed": {"0": ACCEPTED},
     "reproduce --cpus-per-trial": {"huge": 1}, "reproduce --gpus-per-trial": {"0": ACCEPTED, "huge": 1},

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -15,6 +16,8 @@ from safenav.deploy.shield import (
 )
 from safenav.envs import SafeNavVectorEnv, make_config
 from safenav.envs.scripted import go_to_goal
+
+ROOT = Path(__file__).resolve().parents[1]
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -138,3 +141,97 @@ def test_env_shield_in_the_evaluation_protocol() -> None:
     shielded = evaluate(go_to_goal, cfg, episodes=24, shield=env_shield)
     assert shielded["collision_rate"] < plain["collision_rate"]
     assert shielded["success_rate"] >= plain["success_rate"]
+
+
+def test_memory_shield_of_one_image_is_env_shield() -> None:
+    """``MemoryShield(1)`` remembers only the current image: the memoryless shield's actions, to
+    rounding, over episodes that end and restart. Its points go to the world frame and back, so a
+    near-tie between candidates may fall the other way now and then (measured: 1 of 3,840 rows
+    corrected by one and not the other, 7 rows apart by more than 1e-3); a wrong frame or a stale
+    memory would move most corrected rows. Every beam hit counts (``max_static`` 144), so that the
+    nearest-24 cut does not add ties of its own."""
+    from safenav.deploy.shield import MemoryShield
+
+    env = SafeNavVectorEnv(32, config=make_config("easy"), output="torch")
+    cfg = ShieldConfig.for_env(env.cfg, max_static=144)
+    obs, _ = env.reset(seed=3)
+    shield, corrected, flips, apart, rows = MemoryShield(1, cfg), 0, 0, 0, 0
+    for _ in range(120):
+        a = go_to_goal(obs)
+        plain, was = shield_action(obs, a, cfg)
+        mem = shield(env, obs, a)
+        corrected += int(was.sum())
+        flips += int(((mem != a).any(-1) != was).sum())
+        apart += int(((mem - plain).abs().amax(-1) > 1e-3).sum())
+        rows += len(a)
+        obs, *_ = env.step(plain)
+    assert corrected > 200  # the comparison covered corrections, not only untouched actions
+    assert flips <= 0.005 * rows and apart <= 0.01 * corrected, (flips, apart, corrected, rows)
+
+
+def test_memory_shield_remembers_a_pillar_top_the_image_has_lost() -> None:
+    """The lowest beam (-10 deg) sees a pillar's side 2 m ahead, 0.35 m below the UAV; 1.5 m on
+    the image is empty (the top has dropped below the beam). Flying on would graze the top: the
+    memory shield turns, the memoryless one does not; a new episode forgets the hit."""
+    from types import SimpleNamespace
+
+    from safenav.deploy.shield import MemoryShield, env_shield
+
+    cfg = make_config("paper")
+    yaw = torch.tensor([0.7])
+    heading = torch.tensor([[math.cos(0.7), math.sin(0.7), 0.0]])
+    env = SimpleNamespace(cfg=cfg, pos=torch.tensor([[3.0, -2.0, 1.5]]), yaw=yaw,
+                          steps=torch.tensor([0]))  # fmt: skip
+    empty = {"state": torch.zeros(1, 8), "lidar": torch.zeros(1, 4, 36),
+             "dynamic": torch.zeros(1, cfg.num_tracked, 10)}  # fmt: skip
+    seen = {**empty, "lidar": empty["lidar"].clone()}
+    d = 2.0 / math.cos(math.radians(10.0))  # beam length to the side 2 m ahead
+    seen["lidar"][0, 0, 0] = (cfg.lidar_range - d) / cfg.lidar_range  # row 0: -10 deg, column 0
+    ahead = torch.tensor([[1.0, 0.0, 0.0]])
+    shield = MemoryShield(10)
+    shield(env, seen, ahead)
+    env.pos, env.steps = env.pos + 1.5 * heading, torch.tensor([1])
+    assert torch.equal(env_shield(env, empty, ahead), ahead)  # nothing in view
+    turned = shield(env, empty, ahead)
+    assert not torch.equal(turned, ahead)
+    assert float(turned[0, 0]) < 0.9 or abs(float(turned[0, 1])) > 0.2 or float(turned[0, 2]) > 0.1
+    env.steps = torch.tensor([0])  # a new episode in the same place
+    assert torch.equal(shield(env, empty, ahead), ahead)
+
+
+def test_memory_shield_refuses_a_bad_memory() -> None:
+    from safenav.deploy.shield import MemoryShield
+
+    for bad in (0, -1, 101):
+        with pytest.raises(ValueError, match="memory"):
+            MemoryShield(bad)
+
+
+def test_eval_and_render_take_the_shield_memory(capsys, tmp_path, monkeypatch):
+    """``--shield-memory N`` (N > 1) needs ``--shield``: one line, exit 2, nothing flown; with it,
+    ``safenav eval`` flies behind a MemoryShield and its JSON says how much it remembered, and
+    ``safenav render`` hands the memory to the flight."""
+    import json
+
+    from conftest import run_cli
+
+    ckpt = str(ROOT / "checkpoints" / "csac-paper.pt")
+    code, _, err = run_cli(capsys, ["eval", ckpt, "--shield-memory", "5"])
+    assert (
+        code == 2
+        and "--shield-memory 5 needs --shield" in err
+        and len(err.strip().splitlines()) == 1
+    )
+    code, _, err = run_cli(capsys, ["render", ckpt, "--shield-memory", "101", "--shield"])
+    assert code == 2 and "--shield-memory 101" in err
+    out = tmp_path / "eval.json"
+    code, _, _ = run_cli(capsys, ["eval", "--policy", "straight", "--preset", "easy", "--episodes",
+                                  "4", "--shield", "--shield-memory", "5", "--json", str(out)])  # fmt: skip
+    assert code == 0 and json.loads(out.read_text())["shield_memory"] == 5
+    flown = []
+    monkeypatch.setattr("safenav.experiments.flight.render_episode",
+                        lambda *a, **k: flown.append(k["shield_memory"]) or {})  # fmt: skip
+    for argv in (["--shield", "--shield-memory", "8"], ["--shield"], []):
+        code, _, _ = run_cli(capsys, ["render", ckpt, "--out", str(tmp_path / "e.gif"), *argv])
+        assert code == 0
+    assert flown == [8, 1, 0]

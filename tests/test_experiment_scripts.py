@@ -1,7 +1,7 @@
 """The diagnostic scripts of ``experiments/`` that docs/csac.md and docs/csac-v1.md quote run on a
 tiny CSAC run: ``checkpoint_sweep.py`` (with ``--sampled``), ``cost_critic_bias.py``,
 ``flight_grid.py``, ``speed_profile.py``, ``timeout_paths.py`` and ``altitude_profile.py``; and
-``vecenv_overhead.py`` (docs/gymnasium.md) on Pendulum-v1."""
+``vecenv_overhead.py`` (docs/gymnasium.md) on Pendulum-v1; ``shield_memory.py`` (docs/deployment.md)."""
 
 from __future__ import annotations
 
@@ -193,9 +193,16 @@ def test_flight_grid_flies_the_median_seed_of_each_label(tiny_run, tmp_path):
     from PIL import Image
 
     assert Image.open(png).size[0] == 2 * 300  # two episodes, tiles of half the 600 px frame
+    tile_height = Image.open(png).size[1]  # one row
     assert Image.open(gif).n_frames <= 10  # 2 s of flight, every third step, held at the end
     summary = json.loads(png.with_suffix(".json").read_text())
     assert summary["csac"]["seed"] == 2 and set(summary["csac"]) >= {"0", "1"}
+    # --shield-memory: one row per value, named after the shield
+    grid.main([str(out), "--labels", "csac", "--env-seed", "12345", "--episodes", "0",
+               "--shield-memory", "0", "1", "20", "--out", str(png)])  # fmt: skip
+    assert Image.open(png).size == (300, 3 * tile_height)  # three rows of one episode each
+    assert set(json.loads(png.with_suffix(".json").read_text())) == {
+        "csac", "csac + shield", "csac + shield (memory 20)"}  # fmt: skip
     with pytest.raises(SystemExit, match="test or held-out"):
         grid.main([str(out), "--labels", "csac", "--env-seed", "1", "--out", str(png)])
     with pytest.raises(SystemExit, match="no trial of 'sac'"):
@@ -231,3 +238,26 @@ def test_vecenv_overhead_times_the_three_ways(tmp_path, monkeypatch, capsys):
     for way in ("raw", "numpy", "torch"):
         assert len(figures[way]["repeats_ms"]) == 2 and figures[way]["median_ms"] > 0
         assert f"{way}: " in printed
+
+
+def test_shield_memory_flies_each_memory_and_pairs_them_by_policy(tiny_run, tmp_path):
+    """experiments/shield_memory.py: one JSON per (policy, memory, map), reused on a rerun, and the
+    paired differences against no shield and the memoryless shield."""
+    sm = script("shield_memory")
+    policy = tiny_run / "best.pt"
+    rows = sm.run([policy], [0, 1, 3], [(12345, 3)], tmp_path)
+    assert [r["memory"] for r in rows] == [0, 1, 3]
+    files = sorted(f.name for f in tmp_path.glob("*.json"))
+    assert files == [f"best-m{m}-seed12345-3.json" for m in (0, 1, 3)]
+    assert json.loads((tmp_path / files[2]).read_text())["shield_memory"] == 3
+    before = {f: (tmp_path / f).stat().st_mtime_ns for f in files}
+    again = sm.run([policy], [0, 1, 3], [(12345, 3)], tmp_path)  # nothing flown again
+    assert json.dumps(again) == json.dumps(rows)  # (NaN, the time to goal of no arrival, != NaN)
+    assert {f: (tmp_path / f).stat().st_mtime_ns for f in files} == before
+    table = "\n".join(sm.paired_differences(rows, [0, 1, 3]))
+    for m, base in ((1, 0), (3, 0), (3, 1)):
+        d = (
+            rows[[0, 1, 3].index(m)]["collision_rate"]
+            - rows[[0, 1, 3].index(base)]["collision_rate"]
+        )
+        assert f"| {m} | {base} |" in table and f"{d:+.3f}" in table

@@ -16,6 +16,7 @@ def eval_(
     env_seed: int = 1,
     episodes: int = 200,
     shield: bool = False,
+    shield_memory: int = 0,
     json_out: Annotated[Path | None, tyro.conf.arg(name="json")] = None,
     policy: Literal["checkpoint", "scripted", "straight", "border", "random"] = "checkpoint",
     preset: str | None = None,
@@ -36,6 +37,8 @@ def eval_(
             held-out maps, 12345-12348 the validation maps (the title says which).
         episodes: Episodes to fly, all at once (one env each); the protocol flies 200.
         shield: Correct the actions with the velocity-obstacle safety shield.
+        shield_memory: With --shield: its static obstacles are the range images of the last N
+            steps, kept where they were seen (beyond NavRL's shield; 0 or 1: the current image).
         json_out: Also write the metrics here as JSON (no value: null); the directory must exist.
         policy: What flies: the checkpoint, or a baseline without one.
         preset: Env preset (easy, medium, paper); default: the checkpoint's, else paper.
@@ -49,6 +52,7 @@ def eval_(
     from safenav.experiments.flight import resolve_policy, scenario_config
 
     check_eval_args(env_seed, episodes, json_out, device, preset)
+    check_shield_memory(shield, shield_memory)
     fn, cfg = resolve_policy(checkpoint, policy, device)
     cfg = scenario_config(cfg, preset)
     if policy == "checkpoint":
@@ -62,13 +66,15 @@ def eval_(
                                        f"evaluating it on {ENV_ID}")  # fmt: skip
     shield_fn = None
     if shield:
-        from safenav.deploy.shield import env_shield
+        from safenav.deploy.shield import MemoryShield, env_shield
 
-        shield_fn = env_shield
+        shield_fn = MemoryShield(shield_memory) if shield_memory > 1 else env_shield
     result = evaluate(fn, cfg, env_seed=env_seed, episodes=episodes, device=device,
                       shield=shield_fn, progress=True)  # fmt: skip
     result["checkpoint"] = str(checkpoint) if checkpoint else policy
     result["shield"] = shield
+    if shield:
+        result["shield_memory"] = max(shield_memory, 1)
     result["env"] = ENV_ID
     if policy == "checkpoint":
         result["trained_on"] = str(fn.meta.get("env_id", ""))
@@ -90,6 +96,18 @@ def eval_(
         from safenav.common.jsonout import write_json
 
         write_json(json_out, result)  # NaN (no value) as null: valid JSON
+
+
+def check_shield_memory(shield: bool, shield_memory: int) -> None:
+    """``--shield-memory N``: 0-100 range images, and only with ``--shield``."""
+    from safenav.common.checks import in_range
+    from safenav.errors import SafenavError
+
+    in_range("--shield-memory", shield_memory, 0, 100)
+    if shield_memory > 1 and not shield:
+        raise SafenavError(
+            f"--shield-memory {shield_memory} needs --shield (it is the shield's memory)"
+        )
 
 
 def check_eval_args(env_seed: int, episodes: int, json_out: Path | None, device: str,

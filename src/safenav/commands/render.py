@@ -22,6 +22,8 @@ def render(
     episode: int = 0,
     fps: int = 10,
     record: Path | None = None,
+    shield: bool = False,
+    shield_memory: int = 0,
 ) -> None:
     """Render one episode (top-down: pillars, moving obstacles, lidar beams, trail, goal) to a GIF.
 
@@ -40,7 +42,11 @@ def render(
         episode: Which episode of the fixed scenario (start and goal), from 0.
         fps: Frames per second of the GIF (1-100).
         record: Also log the episode here (*.mcap: ROS 2 messages, for Foxglove / ros2 bag).
+        shield: Correct the actions with the velocity-obstacle safety shield.
+        shield_memory: With --shield: its static obstacles are the range images of the last N
+            steps, kept where they were seen (beyond NavRL's shield; 0 or 1: the current image).
     """
+    from safenav.commands.eval import check_shield_memory
     from safenav.common.checks import check_output_file, in_range
     from safenav.common.config import MAX_SEED
     from safenav.envs.config import make_config
@@ -60,8 +66,10 @@ def render(
         from safenav.deploy.mcap_log import check_record_path
 
         check_record_path(record, "--record")
+    check_shield_memory(shield, shield_memory)
     if checkpoint is None and policy == "checkpoint":
         policy = "scripted"
     stats = render_episode(out, checkpoint=checkpoint, policy=policy, preset=preset,
-                           env_seed=env_seed, episode=episode, fps=fps, record=record)  # fmt: skip
+                           env_seed=env_seed, episode=episode, fps=fps, record=record,
+                           shield_memory=max(shield_memory, 1) if shield else 0)  # fmt: skip
     print(f"wrote {out}{f' and {record}' if record is not None else ''}: {stats}")

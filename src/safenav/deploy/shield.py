@@ -331,6 +331,12 @@ def shield_action(
         return _shield_action_compiled(lidar, dyn, action, cfg, spec)
     ranges = cfg.lidar_range * (1.0 - lidar.to(action.dtype))
     rel, valid, planar, dist = _static_hits(ranges, spec, cfg.max_static)
+    return _shield_static_and_tracked(rel, valid, planar, dist, dyn, action, cfg)
+
+
+def _shield_static_and_tracked(rel, valid, planar, dist, dyn, action, cfg: ShieldConfig):
+    """shield_action's search once the static obstacles are chosen: they ``(N, M, 3)`` in the
+    heading frame (with ``valid``, ``planar``, ``dist``) and the tracked ones decoded from ``dyn``."""
     base = cfg.uav_radius + cfg.margin
     vel = torch.zeros_like(rel)
     radius = torch.full_like(rel[..., 0], base)
@@ -375,7 +381,83 @@ def env_shield(env, obs: dict[str, torch.Tensor], action: torch.Tensor) -> torch
     return out
 
 
+class MemoryShield:
+    """The shield with a memory of the range image (beyond NavRL's shield, which sees only the
+    current image): the static obstacles are the beam hits of the last ``memory`` images, the
+    current one included, kept where they were seen in the world and brought into the current
+    heading frame each step.
+
+    Why: a pillar whose top is a little below the UAV is seen only by the lowest beam (−10°), and
+    leaves it as the UAV closes in (at horizontal range ``r`` once the top is more than
+    ``r tan 10°`` below), so a memoryless shield forgets the pillar just before the UAV is over
+    it; most of the policies' collisions with pillars are of this kind (docs/csac-v1.md). The
+    remembered hit lies on the pillar's side within a few decimetres of its top, inside the
+    combined radius of a UAV passing over it.
+
+    It needs the vehicle's position and heading (odometry on board; the env's state in the
+    simulator) and keeps one memory per env: ``shield = MemoryShield(10)`` and then ``action =
+    shield(env, obs, action)`` for a :class:`~safenav.envs.nav.SafeNavVectorEnv` with torch
+    output, as :func:`env_shield` is called. An env whose episode has just begun
+    (``env.steps == 0``) forgets what it saw before. ``memory=1`` is :func:`env_shield` exactly
+    (tested). Static hits beyond the range image's range are not obstacles (as the current
+    image's misses); the nearest ``max_static`` points of all remembered ones are (default: the
+    config's ``max_static`` times ``min(memory, 4)``: one pillar leaves a hit in every image).
+    """
+
+    def __init__(self, memory: int, cfg: ShieldConfig | None = None, max_static: int | None = None):
+        if not 1 <= memory <= 100:
+            raise ValueError(f"memory must lie in [1, 100] range images, got {memory}")
+        self.memory, self.cfg, self.max_static = int(memory), cfg, max_static
+        self._points: torch.Tensor | None = None  # (N, memory, beams, 3) world; FAR = no hit
+        self._slot = 0
+
+    def reset(self) -> None:
+        """Forget everything (a new env, or one reset from outside its own steps)."""
+        self._points, self._slot = None, 0
+
+    def __call__(self, env, obs: dict[str, torch.Tensor], action: torch.Tensor) -> torch.Tensor:
+        from safenav.envs.sensors import beam_hit_points
+
+        cfg = self.cfg or ShieldConfig.for_env(env.cfg)
+        spec = _spec(cfg)
+        lidar = obs["lidar"][:, : len(cfg.lidar_v_angles)]
+        ranges = cfg.lidar_range * (1.0 - lidar.to(action.dtype))
+        pos, yaw = env.pos.to(action.dtype), env.yaw.to(action.dtype)
+        hits = beam_hit_points(ranges, pos, yaw, spec, far=_FAR)  # (N, B, 3) world
+        n, b = hits.shape[:2]
+        if self._points is None or self._points.shape[0] != n or self._points.shape[2] != b:
+            self._points = torch.full((n, self.memory, b, 3), _FAR, dtype=hits.dtype,
+                                      device=hits.device)  # fmt: skip
+            self._slot = 0
+        self._slot = (self._slot + 1) % self.memory
+        self._points[:, self._slot] = hits
+        fresh = env.steps == 0  # episodes that begin now: nothing older belongs to them
+        if bool(fresh.any()):
+            keep = self._points[fresh, self._slot].clone()
+            self._points[fresh] = _FAR
+            self._points[fresh, self._slot] = keep
+        # Into the current heading frame (column 0 of the image along +x).
+        world = self._points.flatten(1, 2) - pos[:, None]
+        c, s = torch.cos(yaw)[:, None], torch.sin(yaw)[:, None]
+        rel = torch.stack([c * world[..., 0] + s * world[..., 1],
+                           -s * world[..., 0] + c * world[..., 1], world[..., 2]], -1)  # fmt: skip
+        _, upward = _beams(spec, hits.device)
+        planar = upward.repeat(self.memory)[None].expand(n, -1)
+        d = rel.norm(dim=-1)
+        k = self.max_static or cfg.max_static * min(self.memory, 4)
+        dsel, idx = nearest(torch.where(d < spec.max_range - 1e-3, d, math.inf), min(k, d.shape[1]))
+        valid = torch.isfinite(dsel)
+        rel = torch.gather(rel, 1, idx[..., None].expand(-1, -1, 3)) * valid[..., None]
+        out, _ = _shield_static_and_tracked(rel, valid, torch.gather(planar, 1, idx), dsel,
+                                            obs["dynamic"], action, cfg)  # fmt: skip
+        return out
+
+
+_FAR = 1.0e4
+
+
 __all__ = [
+    "MemoryShield",
     "ShieldConfig",
     "env_shield",
     "dynamic_obstacles_from_features",

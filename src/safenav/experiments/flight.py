@@ -63,10 +63,11 @@ def render_episode(
     fps: int = 10,
     size: int = 600,
     record: Path | None = None,
+    shield_memory: int = 0,
 ) -> dict:
     """Fly episode ``episode`` of the fixed scenario and write ``out`` (GIF), and ``record``
     (MCAP, stamped with the simulation time) when given; returns its stats."""
-    frames, stats = fly_frames(checkpoint, policy, preset, env_seed, episode, record)
+    frames, stats = fly_frames(checkpoint, policy, preset, env_seed, episode, record, shield_memory)
     Path(out).parent.mkdir(parents=True, exist_ok=True)
     # Hold the last frame for a second so the outcome is visible.
     frames += [frames[-1]] * fps
@@ -82,9 +83,12 @@ def fly_frames(
     env_seed: int = 1,
     episode: int = 0,
     record: Path | None = None,
+    shield_memory: int = 0,
 ) -> tuple[list, dict]:
     """The rendered frames (top-down RGB arrays, the last with the outcome) and the stats of
-    episode ``episode`` of the fixed scenario of map ``env_seed``, flown by the policy."""
+    episode ``episode`` of the fixed scenario of map ``env_seed``, flown by the policy, behind
+    the safety shield when ``shield_memory`` is 1 (the memoryless shield) or more (a
+    :class:`~safenav.deploy.shield.MemoryShield` of that many range images)."""
     fn, cfg = resolve_policy(checkpoint, policy)
     cfg, starts, goals = fixed_test_scenario(scenario_config(cfg, preset), env_seed, episode + 1)
     env = SafeNavVectorEnv(1, config=cfg, output="torch", autoreset_mode="Disabled",
@@ -93,6 +97,11 @@ def fly_frames(
         seed=env_seed, options={"starts": starts[episode:], "goals": goals[episode:]}
     )
     act = (lambda o: fn(o, env)) if getattr(fn, "needs_env", False) else fn
+    if shield_memory > 0:
+        from safenav.deploy.shield import MemoryShield, env_shield
+
+        shield = env_shield if shield_memory == 1 else MemoryShield(shield_memory)
+        act = lambda o, a=act: shield(env, o, a(o))  # noqa: E731
     frames = [env.render()]
     recorder = None
     if record is not None:

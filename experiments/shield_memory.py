@@ -1,0 +1,133 @@
+"""The memory shield (``safenav eval --shield --shield-memory N``) on trained policies: success and
+collision with no shield, the memoryless shield (N = 1) and shields that remember the range
+images of the last N steps, on the validation maps (the choice of N is made there), then on the
+test scenario and the held-out maps for the N chosen.
+
+    .venv/bin/python experiments/shield_memory.py --policies checkpoints/csac.pt ... \\
+        --memory 0 1 5 10 20                       # validation: maps 12345-12348 x 100 episodes
+    .venv/bin/python experiments/shield_memory.py --policies ... --memory 0 1 10 --maps test
+    .venv/bin/python experiments/shield_memory.py --policies ... --memory 0 1 10 --maps heldout
+
+``--memory 0`` is no shield. One JSON per (policy, N, map) in OUT (a rerun skips those that
+exist), then a table of the mean over maps per (policy, N) on stdout and in OUT/table.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import torch
+
+from safenav.algos.policy import load_policy
+from safenav.common.jsonout import write_json
+from safenav.deploy.shield import MemoryShield, env_shield
+from safenav.experiments.evaluate import evaluate
+from safenav.experiments.selection import HELDOUT_SEEDS, TEST_SEED, VALIDATION_SEEDS
+
+KEYS = ("success_rate", "collision_rate", "timeout_rate", "collision_static_rate",
+        "collision_dynamic_rate", "mean_speed", "mean_time_to_goal")  # fmt: skip
+
+
+def label(path: Path) -> str:
+    """A policy's short name: the file's stem, or for RUN/policy.pt the run's folder names."""
+    return "-".join(path.parent.parts[-2:]) if path.stem == "policy" else path.stem
+
+
+def _mean(values: list) -> float:
+    """The mean of the values that exist (a time to goal is null where no episode arrived)."""
+    values = [v for v in values if v is not None]
+    return sum(values) / len(values) if values else float("nan")
+
+
+def run(
+    policies: list[Path], memories: list[int], maps: list[tuple[int, int]], out: Path
+) -> list[dict]:
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for path in policies:
+        fn = load_policy(path)
+        cfg = fn.env_config()
+        for m in memories:
+            per_map = []
+            for seed, episodes in maps:
+                f = out / f"{label(path)}-m{m}-seed{seed}-{episodes}.json"
+                if not f.exists():
+                    shield = None if m == 0 else env_shield if m == 1 else MemoryShield(m)
+                    r = evaluate(fn, cfg, env_seed=seed, episodes=episodes, shield=shield)
+                    r.pop("per_episode", None)
+                    write_json(f, {**r, "policy": str(path), "shield_memory": m})
+                per_map.append(json.loads(f.read_text()))
+            mean = {k: _mean([r[k] for r in per_map]) for k in KEYS}
+            rows.append({"policy": label(path), "memory": m, **mean})
+            print(f"{label(path):28s} m={m:3d}  " + "  ".join(f"{k.split('_rate')[0]} {mean[k]:.3f}"
+                  for k in KEYS[:5]), flush=True)  # fmt: skip
+    return rows
+
+
+def paired_differences(rows: list[dict], memories: list[int]) -> list[str]:
+    """Per memory N, its success and collision minus those without the shield (0) and behind the
+    memoryless shield (1), paired by policy: the mean and a 95 % percentile bootstrap CI over the
+    policies (scipy), a table in markdown."""
+    from scipy.stats import bootstrap
+
+    out = ["Paired by policy (mean difference, 95 % bootstrap CI over the policies):", "",
+           "| memory N | against | success | collision |", "|---:|---:|---|---|"]  # fmt: skip
+    by = {(r["policy"], r["memory"]): r for r in rows}
+    policies = list(dict.fromkeys(r["policy"] for r in rows))
+    for base in (b for b in (0, 1) if b in memories):
+        for m in (m for m in memories if m > base):
+            cells = []
+            for k in ("success_rate", "collision_rate"):
+                d = [by[p, m][k] - by[p, base][k] for p in policies]
+                mean = sum(d) / len(d)
+                if len(d) > 1 and len(set(d)) > 1:
+                    ci = bootstrap((d,), lambda x: x.mean(), method="percentile", n_resamples=10000,
+                                   random_state=0).confidence_interval  # fmt: skip
+                    cells.append(f"{mean:+.3f} ({ci.low:+.3f} to {ci.high:+.3f})")
+                else:
+                    cells.append(f"{mean:+.3f}")
+            out.append(f"| {m} | {base} | " + " | ".join(cells) + " |")
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--policies", nargs="+", type=Path, required=True)
+    ap.add_argument("--memory", nargs="+", type=int, default=[0, 1, 5, 10, 20])
+    ap.add_argument(
+        "--maps",
+        choices=("validation", "test", "heldout"),
+        default="validation",
+        help="validation: maps 12345-12348 x 100 episodes; test: env seed 1 x 200; "
+        "heldout: seeds 2-6 x 200",
+    )
+    ap.add_argument("--out", type=Path, default=Path("results/shield-memory"))
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    maps = {
+        "validation": [(s, 100) for s in VALIDATION_SEEDS],
+        "test": [(TEST_SEED, 200)],
+        "heldout": [(s, 200) for s in HELDOUT_SEEDS],
+    }[args.maps]
+    rows = run(args.policies, args.memory, maps, args.out)
+    lines = [f"Mean over the {args.maps} maps ({', '.join(f'seed {s} x {e}' for s, e in maps)}):", "",
+             "| policy | shield memory (0: none) | " + " | ".join(KEYS) + " |",
+             "|---|---:|" + "---:|" * len(KEYS)]  # fmt: skip
+    lines += [f"| {r['policy']} | {r['memory']} | " + " | ".join(f"{r[k]:.3f}" for k in KEYS) + " |"
+              for r in rows]  # fmt: skip
+    # the choice of N is made on the validation maps' mean over the policies
+    lines += ["", "Mean over the policies:", "",
+              "| shield memory (0: none) | " + " | ".join(KEYS[:5]) + " |", "|---:|" + "---:|" * 5]  # fmt: skip
+    for m in args.memory:
+        sel = [r for r in rows if r["memory"] == m]
+        means = (sum(r[k] for r in sel) / len(sel) for k in KEYS[:5])
+        lines.append(f"| {m} | " + " | ".join(f"{v:.3f}" for v in means) + " |")
+    lines += ["", *paired_differences(rows, args.memory)]
+    (args.out / f"table-{args.maps}.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
