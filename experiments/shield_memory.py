@@ -22,7 +22,7 @@ import torch
 
 from safenav.algos.policy import load_policy
 from safenav.common.jsonout import write_json
-from safenav.deploy.shield import MemoryShield, env_shield
+from safenav.deploy.shield import shield_for_memory
 from safenav.experiments.evaluate import evaluate
 from safenav.experiments.selection import HELDOUT_SEEDS, TEST_SEED, VALIDATION_SEEDS
 
@@ -54,8 +54,9 @@ def run(
             for seed, episodes in maps:
                 f = out / f"{label(path)}-m{m}-seed{seed}-{episodes}.json"
                 if not f.exists():
-                    shield = None if m == 0 else env_shield if m == 1 else MemoryShield(m)
-                    r = evaluate(fn, cfg, env_seed=seed, episodes=episodes, shield=shield)
+                    r = evaluate(
+                        fn, cfg, env_seed=seed, episodes=episodes, shield=shield_for_memory(m)
+                    )
                     r.pop("per_episode", None)
                     write_json(f, {**r, "policy": str(path), "shield_memory": m})
                 per_map.append(json.loads(f.read_text()))
@@ -122,7 +123,7 @@ def main() -> None:
               "| shield memory (0: none) | " + " | ".join(KEYS[:5]) + " |", "|---:|" + "---:|" * 5]  # fmt: skip
     for m in args.memory:
         sel = [r for r in rows if r["memory"] == m]
-        means = (sum(r[k] for r in sel) / len(sel) for k in KEYS[:5])
+        means = (_mean([r[k] for r in sel]) for k in KEYS[:5])
         lines.append(f"| {m} | " + " | ".join(f"{v:.3f}" for v in means) + " |")
     lines += ["", *paired_differences(rows, args.memory)]
     (args.out / f"table-{args.maps}.md").write_text("\n".join(lines) + "\n")

@@ -235,3 +235,12 @@ def test_eval_and_render_take_the_shield_memory(capsys, tmp_path, monkeypatch):
         code, _, _ = run_cli(capsys, ["render", ckpt, "--out", str(tmp_path / "e.gif"), *argv])
         assert code == 0
     assert flown == [8, 1, 0]
+
+
+def test_shield_for_memory_names_the_three_settings() -> None:
+    from safenav.deploy.shield import MemoryShield, env_shield, shield_for_memory
+
+    assert shield_for_memory(0) is None and shield_for_memory(1) is env_shield
+    five = shield_for_memory(5)
+    assert isinstance(five, MemoryShield) and five.memory == 5
+    assert shield_for_memory(5) is not five  # a fresh memory for each flight

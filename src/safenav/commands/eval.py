@@ -52,7 +52,7 @@ def eval_(
     from safenav.experiments.flight import resolve_policy, scenario_config
 
     check_eval_args(env_seed, episodes, json_out, device, preset)
-    check_shield_memory(shield, shield_memory)
+    memory = check_shield_memory(shield, shield_memory)
     fn, cfg = resolve_policy(checkpoint, policy, device)
     cfg = scenario_config(cfg, preset)
     if policy == "checkpoint":
@@ -65,16 +65,16 @@ def eval_(
             Console(stderr=True).print(f"note: {checkpoint} was trained on {trained_on}; "
                                        f"evaluating it on {ENV_ID}")  # fmt: skip
     shield_fn = None
-    if shield:
-        from safenav.deploy.shield import MemoryShield, env_shield
+    if memory:  # the shield's module loads Numba (~0.35 s): only when it flies
+        from safenav.deploy.shield import shield_for_memory
 
-        shield_fn = MemoryShield(shield_memory) if shield_memory > 1 else env_shield
+        shield_fn = shield_for_memory(memory)
     result = evaluate(fn, cfg, env_seed=env_seed, episodes=episodes, device=device,
                       shield=shield_fn, progress=True)  # fmt: skip
     result["checkpoint"] = str(checkpoint) if checkpoint else policy
     result["shield"] = shield
     if shield:
-        result["shield_memory"] = max(shield_memory, 1)
+        result["shield_memory"] = memory
     result["env"] = ENV_ID
     if policy == "checkpoint":
         result["trained_on"] = str(fn.meta.get("env_id", ""))
@@ -98,8 +98,9 @@ def eval_(
         write_json(json_out, result)  # NaN (no value) as null: valid JSON
 
 
-def check_shield_memory(shield: bool, shield_memory: int) -> None:
-    """``--shield-memory N``: 0-100 range images, and only with ``--shield``."""
+def check_shield_memory(shield: bool, shield_memory: int) -> int:
+    """``--shield-memory N``: 0-100 range images, and only with ``--shield``. Returns the memory
+    the flight gets: 0 without the shield, 1 for the memoryless shield, else N."""
     from safenav.common.checks import in_range
     from safenav.errors import SafenavError
 
@@ -108,6 +109,7 @@ def check_shield_memory(shield: bool, shield_memory: int) -> None:
         raise SafenavError(
             f"--shield-memory {shield_memory} needs --shield (it is the shield's memory)"
         )
+    return max(shield_memory, 1) if shield else 0
 
 
 def check_eval_args(env_seed: int, episodes: int, json_out: Path | None, device: str,

@@ -66,10 +66,10 @@ def render(
         from safenav.deploy.mcap_log import check_record_path
 
         check_record_path(record, "--record")
-    check_shield_memory(shield, shield_memory)
+    memory = check_shield_memory(shield, shield_memory)
     if checkpoint is None and policy == "checkpoint":
         policy = "scripted"
     stats = render_episode(out, checkpoint=checkpoint, policy=policy, preset=preset,
                            env_seed=env_seed, episode=episode, fps=fps, record=record,
-                           shield_memory=max(shield_memory, 1) if shield else 0)  # fmt: skip
+                           shield_memory=memory)  # fmt: skip
     print(f"wrote {out}{f' and {record}' if record is not None else ''}: {stats}")

@@ -398,8 +398,8 @@ class MemoryShield:
     simulator) and keeps one memory per env: ``shield = MemoryShield(10)`` and then ``action =
     shield(env, obs, action)`` for a :class:`~safenav.envs.nav.SafeNavVectorEnv` with torch
     output, as :func:`env_shield` is called. An env whose episode has just begun
-    (``env.steps == 0``) forgets what it saw before. ``memory=1`` is :func:`env_shield` exactly
-    (tested). Static hits beyond the range image's range are not obstacles (as the current
+    (``env.steps == 0``) forgets what it saw before. ``memory=1`` gives :func:`env_shield`'s
+    actions to rounding (its points go to the world frame and back; tested). Static hits beyond the range image's range are not obstacles (as the current
     image's misses); the nearest ``max_static`` points of all remembered ones are (default: the
     config's ``max_static`` times ``min(memory, 4)``: one pillar leaves a hit in every image).
     """
@@ -456,6 +456,14 @@ class MemoryShield:
 _FAR = 1.0e4
 
 
+def shield_for_memory(memory: int):
+    """The evaluation shield of a memory setting (``--shield-memory``): ``None`` for 0 (no
+    shield), :func:`env_shield` for 1, a fresh :class:`MemoryShield` of ``memory`` images above."""
+    if memory <= 0:
+        return None
+    return env_shield if memory == 1 else MemoryShield(memory)
+
+
 __all__ = [
     "MemoryShield",
     "ShieldConfig",
@@ -463,5 +471,6 @@ __all__ = [
     "dynamic_obstacles_from_features",
     "shield_action",
     "static_obstacles_from_ranges",
+    "shield_for_memory",
     "velocity_obstacle_shield",
 ]

@@ -97,10 +97,10 @@ def fly_frames(
         seed=env_seed, options={"starts": starts[episode:], "goals": goals[episode:]}
     )
     act = (lambda o: fn(o, env)) if getattr(fn, "needs_env", False) else fn
-    if shield_memory > 0:
-        from safenav.deploy.shield import MemoryShield, env_shield
+    if shield_memory > 0:  # the shield's module loads Numba: only when it flies
+        from safenav.deploy.shield import shield_for_memory
 
-        shield = env_shield if shield_memory == 1 else MemoryShield(shield_memory)
+        shield = shield_for_memory(shield_memory)
         act = lambda o, a=act: shield(env, o, a(o))  # noqa: E731
     frames = [env.render()]
     recorder = None
