@@ -250,6 +250,7 @@ VERDICTS: dict[str, dict[str, int]] = {
     "eval --env-seed": {"0": ACCEPTED}, "eval --episodes": MEMORY,
     "eval --shield-memory": {"0": ACCEPTED},  # 0-100, and above 1 only with --shield
     "render --shield-memory": {"0": ACCEPTED},
+    "fly --shield-memory": {"0": ACCEPTED},
     "render --env-seed": {"0": ACCEPTED}, "render --episode": {"0": ACCEPTED}, "render --fps": {},
     "reproduce --seeds": {}, "reproduce --first-seed": {"0": ACCEPTED},
     "reproduce --cpus-per-trial": {"huge": 1}, "reproduce --gpus-per-trial": {"0": ACCEPTED, "huge": 1},

@@ -10,7 +10,7 @@ run (fixed seeds; hypothesis derandomized, with a fixed number of examples):
 
 | target | garbage | cases |
 |---|---|---|
-| ``OnboardRuntime`` (hypothesis) | sequences of 10-30 updates: state, depth images, point clouds, obstacle tracks and goals that are NaN / Inf / huge, empty, wrong-shaped (1-D or 3-D depth, 2x2 ``R``, ``(P, 4)`` clouds, 2-vectors), wrong-dtyped (int of NaN, float16, complex, object, strings); stamps NaN / Inf / future / backwards / duplicated / stale; garbage policy outputs (NaN, 1e30, wrong shapes, None); shield on and off | 120 sequences (~2,300 updates) |
+| ``OnboardRuntime`` (hypothesis) | sequences of 10-30 updates: state, depth images, point clouds, obstacle tracks and goals that are NaN / Inf / huge, empty, wrong-shaped (1-D or 3-D depth, 2x2 ``R``, ``(P, 4)`` clouds, 2-vectors), wrong-dtyped (int of NaN, float16, complex, object, strings); stamps NaN / Inf / future / backwards / duplicated / stale; garbage policy outputs (NaN, 1e30, wrong shapes, None); no shield, the shield, the memory shield | 120 sequences (~2,300 updates) |
 | ``OnboardRuntime`` (seeded) | the same generator, each on the Numba kernels and on the batched NumPy / torch paths | 40 x 60 = 2,400 updates per path |
 | ``OnboardRuntime`` + shield | tracks next to the vehicle with huge finite heights, widths, velocities; per path | 500 steps per path |
 | ``OnboardRuntime``, threads | 3 sensor threads x 200 garbage updates against >= 300 control steps | 600 updates |
@@ -311,11 +311,14 @@ class Stats:
     """Hover reasons seen, by their first two words ("map stamp", "stale map", ...)."""
 
 
-def run_sequence(shield: bool, require_tracker: bool, policy_seed: int, ops, stats: Stats) -> None:
-    """A ready runtime (good state, goal, map, tracker), then ``ops`` ``(kind, seed, good,
-    stamp_offset)``, one control step after each; every setpoint is checked."""
+def run_sequence(shield: int, require_tracker: bool, policy_seed: int, ops, stats: Stats) -> None:
+    """A ready runtime (good state, goal, map, tracker; ``shield``: 0 none, 1 the shield, N the
+    memory shield of N images), then ``ops`` ``(kind, seed, good, stamp_offset)``, one control
+    step after each; every setpoint is checked."""
     config = RuntimeConfig(
-        require_tracker=require_tracker, shield=ShieldConfig.for_env(CFG) if shield else None
+        require_tracker=require_tracker,
+        shield=ShieldConfig.for_env(CFG) if shield else None,
+        shield_memory=max(1, shield),
     )
     clock = [100.0]
     rt = OnboardRuntime(Garbage(policy_seed, 0.7).policy(), CFG, config, clock=lambda: clock[0])
@@ -382,7 +385,7 @@ ops_strategy = st.tuples(
 
 @settings(max_examples=RUNTIME_SEQUENCES, deadline=None, derandomize=True,
           suppress_health_check=[HealthCheck.too_slow])  # fmt: skip
-@given(shield=st.booleans(), require_tracker=st.booleans(), policy_seed=st.integers(0, 2**32 - 1),
+@given(shield=st.sampled_from([0, 1, 5]), require_tracker=st.booleans(), policy_seed=st.integers(0, 2**32 - 1),
        ops=st.lists(ops_strategy, min_size=10, max_size=30))  # fmt: skip
 def test_runtime_sequences_give_bounded_setpoints(
     shield, require_tracker, policy_seed, ops
@@ -398,7 +401,7 @@ def test_runtime_seeded_garbage(kernel_path) -> None:
         ops = [(KINDS[int(rng.integers(len(KINDS)))], int(rng.integers(2**32)), bool(rng.random() < 0.7),
                 None if rng.random() < 0.6 else STAMP_OFFSETS[int(rng.integers(len(STAMP_OFFSETS)))])
                for _ in range(SEEDED_UPDATES)]  # fmt: skip
-        run_sequence(i % 2 == 0, i % 4 < 2, int(rng.integers(2**32)), ops, stats)
+        run_sequence((0, 1, 5)[i % 3], i % 4 < 2, int(rng.integers(2**32)), ops, stats)
     assert stats.updates == SEEDED_SEQUENCES * SEEDED_UPDATES
     # The fuzz reached both paths, and many guards.
     assert stats.flew > 0.1 * stats.steps and stats.hovered > 0.3 * stats.steps, stats
@@ -413,10 +416,10 @@ def test_runtime_absurd_but_finite_tracks_with_the_shield(kernel_path) -> None:
     shield's arithmetic overflows; the setpoint must not."""
     rng = np.random.default_rng(5)
     huge = (1e38, -1e38, 3e38, 1e30, 1e20, -1e20, 1e10)
-    for _ in range(SHIELD_CASES):
+    for case in range(SHIELD_CASES):
         action = np.clip(rng.normal(size=(1, 3)), -1, 1).astype(np.float32)
-        rt = OnboardRuntime(lambda s, l, d, a=action: a, CFG, RuntimeConfig(shield=ShieldConfig.for_env(CFG)),  # noqa: E741
-                            clock=lambda: 100.0)  # fmt: skip
+        config = RuntimeConfig(shield=ShieldConfig.for_env(CFG), shield_memory=1 + 4 * (case % 2))
+        rt = OnboardRuntime(lambda s, l, d, a=action: a, CFG, config, clock=lambda: 100.0)  # noqa: E741
         rt.update_state([0.0, 0.0, 1.5], [0.0, 0.0, 0.0])
         rt.set_goal([5.0, 0.0, 1.5])
         rt.update_points(np.zeros((0, 3)))

@@ -283,3 +283,83 @@ def test_perception_frames_round_trip_and_reject_garbage() -> None:
     for bad in (b"", b"\x00\x00\x00\x09{}", b"\x00\x00\x00\x02{}", b"\x00\x00\x00\x02{]xx"):
         with pytest.raises(ValueError):
             decode_frame(bad)
+
+
+def test_runtime_memory_shield_is_the_simulators() -> None:
+    """Given the env's map and the env's state each step, the runtime's memory shield (its own
+    range images, placed by odometry; a new goal forgets them) corrects the actions as
+    ``MemoryShield`` does on the env, over episodes that end and restart. Positions go to the
+    world frame and back, so a near-tie may fall the other way now and then (as in
+    ``test_memory_shield_of_one_image_is_env_shield``)."""
+    from safenav.deploy.shield import MemoryShield, ShieldConfig
+    from safenav.envs.scripted import go_to_goal
+
+    cfg = make_config("easy", num_dynamic=0)  # static obstacles: the range image is exact
+    env = SafeNavVectorEnv(4, config=cfg, output="torch")
+    obs, _ = env.reset(seed=7)
+    shield_cfg = ShieldConfig.for_env(cfg)
+    sim = MemoryShield(10, shield_cfg)
+    wanted = [np.zeros((1, 3), np.float32)]
+    runtimes = [
+        OnboardRuntime(lambda s, l, d: wanted[0], cfg, clock=lambda: 100.0,  # noqa: E741
+                       config=RuntimeConfig(shield=shield_cfg, shield_memory=10, require_tracker=False))
+        for _ in range(4)
+    ]  # fmt: skip
+    g2 = env.grid.size**2
+    rows = corrected = flips = apart = 0
+    for _ in range(100):
+        a = go_to_goal(obs).clamp(-1.0, 1.0)
+        shielded = sim(env, obs, a)
+        for i, rt in enumerate(runtimes):
+            w = int(env.world_idx[i])
+            rt.map.cast_map = env.heights[w * g2 : (w + 1) * g2].clone()
+            rt.update_points(np.zeros((0, 3)))
+            rt.update_state(env.pos[i].numpy(), env.vel[i].numpy())
+            if int(env.steps[i]) == 0:
+                rt.set_goal(env.goal[i].numpy(), start=env.start[i].numpy())
+            wanted[0] = a[i : i + 1].numpy()
+            sp = rt.step()
+            assert not sp.hover, sp.reason
+            sim_corrected = bool((shielded[i] != a[i]).any())
+            corrected += int(sim_corrected)
+            flips += int(sp.shielded != sim_corrected)
+            apart += int(np.abs(sp.action - shielded[i].numpy()).max() > 1e-3)
+            rows += 1
+        obs, *_ = env.step(shielded)
+    assert corrected > 40  # the comparison covered corrections, not only untouched actions
+    assert flips <= 0.01 * rows and apart <= 0.02 * rows, (flips, apart, corrected, rows)
+
+
+def test_runtime_memory_shield_remembers_a_pillar_until_a_new_goal() -> None:
+    """A pillar 2 m ahead, then gone from the range image (as a low pillar's top leaves the lowest
+    beam): the memory shield still turns away from where it was seen, the memoryless one flies
+    on; a new goal forgets it."""
+    from safenav.deploy.shield import ShieldConfig
+
+    cfg = make_config("easy")
+    shield = ShieldConfig.for_env(cfg)
+    side = (-0.2, 0.0, 0.2)
+    pillar = np.array(
+        [[2.0 + dx, dy, z] for dx in side for dy in side for z in np.arange(0.1, 4.0, 0.1)]
+    )
+    for memory, remembers in ((1, False), (20, True)):
+        rt, _ = _ready_runtime(const_policy((1.0, 0.0, 0.0)), shield=shield, shield_memory=memory)
+        rt.update_points(pillar)
+        assert rt.step().shielded
+        rt.map.clear()
+        rt.update_points(np.zeros((0, 3)))
+        assert rt.step().shielded is remembers, memory
+        rt.set_goal([5.0, 0.0, 1.5])
+        assert not rt.step().shielded
+
+
+def test_runtime_refuses_a_shield_memory_without_a_shield() -> None:
+    from safenav.deploy.shield import ShieldConfig
+
+    cfg = make_config("easy")
+    with pytest.raises(ValueError, match="shield_memory"):
+        OnboardRuntime(const_policy(), cfg, RuntimeConfig(shield_memory=20))
+    with pytest.raises(ValueError, match="shield_memory"):
+        OnboardRuntime(
+            const_policy(), cfg, RuntimeConfig(shield=ShieldConfig.for_env(cfg), shield_memory=0)
+        )

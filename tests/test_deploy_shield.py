@@ -244,3 +244,37 @@ def test_shield_for_memory_names_the_three_settings() -> None:
     five = shield_for_memory(5)
     assert isinstance(five, MemoryShield) and five.memory == 5
     assert shield_for_memory(5) is not five  # a fresh memory for each flight
+
+
+def test_fly_takes_the_shield_memory_in_env_steps(capsys, tmp_path, monkeypatch) -> None:
+    """``safenav fly --shield --shield-memory N`` hands N range images to the flight, which keeps
+    N env steps' worth (N x 0.1 s) of setpoints: 2 s is 40 setpoints at 20 Hz; more than 100
+    setpoints is one line, exit 2. Without --shield, N > 1 is refused before anything flies."""
+    from conftest import run_cli
+    from safenav.deploy.runtime import RuntimeConfig
+    from safenav.errors import SafenavError
+
+    cfg = make_config("paper")
+    assert RuntimeConfig.for_flight(cfg, 0, 20.0).shield is None
+    one = RuntimeConfig.for_flight(cfg, 1, 20.0)
+    assert one.shield is not None and one.shield_memory == 1
+    assert RuntimeConfig.for_flight(cfg, 20, 20.0).shield_memory == 40
+    assert RuntimeConfig.for_flight(cfg, 20, 10.0).shield_memory == 20
+    with pytest.raises(SafenavError, match="more than 100"):
+        RuntimeConfig.for_flight(cfg, 20, 60.0)
+
+    demo = ["fly", "--demo", "--checkpoint", str(ROOT / "checkpoints" / "csac.pt"),
+            "--gif", str(tmp_path / "f.gif"), "--connect", "udpin://127.0.0.1:0"]  # fmt: skip
+    code, _, err = run_cli(capsys, [*demo, "--shield-memory", "20"])
+    assert code == 2 and "--shield-memory 20 needs --shield" in err
+
+    flown = []
+
+    def fake_demo(**kw):
+        flown.append((kw["shield"], kw["shield_memory"]))
+        raise SystemExit(0)
+
+    monkeypatch.setattr("safenav.deploy.demo.run_demo", fake_demo)
+    for argv in (["--shield", "--shield-memory", "20"], ["--shield"], []):
+        assert run_cli(capsys, [*demo, *argv])[0] == 0
+    assert flown == [(True, 20), (True, 1), (False, 0)]

@@ -90,6 +90,7 @@ def run_demo(
     episode: int = 0,
     rate: float = 20.0,
     shield: bool = False,
+    shield_memory: int | None = None,
     gif: Path | None = Path("flight.gif"),
     max_flight_time: float = 120.0,
     world_seed: int = 1,
@@ -97,12 +98,13 @@ def run_demo(
 ) -> dict[str, Any]:
     """Fly test episode ``episode`` of ``preset`` (world ``world_seed``) against a simulated PX4;
     ``record``: write the flight's MCAP log there (:mod:`safenav.deploy.mcap_log`, with the
-    simulator's pillars in ``/safenav/map``)."""
+    simulator's pillars in ``/safenav/map``); ``shield_memory``: the shield's memory in range
+    images (default: 1 with ``shield``, the memoryless shield; see ``RuntimeConfig.for_flight``)."""
     from safenav.deploy.export import OnnxPolicy, load_sidecar
     from safenav.deploy.fly import FlightAborted, FlightController, FlyConfig, MavsdkLink
     from safenav.deploy.runtime import OnboardRuntime, RuntimeConfig
-    from safenav.deploy.shield import ShieldConfig
 
+    memory = max(1, shield_memory or 1) if shield else 0  # range images; 0: no shield
     cfg = make_config(preset)
     starts, goals = fixed_scenario(cfg, world_seed, episode + 1)
     start, goal = starts[episode].numpy().astype(float), goals[episode].numpy().astype(float)
@@ -124,8 +126,9 @@ def run_demo(
             str(pport),
             "--quiet",
         ):
-            runtime = OnboardRuntime(OnnxPolicy(onnx), pcfg,
-                                     RuntimeConfig(shield=ShieldConfig.for_env(pcfg) if shield else None))  # fmt: skip
+            runtime = OnboardRuntime(
+                OnnxPolicy(onnx), pcfg, RuntimeConfig.for_flight(pcfg, memory, rate)
+            )
             link = MavsdkLink(f"udpin://127.0.0.1:{port}")
             recorder = None
             if record is not None:
@@ -133,7 +136,7 @@ def run_demo(
 
                 recorder = McapRecorder(record, Scene.for_env(cfg, goal, start, world=generate_world(cfg, world_seed)),
                                         metadata={"verb": "fly --demo", "preset": preset, "world_seed": world_seed,
-                                                  "episode": episode, "rate_hz": rate, "shield": shield,
+                                                  "episode": episode, "rate_hz": rate, "shield": shield, "shield_memory": memory,
                                                   "policy": str(policy) if policy else ("scripted" if scripted else str(checkpoint))})  # fmt: skip
             ctl = FlightController(runtime, link, FlyConfig(
                 goal=tuple(goal), rate_hz=rate, takeoff_altitude=max(0.5, float(start[2])),
@@ -171,7 +174,7 @@ def run_demo(
         "scenario": {"preset": preset, "world_seed": world_seed, "episode": episode,
                      "start": [round(x, 3) for x in start], "goal": [round(x, 3) for x in goal]},
         "policy": str(policy) if policy else ("scripted" if scripted else str(checkpoint)),
-        "shield": shield, "rate_hz": rate, "wall_time_s": round(wall, 1),
+        "shield": shield, "shield_memory": memory, "rate_hz": rate, "wall_time_s": round(wall, 1),
         **{k: v for k, v in flight.summary().items() if k not in ("reached_goal", "flight_time_s")},
     }  # fmt: skip
     if gif is not None and ctl.snapshots:

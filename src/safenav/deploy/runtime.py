@@ -42,7 +42,7 @@ from safenav.deploy.export import check_deployable
 from safenav.deploy.frames import enu_to_ned, goal_frame_yaw, yaw_enu_to_ned
 from safenav.deploy.mapping import HeightMap
 from safenav.deploy.perception_link import DepthImage, PerceptionFrame, TrackedObstacle
-from safenav.deploy.shield import ShieldConfig, shield_action
+from safenav.deploy.shield import MemoryShield, ShieldConfig, shield_action
 from safenav.envs.config import EnvConfig
 from safenav.envs.nav import DIST_SCALE, Z_SCALE
 from safenav.envs.sensors import RangeImageSpec, dynamic_obstacle_features, raycast_height_map
@@ -82,9 +82,30 @@ class RuntimeConfig:
     standing cylinders (the env has 1 m cuboids and 5 m cylinders), unless the tracker says."""
     shield: ShieldConfig | None = None
     """Velocity-obstacle shield applied to the policy's action (None: off)."""
+    shield_memory: int = 1
+    """Range images the shield takes its static obstacles from, one per control step: 1 the
+    current one (NavRL's shield), N > 1 the beam hits of the last N, kept in the world frame by
+    odometry (:class:`~safenav.deploy.shield.MemoryShield`; a new goal forgets them). ``safenav
+    fly --shield-memory`` counts the env's 10 Hz images and converts to the setpoint rate."""
     geofence: bool = True
     """Mark the env's arena border as a wall in the onboard map, as the simulator does (SafeNav-v1
     trains policies in a closed arena): the flight area is a geofence the policy sees coming."""
+
+    @classmethod
+    def for_flight(cls, env_config: EnvConfig, shield_memory: int, rate_hz: float) -> RuntimeConfig:
+        """The runtime of ``safenav fly``: no shield (``shield_memory`` 0), the shield (1), or the
+        memory shield of the last ``shield_memory`` range images at the env's control rate (10 Hz:
+        20 is 2 s, as ``safenav eval --shield-memory 20``), i.e. that many seconds of setpoints at
+        ``rate_hz``. :class:`~safenav.errors.SafenavError` if that is more than 100 setpoints."""
+        from safenav.errors import SafenavError
+
+        if shield_memory <= 0:
+            return cls()
+        steps = 1 if shield_memory == 1 else max(2, round(shield_memory * rate_hz * env_config.dt))
+        if steps > 100:
+            raise SafenavError(f"--shield-memory {shield_memory}: the range images of {shield_memory} range images ({shield_memory * env_config.dt:g} s) "
+                             f"at --rate {rate_hz:g} Hz are {steps} setpoints, more than 100")  # fmt: skip
+        return cls(shield=ShieldConfig.for_env(env_config), shield_memory=steps)
 
 
 @dataclass
@@ -132,6 +153,14 @@ class OnboardRuntime:
         self.policy = policy
         self.cfg = env_config
         self.config = config or RuntimeConfig()
+        memory = self.config.shield_memory
+        if not 1 <= memory <= 100 or (memory > 1 and self.config.shield is None):
+            raise ValueError(
+                f"shield_memory {memory}: 1-100 range images, above 1 only with a shield"
+            )
+        self._memory_shield = (MemoryShield(memory, self.config.shield)
+                               if memory > 1 and self.config.shield is not None else None)  # fmt: skip
+        self._episode_start = True  # the memory shield's next image begins a new memory
         self.clock = clock
         self.spec = RangeImageSpec.for_config(env_config)
         self.map = HeightMap(
@@ -170,6 +199,7 @@ class OnboardRuntime:
                 start = self._pos
             self._goal = goal
             self._yaw = goal_frame_yaw(start, goal)
+            self._episode_start = True  # a new flight: what the memory shield saw is not on it
 
     @property
     def goal(self) -> np.ndarray | None:
@@ -379,7 +409,14 @@ class OnboardRuntime:
             action = torch.from_numpy(np.clip(raw, -1.0, 1.0))
             shielded = False
             if self.config.shield is not None:
-                action, corrected = shield_action(obs, action, self.config.shield)
+                if self._memory_shield is not None:  # the odometry places the remembered hits
+                    pos = torch.tensor(self._pos, dtype=torch.float32)[None]
+                    yaw = torch.tensor([self._yaw], dtype=torch.float32)
+                    fresh = torch.tensor([self._episode_start])
+                    action, corrected = self._memory_shield.apply(obs, action, pos, yaw, fresh)
+                    self._episode_start = False
+                else:
+                    action, corrected = shield_action(obs, action, self.config.shield)
                 shielded = bool(corrected[0])
                 if not torch.isfinite(action).all():  # absurd (finite) tracker data can do this
                     return self._hover("shielded action not finite")

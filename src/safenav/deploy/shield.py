@@ -398,7 +398,8 @@ class MemoryShield:
     simulator) and keeps one memory per env: ``shield = MemoryShield(10)`` and then ``action =
     shield(env, obs, action)`` for a :class:`~safenav.envs.nav.SafeNavVectorEnv` with torch
     output, as :func:`env_shield` is called. An env whose episode has just begun
-    (``env.steps == 0``) forgets what it saw before. ``memory=1`` gives :func:`env_shield`'s
+    (``env.steps == 0``) forgets what it saw before. The onboard runtime, which has no env, calls
+    :meth:`apply` with its odometry (``RuntimeConfig.shield_memory``). ``memory=1`` gives :func:`env_shield`'s
     actions to rounding (its points go to the world frame and back; tested). Static hits beyond the range image's range are not obstacles (as the current
     image's misses); the nearest ``max_static`` points of all remembered ones are (default: the
     config's ``max_static`` times ``min(memory, 4)``: one pillar leaves a hit in every image).
@@ -416,13 +417,26 @@ class MemoryShield:
         self._points, self._slot = None, 0
 
     def __call__(self, env, obs: dict[str, torch.Tensor], action: torch.Tensor) -> torch.Tensor:
+        cfg = self.cfg or ShieldConfig.for_env(env.cfg)
+        out, _ = self.apply(obs, action, env.pos, env.yaw, env.steps == 0, cfg)
+        return out
+
+    def apply(self, obs: dict[str, torch.Tensor], action: torch.Tensor, pos: torch.Tensor,
+              yaw: torch.Tensor, fresh: torch.Tensor, cfg: ShieldConfig | None = None,
+              ) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+        """The shield without an env: ``pos`` ``(N, 3)`` world positions, ``yaw`` ``(N,)`` the
+        heading frames' yaw (the goal frame's), ``fresh`` ``(N,)`` bool, True where an episode
+        begins now (its memory is cleared first). Returns ``(action, corrected)`` as
+        :func:`shield_action` does."""
         from safenav.envs.sensors import beam_hit_points
 
-        cfg = self.cfg or ShieldConfig.for_env(env.cfg)
+        cfg = cfg or self.cfg
+        if cfg is None:
+            raise ValueError("MemoryShield.apply needs a ShieldConfig (here or at construction)")
         spec = _spec(cfg)
         lidar = obs["lidar"][:, : len(cfg.lidar_v_angles)]
         ranges = cfg.lidar_range * (1.0 - lidar.to(action.dtype))
-        pos, yaw = env.pos.to(action.dtype), env.yaw.to(action.dtype)
+        pos, yaw = pos.to(action.dtype), yaw.to(action.dtype)
         hits = beam_hit_points(ranges, pos, yaw, spec, far=_FAR)  # (N, B, 3) world
         n, b = hits.shape[:2]
         if self._points is None or self._points.shape[0] != n or self._points.shape[2] != b:
@@ -431,7 +445,7 @@ class MemoryShield:
             self._slot = 0
         self._slot = (self._slot + 1) % self.memory
         self._points[:, self._slot] = hits
-        fresh = env.steps == 0  # episodes that begin now: nothing older belongs to them
+        fresh = fresh.to(torch.bool)  # episodes that begin now: nothing older belongs to them
         if bool(fresh.any()):
             keep = self._points[fresh, self._slot].clone()
             self._points[fresh] = _FAR
@@ -448,9 +462,8 @@ class MemoryShield:
         dsel, idx = nearest(torch.where(d < spec.max_range - 1e-3, d, math.inf), min(k, d.shape[1]))
         valid = torch.isfinite(dsel)
         rel = torch.gather(rel, 1, idx[..., None].expand(-1, -1, 3)) * valid[..., None]
-        out, _ = _shield_static_and_tracked(rel, valid, torch.gather(planar, 1, idx), dsel,
-                                            obs["dynamic"], action, cfg)  # fmt: skip
-        return out
+        return _shield_static_and_tracked(rel, valid, torch.gather(planar, 1, idx), dsel,
+                                          obs["dynamic"], action, cfg)  # fmt: skip
 
 
 _FAR = 1.0e4
