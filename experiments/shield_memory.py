@@ -8,21 +8,25 @@ test scenario and the held-out maps for the N chosen.
     .venv/bin/python experiments/shield_memory.py --policies ... --memory 0 1 10 --maps test
     .venv/bin/python experiments/shield_memory.py --policies ... --memory 0 1 10 --maps heldout
 
-``--memory 0`` is no shield. One JSON per (policy, N, map) in OUT (a rerun skips those that
-exist), then a table of the mean over maps per (policy, N) on stdout and in OUT/table.md.
+``--memory 0`` is no shield; ``Nmap`` (e.g. ``1map``, ``20map``) adds the map scan
+(``--shield-map``: ``MemoryShield(N, map_scan=True)``), and a suffix ``-moverX`` X metres more
+clearance from the tracked moving obstacles (``ShieldConfig.mover_margin``), e.g. ``1map-mover0.3``. One JSON per (policy, setting, map) in OUT
+(a rerun skips those that exist), then a table of the mean over maps per (policy, setting) on
+stdout and in OUT/table-MAPS.md.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import re
 from pathlib import Path
 
 import torch
 
 from safenav.algos.policy import load_policy
 from safenav.common.jsonout import write_json
-from safenav.deploy.shield import shield_for_memory
+from safenav.deploy.shield import MemoryShield, ShieldConfig, shield_for_memory
 from safenav.experiments.evaluate import evaluate
 from safenav.experiments.selection import HELDOUT_SEEDS, TEST_SEED, VALIDATION_SEEDS
 
@@ -41,8 +45,27 @@ def _mean(values: list) -> float:
     return sum(values) / len(values) if values else float("nan")
 
 
+def parse_setting(setting: str) -> tuple[int, bool, float]:
+    """``"20"`` -> (20, False, 0.0); ``"20map"`` -> (20, True, 0.0); ``"1map-mover0.3"`` -> (1,
+    True, 0.3)."""
+    found = re.fullmatch(r"(\d+)(map)?(?:-mover([0-9.]+))?", setting)
+    if found is None:
+        raise SystemExit(f"shield setting {setting!r}: N, Nmap or either with -moverX")
+    return int(found[1]), found[2] is not None, float(found[3] or 0.0)
+
+
+def shield_of(setting: str, cfg):
+    """The shield a setting names, for policies of env config ``cfg``."""
+    memory, scan, mover = parse_setting(setting)
+    if mover == 0.0:
+        return shield_for_memory(memory, map_scan=scan)
+    return MemoryShield(
+        max(memory, 1), ShieldConfig.for_env(cfg, mover_margin=mover), map_scan=scan
+    )
+
+
 def run(
-    policies: list[Path], memories: list[int], maps: list[tuple[int, int]], out: Path
+    policies: list[Path], memories: list[str], maps: list[tuple[int, int]], out: Path
 ) -> list[dict]:
     out.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -54,20 +77,21 @@ def run(
             for seed, episodes in maps:
                 f = out / f"{label(path)}-m{m}-seed{seed}-{episodes}.json"
                 if not f.exists():
-                    r = evaluate(
-                        fn, cfg, env_seed=seed, episodes=episodes, shield=shield_for_memory(m)
-                    )
+                    memory, scan, mover = parse_setting(m)
+                    shield = shield_of(m, cfg)
+                    r = evaluate(fn, cfg, env_seed=seed, episodes=episodes, shield=shield)
                     r.pop("per_episode", None)
-                    write_json(f, {**r, "policy": str(path), "shield_memory": m})
+                    write_json(f, {**r, "policy": str(path), "shield_memory": memory,
+                                   "shield_map": scan, "mover_margin": mover})  # fmt: skip
                 per_map.append(json.loads(f.read_text()))
             mean = {k: _mean([r[k] for r in per_map]) for k in KEYS}
             rows.append({"policy": label(path), "memory": m, **mean})
-            print(f"{label(path):28s} m={m:3d}  " + "  ".join(f"{k.split('_rate')[0]} {mean[k]:.3f}"
+            print(f"{label(path):28s} m={m:>6s}  " + "  ".join(f"{k.split('_rate')[0]} {mean[k]:.3f}"
                   for k in KEYS[:5]), flush=True)  # fmt: skip
     return rows
 
 
-def paired_differences(rows: list[dict], memories: list[int]) -> list[str]:
+def paired_differences(rows: list[dict], memories: list[str]) -> list[str]:
     """Per memory N, its success and collision minus those without the shield (0) and behind the
     memoryless shield (1), paired by policy: the mean and a 95 % percentile bootstrap CI over the
     policies (scipy), a table in markdown."""
@@ -77,8 +101,8 @@ def paired_differences(rows: list[dict], memories: list[int]) -> list[str]:
            "| memory N | against | success | collision |", "|---:|---:|---|---|"]  # fmt: skip
     by = {(r["policy"], r["memory"]): r for r in rows}
     policies = list(dict.fromkeys(r["policy"] for r in rows))
-    for base in (b for b in (0, 1) if b in memories):
-        for m in (m for m in memories if m > base):
+    for base in (b for b in ("0", "1") if b in memories):
+        for m in memories[memories.index(base) + 1 :]:
             cells = []
             for k in ("success_rate", "collision_rate"):
                 d = [by[p, m][k] - by[p, base][k] for p in policies]
@@ -96,7 +120,12 @@ def paired_differences(rows: list[dict], memories: list[int]) -> list[str]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--policies", nargs="+", type=Path, required=True)
-    ap.add_argument("--memory", nargs="+", type=int, default=[0, 1, 5, 10, 20])
+    ap.add_argument(
+        "--memory",
+        nargs="+",
+        default=["0", "1", "5", "10", "20"],
+        help="shield settings: N range images (0: no shield), Nmap with the map scan",
+    )
     ap.add_argument(
         "--maps",
         choices=("validation", "test", "heldout"),

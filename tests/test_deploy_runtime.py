@@ -285,10 +285,12 @@ def test_perception_frames_round_trip_and_reject_garbage() -> None:
             decode_frame(bad)
 
 
-def test_runtime_memory_shield_is_the_simulators() -> None:
+@pytest.mark.parametrize("scan", [False, True])
+def test_runtime_memory_shield_is_the_simulators(scan) -> None:
     """Given the env's map and the env's state each step, the runtime's memory shield (its own
-    range images, placed by odometry; a new goal forgets them) corrects the actions as
-    ``MemoryShield`` does on the env, over episodes that end and restart. Positions go to the
+    range images, placed by odometry; a new goal forgets them; with ``scan`` the map scan of its
+    own map) corrects the actions as ``MemoryShield`` does on the env, over episodes that end and
+    restart. Positions go to the
     world frame and back, so a near-tie may fall the other way now and then (as in
     ``test_memory_shield_of_one_image_is_env_shield``)."""
     from safenav.deploy.shield import MemoryShield, ShieldConfig
@@ -298,11 +300,12 @@ def test_runtime_memory_shield_is_the_simulators() -> None:
     env = SafeNavVectorEnv(4, config=cfg, output="torch")
     obs, _ = env.reset(seed=7)
     shield_cfg = ShieldConfig.for_env(cfg)
-    sim = MemoryShield(10, shield_cfg)
+    sim = MemoryShield(10, shield_cfg, map_scan=scan)
     wanted = [np.zeros((1, 3), np.float32)]
     runtimes = [
         OnboardRuntime(lambda s, l, d: wanted[0], cfg, clock=lambda: 100.0,  # noqa: E741
-                       config=RuntimeConfig(shield=shield_cfg, shield_memory=10, require_tracker=False))
+                       config=RuntimeConfig(shield=shield_cfg, shield_memory=10, shield_map=scan,
+                                            require_tracker=False))
         for _ in range(4)
     ]  # fmt: skip
     g2 = env.grid.size**2
@@ -353,7 +356,25 @@ def test_runtime_memory_shield_remembers_a_pillar_until_a_new_goal() -> None:
         assert not rt.step().shielded
 
 
-def test_runtime_refuses_a_shield_memory_without_a_shield() -> None:
+def test_runtime_map_scan_sees_a_pillar_top_below_the_beams() -> None:
+    """A pillar 1 m ahead whose top is 0.25 m below the vehicle: under the −10° beam (1.32 m
+    there), so the range image is empty and the memoryless shield flies on; the map scan (the
+    map the depth images built, cast level from the vehicle's lower extent) turns away."""
+    from safenav.deploy.shield import ShieldConfig
+
+    cfg = make_config("easy")
+    side = (-0.2, 0.0, 0.2)
+    pillar = np.array([[1.0 + dx, dy, z] for dx in side for dy in side for z in (0.5, 1.0, 1.25)])
+    for scan in (False, True):
+        rt, _ = _ready_runtime(const_policy((1.0, 0.0, 0.0)), shield=ShieldConfig.for_env(cfg),
+                               shield_map=scan)  # fmt: skip
+        rt.update_points(pillar)
+        obs, _ = rt.observation()
+        assert float(obs["lidar"][0].max()) == 0.0  # nothing in the range image
+        assert rt.step().shielded is scan
+
+
+def test_runtime_refuses_shield_memory_or_map_without_a_shield() -> None:
     from safenav.deploy.shield import ShieldConfig
 
     cfg = make_config("easy")
@@ -363,3 +384,5 @@ def test_runtime_refuses_a_shield_memory_without_a_shield() -> None:
         OnboardRuntime(
             const_policy(), cfg, RuntimeConfig(shield=ShieldConfig.for_env(cfg), shield_memory=0)
         )
+    with pytest.raises(ValueError, match="shield_map"):
+        OnboardRuntime(const_policy(), cfg, RuntimeConfig(shield_map=True))

@@ -224,17 +224,27 @@ def test_eval_and_render_take_the_shield_memory(capsys, tmp_path, monkeypatch):
     )
     code, _, err = run_cli(capsys, ["render", ckpt, "--shield-memory", "101", "--shield"])
     assert code == 2 and "--shield-memory 101" in err
+    code, _, err = run_cli(capsys, ["eval", ckpt, "--shield-map"])
+    assert code == 2 and "--shield-map needs --shield" in err
     out = tmp_path / "eval.json"
     code, _, _ = run_cli(capsys, ["eval", "--policy", "straight", "--preset", "easy", "--episodes",
                                   "4", "--shield", "--shield-memory", "5", "--json", str(out)])  # fmt: skip
     assert code == 0 and json.loads(out.read_text())["shield_memory"] == 5
+    code, _, _ = run_cli(capsys, ["eval", "--policy", "straight", "--preset", "easy", "--episodes",
+                                  "4", "--shield", "--shield-map", "--json", str(out)])  # fmt: skip
+    assert code == 0 and json.loads(out.read_text())["shield_map"] is True
     flown = []
     monkeypatch.setattr("safenav.experiments.flight.render_episode",
-                        lambda *a, **k: flown.append(k["shield_memory"]) or {})  # fmt: skip
-    for argv in (["--shield", "--shield-memory", "8"], ["--shield"], []):
+                        lambda *a, **k: flown.append((k["shield_memory"], k["shield_map"])) or {})  # fmt: skip
+    for argv in (
+        ["--shield", "--shield-memory", "8"],
+        ["--shield"],
+        [],
+        ["--shield", "--shield-map"],
+    ):
         code, _, _ = run_cli(capsys, ["render", ckpt, "--out", str(tmp_path / "e.gif"), *argv])
         assert code == 0
-    assert flown == [8, 1, 0]
+    assert flown == [(8, False), (1, False), (0, False), (1, True)]
 
 
 def test_shield_for_memory_names_the_three_settings() -> None:
@@ -244,6 +254,9 @@ def test_shield_for_memory_names_the_three_settings() -> None:
     five = shield_for_memory(5)
     assert isinstance(five, MemoryShield) and five.memory == 5
     assert shield_for_memory(5) is not five  # a fresh memory for each flight
+    for memory in (0, 1, 5):
+        scan = shield_for_memory(memory, map_scan=True)
+        assert isinstance(scan, MemoryShield) and scan.map_scan and scan.memory == max(memory, 1)
 
 
 def test_fly_takes_the_shield_memory_in_env_steps(capsys, tmp_path, monkeypatch) -> None:
@@ -260,6 +273,7 @@ def test_fly_takes_the_shield_memory_in_env_steps(capsys, tmp_path, monkeypatch)
     assert one.shield is not None and one.shield_memory == 1
     assert RuntimeConfig.for_flight(cfg, 20, 20.0).shield_memory == 40
     assert RuntimeConfig.for_flight(cfg, 20, 10.0).shield_memory == 20
+    assert RuntimeConfig.for_flight(cfg, 1, 20.0, shield_map=True).shield_map
     with pytest.raises(SafenavError, match="more than 100"):
         RuntimeConfig.for_flight(cfg, 20, 60.0)
 
@@ -271,10 +285,15 @@ def test_fly_takes_the_shield_memory_in_env_steps(capsys, tmp_path, monkeypatch)
     flown = []
 
     def fake_demo(**kw):
-        flown.append((kw["shield"], kw["shield_memory"]))
+        flown.append((kw["shield"], kw["shield_memory"], kw["shield_map"]))
         raise SystemExit(0)
 
     monkeypatch.setattr("safenav.deploy.demo.run_demo", fake_demo)
-    for argv in (["--shield", "--shield-memory", "20"], ["--shield"], []):
+    for argv in (
+        ["--shield", "--shield-memory", "20"],
+        ["--shield"],
+        [],
+        ["--shield", "--shield-map"],
+    ):
         assert run_cli(capsys, [*demo, *argv])[0] == 0
-    assert flown == [(True, 20), (True, 1), (False, 0)]
+    assert flown == [(True, 20, False), (True, 1, False), (False, 0, False), (True, 1, True)]

@@ -241,23 +241,25 @@ def test_vecenv_overhead_times_the_three_ways(tmp_path, monkeypatch, capsys):
 
 
 def test_shield_memory_flies_each_memory_and_pairs_them_by_policy(tiny_run, tmp_path):
-    """experiments/shield_memory.py: one JSON per (policy, memory, map), reused on a rerun, and the
-    paired differences against no shield and the memoryless shield."""
+    """experiments/shield_memory.py: one JSON per (policy, setting, map), reused on a rerun, and
+    the paired differences against no shield and the memoryless shield; ``1map`` adds the map
+    scan, ``-mover0.3`` clearance from moving obstacles."""
     sm = script("shield_memory")
     policy = tiny_run / "best.pt"
-    rows = sm.run([policy], [0, 1, 3], [(12345, 3)], tmp_path)
-    assert [r["memory"] for r in rows] == [0, 1, 3]
-    files = sorted(f.name for f in tmp_path.glob("*.json"))
-    assert files == [f"best-m{m}-seed12345-3.json" for m in (0, 1, 3)]
+    settings = ["0", "1", "3", "1map", "1map-mover0.3"]
+    rows = sm.run([policy], settings, [(12345, 3)], tmp_path)
+    assert [r["memory"] for r in rows] == settings
+    files = [f"best-m{m}-seed12345-3.json" for m in settings]
+    assert sorted(f.name for f in tmp_path.glob("*.json")) == sorted(files)
     assert json.loads((tmp_path / files[2]).read_text())["shield_memory"] == 3
+    scanned = json.loads((tmp_path / files[3]).read_text())
+    assert scanned["shield_memory"] == 1 and scanned["shield_map"] is True
+    assert json.loads((tmp_path / files[4]).read_text())["mover_margin"] == 0.3
     before = {f: (tmp_path / f).stat().st_mtime_ns for f in files}
-    again = sm.run([policy], [0, 1, 3], [(12345, 3)], tmp_path)  # nothing flown again
+    again = sm.run([policy], settings, [(12345, 3)], tmp_path)  # nothing flown again
     assert json.dumps(again) == json.dumps(rows)  # (NaN, the time to goal of no arrival, != NaN)
     assert {f: (tmp_path / f).stat().st_mtime_ns for f in files} == before
-    table = "\n".join(sm.paired_differences(rows, [0, 1, 3]))
-    for m, base in ((1, 0), (3, 0), (3, 1)):
-        d = (
-            rows[[0, 1, 3].index(m)]["collision_rate"]
-            - rows[[0, 1, 3].index(base)]["collision_rate"]
-        )
+    table = "\n".join(sm.paired_differences(rows, settings))
+    for m, base in (("1", "0"), ("3", "0"), ("3", "1"), ("1map", "1"), ("1map-mover0.3", "1")):
+        d = rows[settings.index(m)]["collision_rate"] - rows[settings.index(base)]["collision_rate"]
         assert f"| {m} | {base} |" in table and f"{d:+.3f}" in table

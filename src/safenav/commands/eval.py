@@ -17,6 +17,7 @@ def eval_(
     episodes: int = 200,
     shield: bool = False,
     shield_memory: int = 0,
+    shield_map: bool = False,
     json_out: Annotated[Path | None, tyro.conf.arg(name="json")] = None,
     policy: Literal["checkpoint", "scripted", "straight", "border", "random"] = "checkpoint",
     preset: str | None = None,
@@ -39,6 +40,8 @@ def eval_(
         shield: Correct the actions with the velocity-obstacle safety shield.
         shield_memory: With --shield: its static obstacles are the range images of the last N
             steps, kept where they were seen (beyond NavRL's shield; 0 or 1: the current image).
+        shield_map: With --shield: it also avoids every pillar the height map holds at the UAV's
+            lower extent (a level scan of the map, beyond NavRL's shield).
         json_out: Also write the metrics here as JSON (no value: null); the directory must exist.
         policy: What flies: the checkpoint, or a baseline without one.
         preset: Env preset (easy, medium, paper); default: the checkpoint's, else paper.
@@ -52,7 +55,7 @@ def eval_(
     from safenav.experiments.flight import resolve_policy, scenario_config
 
     check_eval_args(env_seed, episodes, json_out, device, preset)
-    memory = check_shield_memory(shield, shield_memory)
+    memory = check_shield_memory(shield, shield_memory, shield_map)
     fn, cfg = resolve_policy(checkpoint, policy, device)
     cfg = scenario_config(cfg, preset)
     if policy == "checkpoint":
@@ -68,13 +71,14 @@ def eval_(
     if memory:  # the shield's module loads Numba (~0.35 s): only when it flies
         from safenav.deploy.shield import shield_for_memory
 
-        shield_fn = shield_for_memory(memory)
+        shield_fn = shield_for_memory(memory, map_scan=shield_map)
     result = evaluate(fn, cfg, env_seed=env_seed, episodes=episodes, device=device,
                       shield=shield_fn, progress=True)  # fmt: skip
     result["checkpoint"] = str(checkpoint) if checkpoint else policy
     result["shield"] = shield
     if shield:
         result["shield_memory"] = memory
+        result["shield_map"] = shield_map
     result["env"] = ENV_ID
     if policy == "checkpoint":
         result["trained_on"] = str(fn.meta.get("env_id", ""))
@@ -98,9 +102,9 @@ def eval_(
         write_json(json_out, result)  # NaN (no value) as null: valid JSON
 
 
-def check_shield_memory(shield: bool, shield_memory: int) -> int:
-    """``--shield-memory N``: 0-100 range images, and only with ``--shield``. Returns the memory
-    the flight gets: 0 without the shield, 1 for the memoryless shield, else N."""
+def check_shield_memory(shield: bool, shield_memory: int, shield_map: bool = False) -> int:
+    """``--shield-memory N``: 0-100 range images, and only with ``--shield``, as ``--shield-map``.
+    Returns the memory the flight gets: 0 without the shield, 1 for the memoryless shield, else N."""
     from safenav.common.checks import in_range
     from safenav.errors import SafenavError
 
@@ -109,6 +113,8 @@ def check_shield_memory(shield: bool, shield_memory: int) -> int:
         raise SafenavError(
             f"--shield-memory {shield_memory} needs --shield (it is the shield's memory)"
         )
+    if shield_map and not shield:
+        raise SafenavError("--shield-map needs --shield (it is what the shield sees)")
     return max(shield_memory, 1) if shield else 0
 
 

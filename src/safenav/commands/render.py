@@ -24,6 +24,7 @@ def render(
     record: Path | None = None,
     shield: bool = False,
     shield_memory: int = 0,
+    shield_map: bool = False,
 ) -> None:
     """Render one episode (top-down: pillars, moving obstacles, lidar beams, trail, goal) to a GIF.
 
@@ -45,6 +46,8 @@ def render(
         shield: Correct the actions with the velocity-obstacle safety shield.
         shield_memory: With --shield: its static obstacles are the range images of the last N
             steps, kept where they were seen (beyond NavRL's shield; 0 or 1: the current image).
+        shield_map: With --shield: it also avoids every pillar the height map holds at the UAV's
+            lower extent (a level scan of the map, beyond NavRL's shield).
     """
     from safenav.commands.eval import check_shield_memory
     from safenav.common.checks import check_output_file, in_range
@@ -66,10 +69,10 @@ def render(
         from safenav.deploy.mcap_log import check_record_path
 
         check_record_path(record, "--record")
-    memory = check_shield_memory(shield, shield_memory)
+    memory = check_shield_memory(shield, shield_memory, shield_map)
     if checkpoint is None and policy == "checkpoint":
         policy = "scripted"
     stats = render_episode(out, checkpoint=checkpoint, policy=policy, preset=preset,
                            env_seed=env_seed, episode=episode, fps=fps, record=record,
-                           shield_memory=memory)  # fmt: skip
+                           shield_memory=memory, shield_map=shield_map)  # fmt: skip
     print(f"wrote {out}{f' and {record}' if record is not None else ''}: {stats}")

@@ -91,6 +91,7 @@ def run_demo(
     rate: float = 20.0,
     shield: bool = False,
     shield_memory: int | None = None,
+    shield_map: bool = False,
     gif: Path | None = Path("flight.gif"),
     max_flight_time: float = 120.0,
     world_seed: int = 1,
@@ -99,7 +100,8 @@ def run_demo(
     """Fly test episode ``episode`` of ``preset`` (world ``world_seed``) against a simulated PX4;
     ``record``: write the flight's MCAP log there (:mod:`safenav.deploy.mcap_log`, with the
     simulator's pillars in ``/safenav/map``); ``shield_memory``: the shield's memory in range
-    images (default: 1 with ``shield``, the memoryless shield; see ``RuntimeConfig.for_flight``)."""
+    images (default: 1 with ``shield``, the memoryless shield; see ``RuntimeConfig.for_flight``);
+    ``shield_map``: with ``shield``, the map scan too."""
     from safenav.deploy.export import OnnxPolicy, load_sidecar
     from safenav.deploy.fly import FlightAborted, FlightController, FlyConfig, MavsdkLink
     from safenav.deploy.runtime import OnboardRuntime, RuntimeConfig
@@ -127,7 +129,9 @@ def run_demo(
             "--quiet",
         ):
             runtime = OnboardRuntime(
-                OnnxPolicy(onnx), pcfg, RuntimeConfig.for_flight(pcfg, memory, rate)
+                OnnxPolicy(onnx),
+                pcfg,
+                RuntimeConfig.for_flight(pcfg, memory, rate, shield_map and shield),
             )
             link = MavsdkLink(f"udpin://127.0.0.1:{port}")
             recorder = None
@@ -136,7 +140,7 @@ def run_demo(
 
                 recorder = McapRecorder(record, Scene.for_env(cfg, goal, start, world=generate_world(cfg, world_seed)),
                                         metadata={"verb": "fly --demo", "preset": preset, "world_seed": world_seed,
-                                                  "episode": episode, "rate_hz": rate, "shield": shield, "shield_memory": memory,
+                                                  "episode": episode, "rate_hz": rate, "shield": shield, "shield_memory": memory, "shield_map": shield_map and shield,
                                                   "policy": str(policy) if policy else ("scripted" if scripted else str(checkpoint))})  # fmt: skip
             ctl = FlightController(runtime, link, FlyConfig(
                 goal=tuple(goal), rate_hz=rate, takeoff_altitude=max(0.5, float(start[2])),
@@ -174,7 +178,7 @@ def run_demo(
         "scenario": {"preset": preset, "world_seed": world_seed, "episode": episode,
                      "start": [round(x, 3) for x in start], "goal": [round(x, 3) for x in goal]},
         "policy": str(policy) if policy else ("scripted" if scripted else str(checkpoint)),
-        "shield": shield, "shield_memory": memory, "rate_hz": rate, "wall_time_s": round(wall, 1),
+        "shield": shield, "shield_memory": memory, "shield_map": shield_map and shield, "rate_hz": rate, "wall_time_s": round(wall, 1),
         **{k: v for k, v in flight.summary().items() if k not in ("reached_goal", "flight_time_s")},
     }  # fmt: skip
     if gif is not None and ctl.snapshots:

@@ -241,7 +241,7 @@ def _shield(v_des, rel, ovel, radius, valid, planar, idx, fan, tau, vm):
 
 
 def _shield_obs(action, lidar, dyn, dirs, upward, fan, k_static, projected, lidar_range, v_max,
-                base, width0, n_widths, cuboid_height, tau, max_hit):  # fmt: skip
+                base, mover_base, width0, n_widths, cuboid_height, tau, max_hit):  # fmt: skip
     """shield.shield_action for one vehicle, from its observation: ``(action, corrected)``.
 
     The obstacle decoding is float32 arithmetic in the batched path's order (so that the same hits
@@ -291,7 +291,7 @@ def _shield_obs(action, lidar, dyn, dirs, upward, fan, k_static, projected, lida
             half = (dyn[j, 8] * f(n_widths - 1) + one) * f(width0) / f(2.0)
             cuboid = dyn[j, 9] > f(0.5)
             r = np.sqrt(f(2.0) * half * half + cz) if cuboid else half
-            radius[i] = r + f(base)
+            radius[i] = r + f(mover_base)
             total = f(0.0)
             for c in range(dyn.shape[1]):
                 total += abs(dyn[j, c])

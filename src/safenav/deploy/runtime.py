@@ -42,7 +42,7 @@ from safenav.deploy.export import check_deployable
 from safenav.deploy.frames import enu_to_ned, goal_frame_yaw, yaw_enu_to_ned
 from safenav.deploy.mapping import HeightMap
 from safenav.deploy.perception_link import DepthImage, PerceptionFrame, TrackedObstacle
-from safenav.deploy.shield import MemoryShield, ShieldConfig, shield_action
+from safenav.deploy.shield import MemoryShield, ShieldConfig, map_scan_hits, shield_action
 from safenav.envs.config import EnvConfig
 from safenav.envs.nav import DIST_SCALE, Z_SCALE
 from safenav.envs.sensors import RangeImageSpec, dynamic_obstacle_features, raycast_height_map
@@ -87,16 +87,22 @@ class RuntimeConfig:
     current one (NavRL's shield), N > 1 the beam hits of the last N, kept in the world frame by
     odometry (:class:`~safenav.deploy.shield.MemoryShield`; a new goal forgets them). ``safenav
     fly --shield-memory`` counts the env's 10 Hz images and converts to the setpoint rate."""
+    shield_map: bool = False
+    """The shield also takes the map scan's hits (:func:`~safenav.deploy.shield.map_scan_hits`
+    on the map built from depth images): the pillars at the vehicle's lower extent, whether the
+    range image's beams see them now or not."""
     geofence: bool = True
     """Mark the env's arena border as a wall in the onboard map, as the simulator does (SafeNav-v1
     trains policies in a closed arena): the flight area is a geofence the policy sees coming."""
 
     @classmethod
-    def for_flight(cls, env_config: EnvConfig, shield_memory: int, rate_hz: float) -> RuntimeConfig:
+    def for_flight(cls, env_config: EnvConfig, shield_memory: int, rate_hz: float,
+                   shield_map: bool = False) -> RuntimeConfig:  # fmt: skip
         """The runtime of ``safenav fly``: no shield (``shield_memory`` 0), the shield (1), or the
         memory shield of the last ``shield_memory`` range images at the env's control rate (10 Hz:
         20 is 2 s, as ``safenav eval --shield-memory 20``), i.e. that many seconds of setpoints at
-        ``rate_hz``. :class:`~safenav.errors.SafenavError` if that is more than 100 setpoints."""
+        ``rate_hz``; ``shield_map``: the shield also takes the map scan. :class:`~safenav.errors.SafenavError`
+        if the memory is more than 100 setpoints."""
         from safenav.errors import SafenavError
 
         if shield_memory <= 0:
@@ -105,7 +111,9 @@ class RuntimeConfig:
         if steps > 100:
             raise SafenavError(f"--shield-memory {shield_memory}: the range images of {shield_memory} range images ({shield_memory * env_config.dt:g} s) "
                              f"at --rate {rate_hz:g} Hz are {steps} setpoints, more than 100")  # fmt: skip
-        return cls(shield=ShieldConfig.for_env(env_config), shield_memory=steps)
+        return cls(
+            shield=ShieldConfig.for_env(env_config), shield_memory=steps, shield_map=shield_map
+        )
 
 
 @dataclass
@@ -158,8 +166,11 @@ class OnboardRuntime:
             raise ValueError(
                 f"shield_memory {memory}: 1-100 range images, above 1 only with a shield"
             )
-        self._memory_shield = (MemoryShield(memory, self.config.shield)
-                               if memory > 1 and self.config.shield is not None else None)  # fmt: skip
+        if self.config.shield_map and self.config.shield is None:
+            raise ValueError("shield_map needs a shield")
+        scan = self.config.shield_map
+        self._memory_shield = (MemoryShield(memory, self.config.shield, map_scan=scan)
+                               if (memory > 1 or scan) and self.config.shield is not None else None)  # fmt: skip
         self._episode_start = True  # the memory shield's next image begins a new memory
         self.clock = clock
         self.spec = RangeImageSpec.for_config(env_config)
@@ -413,7 +424,13 @@ class OnboardRuntime:
                     pos = torch.tensor(self._pos, dtype=torch.float32)[None]
                     yaw = torch.tensor([self._yaw], dtype=torch.float32)
                     fresh = torch.tensor([self._episode_start])
-                    action, corrected = self._memory_shield.apply(obs, action, pos, yaw, fresh)
+                    extra = None
+                    if self.config.shield_map:
+                        m, scfg = self.map, self.config.shield
+                        extra = map_scan_hits(m.cast_map, m.grid.origin, m.grid.size,
+                                              self.cfg.grid_resolution, pos, yaw, scfg)  # fmt: skip
+                    action, corrected = self._memory_shield.apply(obs, action, pos, yaw, fresh,
+                                                                  extra=extra)  # fmt: skip
                     self._episode_start = False
                 else:
                     action, corrected = shield_action(obs, action, self.config.shield)

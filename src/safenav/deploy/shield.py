@@ -56,6 +56,9 @@ class ShieldConfig:
     """The UAV's collision radius (m), as in the env."""
     margin: float = 0.1
     """Extra clearance (m) added to every combined radius."""
+    mover_margin: float = 0.0
+    """More clearance (m) from tracked moving obstacles only (beyond NavRL's shield): they turn at
+    full speed when they reach a local goal, which no constant-velocity forecast sees coming."""
     v_max: float = 2.0
     """Velocity bound per axis (m/s); candidates are clipped to ``[-v_max, v_max]^3``."""
     lidar_range: float = 4.0
@@ -74,6 +77,10 @@ class ShieldConfig:
     """Horizontal speeds of the fan, as fractions of ``v_max``."""
     climb_fractions: tuple[float, ...] = (-0.5, 0.0, 0.5)
     """Vertical speeds of the fan, as fractions of ``v_max``."""
+    map_beams: int = 72
+    """Beams of the map scan (:func:`map_scan_hits`, ``MemoryShield(map_scan=True)``): 5° apart."""
+    map_static: int = 24
+    """Only the nearest this many hits of the map scan are treated as obstacles."""
 
     @staticmethod
     def for_env(cfg: EnvConfig, **overrides) -> ShieldConfig:
@@ -344,7 +351,7 @@ def _shield_static_and_tracked(rel, valid, planar, dist, dyn, action, cfg: Shiel
         d_rel, d_vel, d_rad, d_valid, d_planar, d_dist = _decode_dynamic(
             dyn.to(action.dtype), cfg.lidar_range, cfg.v_max)  # fmt: skip
         rel, vel = torch.cat([rel, d_rel], 1), torch.cat([vel, d_vel], 1)
-        radius = torch.cat([radius, d_rad + base], 1)
+        radius = torch.cat([radius, d_rad + (base + cfg.mover_margin)], 1)
         valid, planar = torch.cat([valid, d_valid], 1), torch.cat([planar, d_planar], 1)
         dist = torch.cat([dist, d_dist], 1)
     v, corrected = velocity_obstacle_shield(
@@ -364,7 +371,8 @@ def _shield_action_compiled(lidar, dyn, action, cfg: ShieldConfig, spec: RangeIm
         dyn[0].detach().float().contiguous().numpy(),
         dirs.numpy(), upward.numpy(), _fan(cfg, torch.device("cpu"), torch.float64).numpy(),
         min(cfg.max_static, dirs.shape[0]), cfg.projected, float(cfg.lidar_range), float(cfg.v_max),
-        float(cfg.uav_radius + cfg.margin), float(DYN_WIDTHS[0]), len(DYN_WIDTHS), float(CUBOID_HEIGHT),
+        float(cfg.uav_radius + cfg.margin), float(cfg.uav_radius + cfg.margin + cfg.mover_margin),
+        float(DYN_WIDTHS[0]), len(DYN_WIDTHS), float(CUBOID_HEIGHT),
         float(cfg.time_horizon), float(spec.max_range - 1e-3),
     )  # fmt: skip
     if not corrected:
@@ -379,6 +387,30 @@ def env_shield(env, obs: dict[str, torch.Tensor], action: torch.Tensor) -> torch
     obs = {**obs, "lidar": obs["lidar"][:, : len(env.cfg.lidar_v_angles)]}
     out, _ = shield_action(obs, action, ShieldConfig.for_env(env.cfg))
     return out
+
+
+def map_scan_hits(heights: torch.Tensor, grid_origin: float, grid_size: int, resolution: float,
+                  pos: torch.Tensor, yaw: torch.Tensor, cfg: ShieldConfig,
+                  map_index: torch.Tensor | None = None):  # fmt: skip
+    """The map scan (beyond NavRL): ``cfg.map_beams`` level beams cast on the height map from the
+    UAV's lower extent (its altitude less ``uav_radius + margin``, at least 5 cm above the
+    ground), to the range image's range. A beam stops at the first column whose top rises above
+    that level: every pillar the UAV could strike passing over or beside it, whether or not the
+    range image's beams see it now. Returns the nearest ``cfg.map_static`` hits as the range
+    image's are (:func:`static_obstacles_from_ranges`, plus distances): columns in the heading frame.
+
+    ``heights``: the quantised height map(s) the range image is cast on (the env's
+    ``heights`` with ``map_index`` its ``world_idx``; on board the runtime's ``map.cast_map``);
+    ``pos`` ``(N, 3)``, ``yaw`` ``(N,)`` the heading frame's yaw."""
+    from safenav.envs.sensors import raycast_height_map
+
+    spec = RangeImageSpec(h_beams=cfg.map_beams, v_angles=(0.0,), max_range=cfg.lidar_range,
+                          resolution=resolution)  # fmt: skip
+    low = torch.cat([pos[:, :2], (pos[:, 2:] - (cfg.uav_radius + cfg.margin)).clamp(min=0.05)], 1)
+    ranges = raycast_height_map(heights, grid_origin, grid_size, low.float(), yaw.float(), spec,
+                                map_index)  # fmt: skip
+    rel, valid, planar, dist = _static_hits(ranges.to(pos.dtype), spec, cfg.map_static)
+    return rel, valid, planar, dist
 
 
 class MemoryShield:
@@ -403,12 +435,18 @@ class MemoryShield:
     actions to rounding (its points go to the world frame and back; tested). Static hits beyond the range image's range are not obstacles (as the current
     image's misses); the nearest ``max_static`` points of all remembered ones are (default: the
     config's ``max_static`` times ``min(memory, 4)``: one pillar leaves a hit in every image).
+
+    ``map_scan=True`` adds the hits of :func:`map_scan_hits` on the height map the range image is
+    cast from (the env's; on board the map the runtime builds from depth images): the pillars at
+    the UAV's lower extent, seen or not by the image's beams now.
     """
 
-    def __init__(self, memory: int, cfg: ShieldConfig | None = None, max_static: int | None = None):
+    def __init__(self, memory: int, cfg: ShieldConfig | None = None, max_static: int | None = None,
+                 map_scan: bool = False):  # fmt: skip
         if not 1 <= memory <= 100:
             raise ValueError(f"memory must lie in [1, 100] range images, got {memory}")
         self.memory, self.cfg, self.max_static = int(memory), cfg, max_static
+        self.map_scan = bool(map_scan)
         self._points: torch.Tensor | None = None  # (N, memory, beams, 3) world; FAR = no hit
         self._slot = 0
 
@@ -418,16 +456,21 @@ class MemoryShield:
 
     def __call__(self, env, obs: dict[str, torch.Tensor], action: torch.Tensor) -> torch.Tensor:
         cfg = self.cfg or ShieldConfig.for_env(env.cfg)
-        out, _ = self.apply(obs, action, env.pos, env.yaw, env.steps == 0, cfg)
+        extra = None
+        if self.map_scan:
+            extra = map_scan_hits(env.heights, env.grid.origin, env.grid.size, env.cfg.grid_resolution,
+                                  env.pos.to(action.dtype), env.yaw.to(action.dtype), cfg, env.world_idx)  # fmt: skip
+        out, _ = self.apply(obs, action, env.pos, env.yaw, env.steps == 0, cfg, extra)
         return out
 
     def apply(self, obs: dict[str, torch.Tensor], action: torch.Tensor, pos: torch.Tensor,
               yaw: torch.Tensor, fresh: torch.Tensor, cfg: ShieldConfig | None = None,
-              ) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+              extra=None) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
         """The shield without an env: ``pos`` ``(N, 3)`` world positions, ``yaw`` ``(N,)`` the
         heading frames' yaw (the goal frame's), ``fresh`` ``(N,)`` bool, True where an episode
-        begins now (its memory is cleared first). Returns ``(action, corrected)`` as
-        :func:`shield_action` does."""
+        begins now (its memory is cleared first); ``extra``: more static obstacles, ``(rel,
+        valid, planar, dist)`` in the heading frame (:func:`map_scan_hits`). Returns ``(action,
+        corrected)`` as :func:`shield_action` does."""
         from safenav.envs.sensors import beam_hit_points
 
         cfg = cfg or self.cfg
@@ -462,16 +505,22 @@ class MemoryShield:
         dsel, idx = nearest(torch.where(d < spec.max_range - 1e-3, d, math.inf), min(k, d.shape[1]))
         valid = torch.isfinite(dsel)
         rel = torch.gather(rel, 1, idx[..., None].expand(-1, -1, 3)) * valid[..., None]
-        return _shield_static_and_tracked(rel, valid, torch.gather(planar, 1, idx), dsel,
-                                          obs["dynamic"], action, cfg)  # fmt: skip
+        planar = torch.gather(planar, 1, idx)
+        if extra is not None:
+            rel, valid, planar, dsel = (torch.cat([a, b.to(a.dtype)], 1)
+                                        for a, b in zip((rel, valid, planar, dsel), extra, strict=True))  # fmt: skip
+        return _shield_static_and_tracked(rel, valid, planar, dsel, obs["dynamic"], action, cfg)
 
 
 _FAR = 1.0e4
 
 
-def shield_for_memory(memory: int):
+def shield_for_memory(memory: int, map_scan: bool = False):
     """The evaluation shield of a memory setting (``--shield-memory``): ``None`` for 0 (no
-    shield), :func:`env_shield` for 1, a fresh :class:`MemoryShield` of ``memory`` images above."""
+    shield), :func:`env_shield` for 1, a fresh :class:`MemoryShield` of ``memory`` images above;
+    with ``map_scan`` (``--shield-map``) a fresh ``MemoryShield(max(memory, 1), map_scan=True)``."""
+    if map_scan:
+        return MemoryShield(max(memory, 1), map_scan=True)
     if memory <= 0:
         return None
     return env_shield if memory == 1 else MemoryShield(memory)
@@ -482,6 +531,7 @@ __all__ = [
     "ShieldConfig",
     "env_shield",
     "dynamic_obstacles_from_features",
+    "map_scan_hits",
     "shield_action",
     "static_obstacles_from_ranges",
     "shield_for_memory",

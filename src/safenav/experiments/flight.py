@@ -64,10 +64,12 @@ def render_episode(
     size: int = 600,
     record: Path | None = None,
     shield_memory: int = 0,
+    shield_map: bool = False,
 ) -> dict:
     """Fly episode ``episode`` of the fixed scenario and write ``out`` (GIF), and ``record``
     (MCAP, stamped with the simulation time) when given; returns its stats."""
-    frames, stats = fly_frames(checkpoint, policy, preset, env_seed, episode, record, shield_memory)
+    frames, stats = fly_frames(checkpoint, policy, preset, env_seed, episode, record, shield_memory,
+                               shield_map)  # fmt: skip
     Path(out).parent.mkdir(parents=True, exist_ok=True)
     # Hold the last frame for a second so the outcome is visible.
     frames += [frames[-1]] * fps
@@ -84,11 +86,13 @@ def fly_frames(
     episode: int = 0,
     record: Path | None = None,
     shield_memory: int = 0,
+    shield_map: bool = False,
 ) -> tuple[list, dict]:
     """The rendered frames (top-down RGB arrays, the last with the outcome) and the stats of
     episode ``episode`` of the fixed scenario of map ``env_seed``, flown by the policy, behind
     the safety shield when ``shield_memory`` is 1 (the memoryless shield) or more (a
-    :class:`~safenav.deploy.shield.MemoryShield` of that many range images)."""
+    :class:`~safenav.deploy.shield.MemoryShield` of that many range images), with the map scan
+    when ``shield_map``."""
     fn, cfg = resolve_policy(checkpoint, policy)
     cfg, starts, goals = fixed_test_scenario(scenario_config(cfg, preset), env_seed, episode + 1)
     env = SafeNavVectorEnv(1, config=cfg, output="torch", autoreset_mode="Disabled",
@@ -97,10 +101,10 @@ def fly_frames(
         seed=env_seed, options={"starts": starts[episode:], "goals": goals[episode:]}
     )
     act = (lambda o: fn(o, env)) if getattr(fn, "needs_env", False) else fn
-    if shield_memory > 0:  # the shield's module loads Numba: only when it flies
+    if shield_memory > 0 or shield_map:  # the shield's module loads Numba: only when it flies
         from safenav.deploy.shield import shield_for_memory
 
-        shield = shield_for_memory(shield_memory)
+        shield = shield_for_memory(shield_memory, map_scan=shield_map)
         act = lambda o, a=act: shield(env, o, a(o))  # noqa: E731
     frames = [env.render()]
     recorder = None
