@@ -54,9 +54,8 @@ def parse_setting(setting: str) -> tuple[int, bool, float]:
     return int(found[1]), found[2] is not None, float(found[3] or 0.0)
 
 
-def shield_of(setting: str, cfg):
-    """The shield a setting names, for policies of env config ``cfg``."""
-    memory, scan, mover = parse_setting(setting)
+def shield_of(memory: int, scan: bool, mover: float, cfg):
+    """The shield of a parsed setting (:func:`parse_setting`), for policies of env config ``cfg``."""
     if mover == 0.0:
         return shield_for_memory(memory, map_scan=scan)
     return MemoryShield(
@@ -78,7 +77,7 @@ def run(
                 f = out / f"{label(path)}-m{m}-seed{seed}-{episodes}.json"
                 if not f.exists():
                     memory, scan, mover = parse_setting(m)
-                    shield = shield_of(m, cfg)
+                    shield = shield_of(memory, scan, mover, cfg)
                     r = evaluate(fn, cfg, env_seed=seed, episodes=episodes, shield=shield)
                     r.pop("per_episode", None)
                     write_json(f, {**r, "policy": str(path), "shield_memory": memory,

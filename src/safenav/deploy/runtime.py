@@ -109,8 +109,8 @@ class RuntimeConfig:
             return cls()
         steps = 1 if shield_memory == 1 else max(2, round(shield_memory * rate_hz * env_config.dt))
         if steps > 100:
-            raise SafenavError(f"--shield-memory {shield_memory}: the range images of {shield_memory} range images ({shield_memory * env_config.dt:g} s) "
-                             f"at --rate {rate_hz:g} Hz are {steps} setpoints, more than 100")  # fmt: skip
+            raise SafenavError(f"--shield-memory {shield_memory} ({shield_memory * env_config.dt:g} s of range "
+                               f"images) at --rate {rate_hz:g} Hz is {steps} setpoints, more than 100")  # fmt: skip
         return cls(
             shield=ShieldConfig.for_env(env_config), shield_memory=steps, shield_map=shield_map
         )
