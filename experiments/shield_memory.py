@@ -26,7 +26,7 @@ import torch
 
 from safenav.algos.policy import load_policy
 from safenav.common.jsonout import write_json
-from safenav.deploy.shield import MemoryShield, ShieldConfig, shield_for_memory
+from safenav.deploy.shield import shield_for_memory
 from safenav.experiments.evaluate import evaluate
 from safenav.experiments.selection import HELDOUT_SEEDS, TEST_SEED, VALIDATION_SEEDS
 
@@ -54,15 +54,6 @@ def parse_setting(setting: str) -> tuple[int, bool, float]:
     return int(found[1]), found[2] is not None, float(found[3] or 0.0)
 
 
-def shield_of(memory: int, scan: bool, mover: float, cfg):
-    """The shield of a parsed setting (:func:`parse_setting`), for policies of env config ``cfg``."""
-    if mover == 0.0:
-        return shield_for_memory(memory, map_scan=scan)
-    return MemoryShield(
-        max(memory, 1), ShieldConfig.for_env(cfg, mover_margin=mover), map_scan=scan
-    )
-
-
 def run(
     policies: list[Path], memories: list[str], maps: list[tuple[int, int]], out: Path
 ) -> list[dict]:
@@ -77,7 +68,7 @@ def run(
                 f = out / f"{label(path)}-m{m}-seed{seed}-{episodes}.json"
                 if not f.exists():
                     memory, scan, mover = parse_setting(m)
-                    shield = shield_of(memory, scan, mover, cfg)
+                    shield = shield_for_memory(memory, scan, mover)
                     r = evaluate(fn, cfg, env_seed=seed, episodes=episodes, shield=shield)
                     r.pop("per_episode", None)
                     write_json(f, {**r, "policy": str(path), "shield_memory": memory,

@@ -25,6 +25,7 @@ def render(
     shield: bool = False,
     shield_memory: int = 0,
     shield_map: bool = False,
+    shield_mover_margin: float = 0.0,
 ) -> None:
     """Render one episode (top-down: pillars, moving obstacles, lidar beams, trail, goal) to a GIF.
 
@@ -48,6 +49,8 @@ def render(
             steps, kept where they were seen (beyond NavRL's shield; 0 or 1: the current image).
         shield_map: With --shield: it also avoids every pillar the height map holds at the UAV's
             lower extent (a level scan of the map, beyond NavRL's shield).
+        shield_mover_margin: With --shield: metres more clearance from tracked moving obstacles
+            (0-2; beyond NavRL's shield).
     """
     from safenav.commands.eval import check_shield_memory
     from safenav.common.checks import check_output_file, in_range
@@ -69,10 +72,18 @@ def render(
         from safenav.deploy.mcap_log import check_record_path
 
         check_record_path(record, "--record")
-    memory = check_shield_memory(shield, shield_memory, shield_map)
+    memory = check_shield_memory(shield, shield_memory, shield_map, shield_mover_margin)
     if checkpoint is None and policy == "checkpoint":
         policy = "scripted"
+    if policy == "checkpoint":  # a policy trained behind the shield flies behind it
+        from safenav.commands.eval import own_shield_settings
+        from safenav.experiments.flight import resolve_policy
+
+        fn, _ = resolve_policy(checkpoint, policy)
+        memory, shield_map, shield_mover_margin = own_shield_settings(
+            fn, checkpoint, memory, shield_map, shield_mover_margin)  # fmt: skip
     stats = render_episode(out, checkpoint=checkpoint, policy=policy, preset=preset,
                            env_seed=env_seed, episode=episode, fps=fps, record=record,
-                           shield_memory=memory, shield_map=shield_map)  # fmt: skip
+                           shield_memory=memory, shield_map=shield_map,
+                           shield_mover_margin=shield_mover_margin)  # fmt: skip
     print(f"wrote {out}{f' and {record}' if record is not None else ''}: {stats}")

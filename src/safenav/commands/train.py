@@ -81,9 +81,12 @@ def train(
         if resume is None:
             training.write_config(run_dir, algo, run, cfg, recipe_record(recipe))
         with cost_function(run.cost_fn):
-            result = training.train(
-                algo, run, cfg, run_dir, resume=resume is not None, progress=progress
-            )
+            factory = None
+            if run.shield:  # the env executes the shield's corrections; it loads Numba: only then
+                from safenav.deploy.shield import shield_from_spec as factory
+
+            result = training.train(algo, run, cfg, run_dir, resume=resume is not None,
+                                    progress=progress, shield_factory=factory)  # fmt: skip
         _report_and_select(algo, run, run_dir, result)
 
 

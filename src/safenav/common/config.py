@@ -73,6 +73,19 @@ class RunConfig:
     """SafeNav-v1, how the training maps are redrawn: all = every env starts an episode in the new
     maps at once (the episodes in flight are cut); per-env = each env ends its episode in the old
     map and starts the next in the new one (none cut; the env then holds two map sets)."""
+    shield: bool = False
+    """SafeNav-v1: train behind the velocity-obstacle safety shield (beyond the paper; the
+    ``--shield`` of ``safenav eval``): the env executes the shield's correction of each action, the
+    learner keeps the policy's own action (the shield is part of the env it learns in). The
+    policy records its shield (``meta["shield"]``); its periodic evaluation, selection and final
+    report fly behind it too."""
+    shield_memory: int = 0
+    """With ``shield``: its static obstacles are the range images of the last N env steps (0, 1:
+    the current image; ``safenav eval --shield-memory``)."""
+    shield_map: bool = False
+    """With ``shield``: it also scans the height map at the UAV's lower extent (``--shield-map``)."""
+    shield_mover_margin: float = 0.0
+    """With ``shield``: metres more clearance from tracked moving obstacles (0-2)."""
     keep_policies: bool = False
     """Also keep the policy of every periodic evaluation as ``policies/step_<N>.pt`` (policy-only,
     ~0.6 MB each), to compare a run's policies afterwards (experiments/checkpoint_sweep.py)."""
@@ -127,12 +140,37 @@ class RunConfig:
                 f"{' / '.join(f.replace('_', '-') for f in asked)} applies to Gymnasium tasks, "
                 f"not {self.env}: SafeNav scales its own observations and rewards"
             )
+        self._check_shield()
         if self.select and not self.keep_policies:
             object.__setattr__(self, "keep_policies", True)  # the candidates of the selection
         if self.torch_threads > 1024:
             raise ValueError(
                 f"torch-threads={self.torch_threads} must be <= 1024 (0 = one per core)"
             )
+
+    def _check_shield(self) -> None:
+        if isinstance(self.shield_memory, bool) or not isinstance(self.shield_memory, int):
+            raise ValueError(f"shield-memory={self.shield_memory!r} must be an integer")
+        if not 0 <= self.shield_memory <= 100:
+            raise ValueError(
+                f"shield-memory={self.shield_memory} must lie in [0, 100] range images"
+            )
+        margin = self.shield_mover_margin
+        if isinstance(margin, bool) or not isinstance(margin, int | float) or not 0 <= margin <= 2:
+            raise ValueError(f"shield-mover-margin={margin!r} must lie in [0, 2] m")
+        extras = [name for name, on in (("shield-memory", self.shield_memory > 1),
+                  ("shield-map", self.shield_map), ("shield-mover-margin", margin > 0)) if on]  # fmt: skip
+        if extras and not self.shield:
+            raise ValueError(f"{' / '.join(extras)} set the shield: add --shield")
+        if self.shield and not self.env.split(":")[-1].startswith("SafeNav-"):
+            raise ValueError(f"shield: the safety shield flies SafeNav, not {self.env}")
+
+    def shield_spec(self) -> dict[str, Any] | None:
+        """The shield the policy trains behind, as its ``meta["shield"]`` records it; None without."""
+        if not self.shield:
+            return None
+        return {"memory": max(self.shield_memory, 1), "map": bool(self.shield_map),
+                "mover_margin": float(self.shield_mover_margin)}  # fmt: skip
 
     def train_env_seed(self, refresh: int) -> int:
         """Seed of the training maps after ``refresh`` redraws: >= 100000, so never the test

@@ -442,11 +442,14 @@ class MemoryShield:
     """
 
     def __init__(self, memory: int, cfg: ShieldConfig | None = None, max_static: int | None = None,
-                 map_scan: bool = False):  # fmt: skip
+                 map_scan: bool = False, mover_margin: float = 0.0):  # fmt: skip
         if not 1 <= memory <= 100:
             raise ValueError(f"memory must lie in [1, 100] range images, got {memory}")
+        if not 0.0 <= mover_margin <= 2.0:
+            raise ValueError(f"mover_margin must lie in [0, 2] m, got {mover_margin}")
         self.memory, self.cfg, self.max_static = int(memory), cfg, max_static
         self.map_scan = bool(map_scan)
+        self.mover_margin = float(mover_margin)  # with the env's config (cfg None) only
         self._points: torch.Tensor | None = None  # (N, memory, beams, 3) world; FAR = no hit
         self._slot = 0
 
@@ -455,7 +458,7 @@ class MemoryShield:
         self._points, self._slot = None, 0
 
     def __call__(self, env, obs: dict[str, torch.Tensor], action: torch.Tensor) -> torch.Tensor:
-        cfg = self.cfg or ShieldConfig.for_env(env.cfg)
+        cfg = self.cfg or ShieldConfig.for_env(env.cfg, mover_margin=self.mover_margin)
         extra = None
         if self.map_scan:
             extra = map_scan_hits(env.heights, env.grid.origin, env.grid.size, env.cfg.grid_resolution,
@@ -515,15 +518,26 @@ class MemoryShield:
 _FAR = 1.0e4
 
 
-def shield_for_memory(memory: int, map_scan: bool = False):
+def shield_for_memory(memory: int, map_scan: bool = False, mover_margin: float = 0.0):
     """The evaluation shield of a memory setting (``--shield-memory``): ``None`` for 0 (no
     shield), :func:`env_shield` for 1, a fresh :class:`MemoryShield` of ``memory`` images above;
-    with ``map_scan`` (``--shield-map``) a fresh ``MemoryShield(max(memory, 1), map_scan=True)``."""
-    if map_scan:
-        return MemoryShield(max(memory, 1), map_scan=True)
+    with ``map_scan`` (``--shield-map``) or a ``mover_margin`` (m, ``--shield-mover-margin``) a
+    fresh ``MemoryShield(max(memory, 1), map_scan=..., mover_margin=...)``."""
+    if map_scan or mover_margin:
+        return MemoryShield(max(memory, 1), map_scan=map_scan, mover_margin=mover_margin)
     if memory <= 0:
         return None
     return env_shield if memory == 1 else MemoryShield(memory)
+
+
+def shield_from_spec(spec: dict | None):
+    """A fresh shield as a policy's ``meta["shield"]`` records the one it trained behind
+    (``{"memory": N, "map": bool, "mover_margin": m}``, ``safenav train --shield``); None for
+    a policy trained without one."""
+    if not spec:
+        return None
+    return shield_for_memory(int(spec["memory"]), bool(spec.get("map", False)),
+                             float(spec.get("mover_margin", 0.0)))  # fmt: skip
 
 
 __all__ = [
@@ -535,5 +549,6 @@ __all__ = [
     "shield_action",
     "static_obstacles_from_ranges",
     "shield_for_memory",
+    "shield_from_spec",
     "velocity_obstacle_shield",
 ]

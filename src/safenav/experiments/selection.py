@@ -48,11 +48,23 @@ def validation_score(episodes: int = 256, device: str = "cpu") -> Callable[[dict
         from safenav.experiments.evaluate import evaluate
 
         fn, cfg = policy_from_state(state, device)
-        rates = [evaluate(fn, cfg, env_seed=s, episodes=per_map, device=device)["success_rate"]
+        rates = [evaluate(fn, cfg, env_seed=s, episodes=per_map, device=device,
+                          shield=own_shield(fn))["success_rate"]
                  for s in VALIDATION_SEEDS]  # fmt: skip
         return float(sum(rates) / len(rates))
 
     return score
+
+
+def own_shield(policy):
+    """A fresh shield of the kind ``policy`` trained behind (``safenav train --shield``; its
+    ``meta["shield"]``), or None: such a policy is chosen and reported flying behind it."""
+    spec = (getattr(policy, "meta", None) or {}).get("shield")
+    if not spec:
+        return None
+    from safenav.deploy.shield import shield_from_spec  # loads Numba: only for such a policy
+
+    return shield_from_spec(spec)
 
 
 def select_final_policy(
@@ -133,7 +145,9 @@ def report_policy(
             "collision_border_rate", "mean_time_to_goal", "min_clearance")  # fmt: skip
 
     def summary(seed: int) -> dict[str, Any]:
-        res = evaluate(fn, cfg, env_seed=seed, episodes=episodes, device=device)
+        res = evaluate(
+            fn, cfg, env_seed=seed, episodes=episodes, device=device, shield=own_shield(fn)
+        )
         return {k: res.get(k) for k in keys} | {"env_seed": seed, "episodes": episodes,
                                             "per_episode": {k: res["per_episode"][k]
                                                             for k in ("success", "collision")}}  # fmt: skip
@@ -143,8 +157,9 @@ def report_policy(
     pooled = {k: float(sum(h[k] for h in held) / len(held)) for k in ("success_rate", "collision_rate",
                                                                      "timeout_rate")}  # fmt: skip
     return {"test": test, "heldout": {"seeds": list(heldout), "episodes_per_seed": episodes,
-                                      **pooled, "per_seed": held}}  # fmt: skip
+                                      **pooled, "per_seed": held},
+            "shield": (getattr(fn, "meta", None) or {}).get("shield")}  # fmt: skip
 
 
-__all__ = ["HELDOUT_SEEDS", "RESERVED_SEEDS", "TEST_SEED", "VALIDATION_SEEDS", "report_policy",
+__all__ = ["HELDOUT_SEEDS", "RESERVED_SEEDS", "TEST_SEED", "VALIDATION_SEEDS", "own_shield", "report_policy",
            "select_final_policy", "validation_score"]  # fmt: skip

@@ -97,10 +97,11 @@ def validation_score(episodes: int, device: str = "cpu") -> Score:
     from safenav.training.evaluation import EVAL_SEED
 
     def score(state: dict[str, Any]) -> float:
+        from safenav.experiments.selection import own_shield
+
         fn, cfg = policy_from_state(state, device)
-        return float(
-            evaluate(fn, cfg, env_seed=EVAL_SEED, episodes=episodes, device=device)["success_rate"]
-        )
+        return float(evaluate(fn, cfg, env_seed=EVAL_SEED, episodes=episodes, device=device,
+                              shield=own_shield(fn))["success_rate"])  # fmt: skip
 
     return score
 

@@ -27,6 +27,7 @@ import dataclasses
 import math
 import time
 from collections import deque
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -57,6 +58,7 @@ from safenav.envs.vector import TorchVecEnv, env_horizon, is_safenav, make_vec_e
 from safenav.errors import SafenavError
 from safenav.training.evaluation import BestPolicy, periodic_evaluation
 from safenav.training.runs import episode_charts, run_summary, write_run_config
+from safenav.training.shielded import ShieldedVecEnv, ShieldFn
 
 
 class Learner(Protocol):
@@ -137,18 +139,22 @@ def map_refresh_interval(every: int, num_envs: int, horizon: int) -> int:
 
 
 def train(algo: str, run: RunConfig, cfg: CSACConfig | PPOConfig, run_dir: Path,
-          resume: bool = False, progress: bool = True) -> dict[str, float]:  # fmt: skip
+          resume: bool = False, progress: bool = True,
+          shield_factory: Callable[[dict], ShieldFn] | None = None) -> dict[str, float]:  # fmt: skip
     """Train ``algo`` (``csac``, ``sac``, ``sac_lag``, ``ppo``, ``ppo_lag``) into ``run_dir``
     (prepared by the caller; resumed from its ``checkpoint.pt`` when ``resume``). Returns the
-    final step and update counts and the rates of the last 100 episodes."""
-    return Trainer(algo, run, algo_config(algo, cfg), run_dir, resume, progress).run()
+    final step and update counts and the rates of the last 100 episodes. ``shield_factory``: a
+    fresh shield of ``run.shield_spec()``, for ``run.shield`` (:mod:`safenav.training.shielded`)."""
+    return Trainer(algo, run, algo_config(algo, cfg), run_dir, resume, progress,
+                   shield_factory).run()  # fmt: skip
 
 
 class Trainer:
     """One training run of one learner (see the module docstring)."""
 
     def __init__(self, algo: str, run: RunConfig, cfg: CSACConfig | PPOConfig, run_dir: Path,
-                 resume: bool = False, progress: bool = True) -> None:  # fmt: skip
+                 resume: bool = False, progress: bool = True,
+                 shield_factory: Callable[[dict], ShieldFn] | None = None) -> None:  # fmt: skip
         self.algo, self.run_cfg, self.cfg, self.resume = algo, run, cfg, resume
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -178,6 +184,11 @@ class Trainer:
         if self.normalization is not None:
             self.normalization.to(self.device)
         self.env = TorchVecEnv(envs, self.device, self.normalization)
+        spec = run.shield_spec()
+        if spec is not None and shield_factory is None:
+            raise SafenavError("--shield: this caller of train() passes no shield_factory")
+        if spec is not None:  # the env executes the shield's corrections (training/shielded.py)
+            self.env = ShieldedVecEnv(self.env, shield_factory(spec))
         self.refresh_every = 0  # map redraws: SafeNav only
         if self.nav:
             horizon = env_horizon(envs)
@@ -192,6 +203,8 @@ class Trainer:
             eval_kwargs = {**env_kwargs, "density": run.density.end} if self.nav else env_kwargs
             self.eval_env = TorchVecEnv(make_vec_env(run.env, min(run.eval_episodes, 32), run.device,
                                                      run.preset, **eval_kwargs), self.device)  # fmt: skip
+            if spec is not None:  # the policy is evaluated behind its shield (a fresh one)
+                self.eval_env = ShieldedVecEnv(self.eval_env, shield_factory(spec))
         self.learner: Learner = LEARNERS[algo](self.env, run, cfg)
         self.agent = self.learner.agent
         self.curriculum = ConstraintCurriculum(cfg.curriculum)
@@ -212,7 +225,8 @@ class Trainer:
                 self.normalization.load_state_dict(ckpt["normalization"])
             set_rng_state(ckpt["rng"])
         self.env.set_density(self.density.density)
-        self.logger = RunLogger(self.run_dir, self.learner.columns, run.tensorboard,
+        columns = [*self.learner.columns, *(["charts/shield_rate"] if spec is not None else [])]
+        self.logger = RunLogger(self.run_dir, columns, run.tensorboard,
                                 resume_step=self.global_step if resume else None)  # fmt: skip
         self.logger.event(self.global_step, "resume" if resume else "start", algo=algo,
                           density=self.density.density, d=self.curriculum.d,
@@ -334,6 +348,8 @@ class Trainer:
             **episode_charts(self.window),
             "charts/density": self.density.density if self.nav else math.nan,
         })  # fmt: skip
+        if isinstance(self.env, ShieldedVecEnv):  # the share of actions the shield changed
+            self.row["charts/shield_rate"] = self.env.correction_rate()
         if constrained:
             self.row.update({"constraint/lambda": float(self.agent.lam),
                              "constraint/d": self.curriculum.d, "constraint/stage": self.curriculum.stage})  # fmt: skip
@@ -366,6 +382,7 @@ class Trainer:
                 "obs_shapes": {k: list(v) for k, v in env.obs_shapes.items()}, "action_dim": env.action_dim,
                 "action_low": env._low.tolist(), "action_high": env._high.tolist(),
                 "net": to_dict(self.cfg.net), "global_step": int(self.global_step),
+                **({"shield": self.run_cfg.shield_spec()} if self.run_cfg.shield else {}),
                 **self.learner.policy_meta,
                 **(self.normalization.meta() if self.normalization is not None else {})}  # fmt: skip
 
