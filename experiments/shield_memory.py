@@ -10,7 +10,10 @@ test scenario and the held-out maps for the N chosen.
 
 ``--memory 0`` is no shield; ``Nmap`` (e.g. ``1map``, ``20map``) adds the map scan
 (``--shield-map``: ``MemoryShield(N, map_scan=True)``), and a suffix ``-moverX`` X metres more
-clearance from the tracked moving obstacles (``ShieldConfig.mover_margin``), e.g. ``1map-mover0.3``. One JSON per (policy, setting, map) in OUT
+clearance from the tracked moving obstacles (``ShieldConfig.mover_margin``), e.g. ``1map-mover0.3``,
+and ``-lag`` a shield that models the env's velocity tracker (``ShieldConfig.response_time``:
+candidates tested from where the vehicle really goes), e.g. ``1map-mover0.3-lag``. One JSON per
+(policy, setting, map) in OUT
 (a rerun skips those that exist), then a table of the mean over maps per (policy, setting) on
 stdout and in OUT/table-MAPS.md.
 """
@@ -45,13 +48,14 @@ def _mean(values: list) -> float:
     return sum(values) / len(values) if values else float("nan")
 
 
-def parse_setting(setting: str) -> tuple[int, bool, float]:
-    """``"20"`` -> (20, False, 0.0); ``"20map"`` -> (20, True, 0.0); ``"1map-mover0.3"`` -> (1,
-    True, 0.3)."""
-    found = re.fullmatch(r"(\d+)(map)?(?:-mover([0-9.]+))?", setting)
+def parse_setting(setting: str) -> tuple[int, bool, float, bool]:
+    """``"20"`` -> (20, False, 0.0, False); ``"20map"`` -> (20, True, 0.0, False);
+    ``"1map-mover0.3-lag"`` -> (1, True, 0.3, True) (``-lag``: the shield models the env's
+    velocity tracker, ``ShieldConfig.response_time``)."""
+    found = re.fullmatch(r"(\d+)(map)?(?:-mover([0-9.]+))?(-lag)?", setting)
     if found is None:
-        raise SystemExit(f"shield setting {setting!r}: N, Nmap or either with -moverX")
-    return int(found[1]), found[2] is not None, float(found[3] or 0.0)
+        raise SystemExit(f"shield setting {setting!r}: N, Nmap or either with -moverX and/or -lag")
+    return int(found[1]), found[2] is not None, float(found[3] or 0.0), found[4] is not None
 
 
 def run(
@@ -67,12 +71,13 @@ def run(
             for seed, episodes in maps:
                 f = out / f"{label(path)}-m{m}-seed{seed}-{episodes}.json"
                 if not f.exists():
-                    memory, scan, mover = parse_setting(m)
-                    shield = shield_for_memory(memory, scan, mover)
+                    memory, scan, mover, lag = parse_setting(m)
+                    shield = shield_for_memory(memory, scan, mover, lag)
                     r = evaluate(fn, cfg, env_seed=seed, episodes=episodes, shield=shield)
                     r.pop("per_episode", None)
                     write_json(f, {**r, "policy": str(path), "shield_memory": memory,
-                                   "shield_map": scan, "mover_margin": mover})  # fmt: skip
+                                   "shield_map": scan, "mover_margin": mover,
+                                   "response": lag})  # fmt: skip
                 per_map.append(json.loads(f.read_text()))
             mean = {k: _mean([r[k] for r in per_map]) for k in KEYS}
             rows.append({"policy": label(path), "memory": m, **mean})

@@ -297,3 +297,32 @@ def test_fly_takes_the_shield_memory_in_env_steps(capsys, tmp_path, monkeypatch)
     ):
         assert run_cli(capsys, [*demo, *argv])[0] == 0
     assert flown == [(True, 20, False), (True, 1, False), (False, 0, False), (True, 1, True)]
+
+
+def test_the_response_aware_shield_tests_candidates_from_where_the_vehicle_drifts():
+    """``ShieldConfig.response_time``: a first-order tracker (0.4 s, 3 m/s^2) flying 2 m/s keeps
+    going 0.91 m when told to hover; 1 m short of a pillar that hover is a collision."""
+    from safenav.deploy.shield import response_offset
+
+    cfg = ShieldConfig(response_time=0.4, max_acceleration=3.0)
+    v0 = torch.tensor([[2.0, 0.0, 0.0]])
+    hover, slower = torch.zeros(1, 1, 3), torch.tensor([[[1.0, 0.0, 0.0]]])
+    # |dv| = 2 > a T = 1.2: (4 - 1.44) / 6 + 1.2 * 0.4; |dv| = 1: dv T
+    assert response_offset(v0, hover, cfg)[0, 0, 0].item() == pytest.approx(2.56 / 6 + 0.48)
+    assert response_offset(v0, slower, cfg)[0, 0, 0].item() == pytest.approx(0.4)
+    assert response_offset(v0, hover, ShieldConfig(response_time=0.4))[0, 0, 0].item() == pytest.approx(0.8)
+    rel, vel = torch.tensor([[[1.0, 0.0, 0.0]]]), torch.zeros(1, 1, 3)
+    radius, valid = torch.tensor([[0.5]]), torch.tensor([[True]])
+    _, naive = velocity_obstacle_shield(torch.zeros(1, 3), rel, vel, radius, valid, v_now=v0)
+    _, aware = velocity_obstacle_shield(torch.zeros(1, 3), rel, vel, radius, valid, cfg=cfg, v_now=v0)
+    assert not naive.item() and aware.item()
+    # at rest, far from the pillar, the same command passes either way
+    _, calm = velocity_obstacle_shield(torch.zeros(1, 3), rel * 3, vel, radius, valid, cfg=cfg,
+                                       v_now=torch.zeros(1, 3))  # fmt: skip
+    assert not calm.item()
+    # already inside it: leaving is admissible, as without the model
+    _, leaving = velocity_obstacle_shield(torch.tensor([[-1.0, 0.0, 0.0]]), rel * 0.4, vel, radius,
+                                          valid, cfg=cfg, v_now=torch.zeros(1, 3))  # fmt: skip
+    assert not leaving.item()
+    with pytest.raises(ValueError, match="v_now"):
+        velocity_obstacle_shield(torch.zeros(1, 3), rel, vel, radius, valid, cfg=cfg)

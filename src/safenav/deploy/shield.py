@@ -45,6 +45,10 @@ from safenav.envs.config import EnvConfig
 from safenav.envs.sensors import RangeImageSpec
 from safenav.envs.world import CUBOID_HEIGHT, DYN_WIDTHS
 
+STATE_VELOCITY = slice(5, 8)
+"""The velocity in the observation's ``state`` (goal frame, / v_max): after the goal direction
+(3), horizontal distance (1) and height difference (1) (``SafeNavVectorEnv`` observation)."""
+
 
 @dataclass(frozen=True)
 class ShieldConfig:
@@ -81,6 +85,23 @@ class ShieldConfig:
     """Beams of the map scan (:func:`map_scan_hits`, ``MemoryShield(map_scan=True)``): 5° apart."""
     map_static: int = 24
     """Only the nearest this many hits of the map scan are treated as obstacles."""
+    response_time: float = 0.0
+    """The vehicle's velocity time constant (s) as the shield models it (beyond NavRL's shield):
+    0 = a commanded velocity is flown at once (NavRL's assumption). Above 0, each candidate is
+    tested from where the vehicle will really be: it keeps drifting along its current velocity
+    ``v0`` while it turns to the candidate ``v``, by ``(v0 - v) T`` for a first-order tracker of
+    time constant ``T`` (more while ``max_acceleration`` limits the turn), so the velocity
+    obstacles of a fast vehicle are shifted towards it (:func:`response_offset`)."""
+    max_acceleration: float = math.inf
+    """With ``response_time``: the tracker's acceleration limit (m/s^2; the env's 3)."""
+
+    @staticmethod
+    def response_of(cfg: EnvConfig) -> dict[str, float]:
+        """``response_time`` and ``max_acceleration`` as the env's velocity tracker has them."""
+        return {
+            "response_time": cfg.velocity_time_constant,
+            "max_acceleration": cfg.max_acceleration,
+        }
 
     @staticmethod
     def for_env(cfg: EnvConfig, **overrides) -> ShieldConfig:
@@ -89,23 +110,56 @@ class ShieldConfig:
         return ShieldConfig(**{**base, **overrides})
 
 
+def response_offset(v0: torch.Tensor, v: torch.Tensor, cfg: ShieldConfig) -> torch.Tensor:
+    """How far the vehicle ends up from the straight path of a commanded velocity ``v`` ``(N, C,
+    3)`` when it flies ``v0`` ``(N, 3)`` now: the integral of ``v(t) - v`` of a first-order
+    tracker (time constant ``T = cfg.response_time``) whose acceleration is limited to ``a``:
+    ``dv T`` while ``|dv| <= a T``, else ``(|dv|^2 - (a T)^2) / (2 a) + a T^2`` along ``dv``."""
+    dv = v0[:, None, :] - v
+    n = dv.norm(dim=-1, keepdim=True)
+    t, a = cfg.response_time, cfg.max_acceleration
+    if math.isinf(a):
+        return dv * t
+    knee = a * t
+    far = (n * n - knee * knee) / (2 * a) + knee * t
+    return torch.where(n <= knee, dv * t, dv / n.clamp(min=1e-9) * far)
+
+
 def _vo_test(v: torch.Tensor, rel: torch.Tensor, ovel: torch.Tensor, radius: torch.Tensor,
-             valid: torch.Tensor, planar: torch.Tensor, tau: float) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
-    """For candidates ``v`` ``(N, C, 3)``: inside-any-VO ``(N, C)`` and min time to collision."""
+             valid: torch.Tensor, planar: torch.Tensor, tau: float,
+             offset: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """For candidates ``v`` ``(N, C, 3)``: inside-any-VO ``(N, C)`` and min time to collision.
+
+    ``offset`` ``(N, C, 3)``: how far each candidate leaves the vehicle from its straight path
+    (:func:`response_offset`). The candidate is then tested from the shifted start, and the drift
+    there (the segment from now to the shifted start) must clear every obstacle too; an obstacle
+    the vehicle is already inside is left as without the offset (moving away is admissible)."""
     vr = v[:, :, None, :] - ovel[:, None, :, :]  # (N, C, M, 3)
-    p = rel[:, None, :, :]
+    p0 = rel[:, None, :, :]
+    p = p0 if offset is None else p0 - offset[:, :, None, :]
     # Planar obstacles (columns) are tested in the horizontal plane: z weighs 0 in the products.
     wz = torch.ones_like(rel)
     wz[..., 2] = (~planar).to(v.dtype)
-    pw = p * wz[:, None]  # p with z dropped where planar
+    w = wz[:, None]  # (N, 1, M, 3)
+    pw = p * w  # p with z dropped where planar
     pv = (pw * vr).sum(-1)
-    vv = (vr * vr * wz[:, None]).sum(-1).clamp(min=1e-12)
+    vv = (vr * vr * w).sum(-1).clamp(min=1e-12)
     pp = (pw * p).sum(-1)
     r2 = (radius * radius)[:, None, :]
     t = (pv / vv).clamp(0.0, tau)
     d2 = pp - 2 * t * pv + t * t * vv  # |p - vr t|^2
     penetrating = pp < r2
-    inside = torch.where(penetrating, pv > 0, d2 < r2) & valid[:, None, :]
+    if offset is None:
+        inside = torch.where(penetrating, pv > 0, d2 < r2) & valid[:, None, :]
+    else:
+        o = offset[:, :, None, :] * w
+        po, oo = (p0 * o).sum(-1), (o * o).sum(-1).clamp(min=1e-12)
+        pp0 = (p0 * p0 * w).sum(-1)
+        s = (po / oo).clamp(0.0, 1.0)
+        drift_hit = pp0 - 2 * s * po + s * s * oo < r2  # |p0 - s o|^2 < R^2 on the way
+        now_in = pp0 < r2
+        leaving = (p0 * w * vr).sum(-1) <= 0
+        inside = torch.where(now_in, ~leaving, drift_hit | (d2 < r2)) & valid[:, None, :]
     # Time to collision: smallest t >= 0 with |p - vr t| = R (inf if none / receding).
     disc = pv * pv - vv * (pp - r2)
     ttc = (pv - disc.clamp(min=0).sqrt()) / vv
@@ -186,6 +240,7 @@ def velocity_obstacle_shield(
     cfg: ShieldConfig = ShieldConfig(),
     compiled: bool | None = None,
     dist: torch.Tensor | None = None,
+    v_now: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Shield desired velocities ``v_des`` ``(N, 3)`` against ``M`` obstacles per env.
 
@@ -195,6 +250,7 @@ def velocity_obstacle_shield(
         planar: ``(N, M)`` obstacles that span all altitudes (tested in the horizontal plane).
         dist: ``(N, M)`` distances that rank the obstacles for the boundary candidates (default
             ``|rel|``).
+        v_now: ``(N, 3)`` the vehicle's velocity now, for ``cfg.response_time > 0`` (else unused).
 
     Returns ``(v, corrected)``: the shielded velocities ``(N, 3)`` (``v_des`` itself, bit for bit,
     where it was admissible) and which envs were corrected ``(N,)``.
@@ -208,9 +264,13 @@ def velocity_obstacle_shield(
     if rel.shape[1] == 0:
         return v_des.clone(), torch.zeros(n, dtype=torch.bool, device=dev)
     tau, vm = cfg.time_horizon, cfg.v_max
-    if n == 1 and dev.type == "cpu" and kernels.AVAILABLE and compiled is not False:
+    lagged = cfg.response_time > 0
+    if lagged and v_now is None:
+        raise ValueError("a shield with response_time > 0 needs the vehicle's velocity (v_now)")
+    if n == 1 and dev.type == "cpu" and kernels.AVAILABLE and compiled is not False and not lagged:
         return _shield_one_compiled(v_des, rel, obs_vel, radius, valid, planar, cfg, dist)
-    inside_des, _ = _vo_test(v_des[:, None, :], rel, obs_vel, radius, valid, planar, tau)
+    offset = response_offset(v_now, v_des[:, None, :], cfg) if lagged else None
+    inside_des, _ = _vo_test(v_des[:, None, :], rel, obs_vel, radius, valid, planar, tau, offset)
     corrected = inside_des[:, 0]
     out = v_des.clone()
     if not bool(corrected.any()):
@@ -220,13 +280,15 @@ def velocity_obstacle_shield(
     v_des, rel, obs_vel = v_des[rows], rel[rows], obs_vel[rows]
     radius, valid, planar = radius[rows], valid[rows], planar[rows]
     dist = dist[rows] if dist is not None else None
+    v_now = v_now[rows] if lagged else None
     scales = v_des.new_tensor([0.75, 0.5, 0.25, 0.0])
     cands = torch.cat([
         v_des[:, None, :] * scales[None, :, None],
         _fan(cfg, dev, dt)[None].expand(rows.shape[0], -1, -1),
         _boundary_candidates(v_des, rel, obs_vel, radius, valid, planar, tau, cfg.projected, dist),
     ], dim=1).clamp(-vm, vm)  # fmt: skip
-    inside, ttc = _vo_test(cands, rel, obs_vel, radius, valid, planar, tau)
+    inside, ttc = _vo_test(cands, rel, obs_vel, radius, valid, planar, tau,
+                           response_offset(v_now, cands, cfg) if lagged else None)  # fmt: skip
     cost = (cands - v_des[:, None, :]).square().sum(-1)
     best = torch.argmin(torch.where(inside, math.inf, cost), dim=-1)
     # Nothing admissible: latest time to collision, then nearest to v_des.
@@ -334,14 +396,16 @@ def shield_action(
     """
     spec = _spec(cfg)
     lidar, dyn = obs["lidar"], obs["dynamic"]
-    if action.shape[0] == 1 and action.device.type == "cpu" and kernels.AVAILABLE:
+    one = action.shape[0] == 1 and action.device.type == "cpu" and kernels.AVAILABLE
+    if one and cfg.response_time == 0:
         return _shield_action_compiled(lidar, dyn, action, cfg, spec)
     ranges = cfg.lidar_range * (1.0 - lidar.to(action.dtype))
     rel, valid, planar, dist = _static_hits(ranges, spec, cfg.max_static)
-    return _shield_static_and_tracked(rel, valid, planar, dist, dyn, action, cfg)
+    return _shield_static_and_tracked(rel, valid, planar, dist, dyn, action, cfg, obs.get("state"))
 
 
-def _shield_static_and_tracked(rel, valid, planar, dist, dyn, action, cfg: ShieldConfig):
+def _shield_static_and_tracked(rel, valid, planar, dist, dyn, action, cfg: ShieldConfig,
+                               state: torch.Tensor | None = None):  # fmt: skip
     """shield_action's search once the static obstacles are chosen: they ``(N, M, 3)`` in the
     heading frame (with ``valid``, ``planar``, ``dist``) and the tracked ones decoded from ``dyn``."""
     base = cfg.uav_radius + cfg.margin
@@ -354,8 +418,11 @@ def _shield_static_and_tracked(rel, valid, planar, dist, dyn, action, cfg: Shiel
         radius = torch.cat([radius, d_rad + (base + cfg.mover_margin)], 1)
         valid, planar = torch.cat([valid, d_valid], 1), torch.cat([planar, d_planar], 1)
         dist = torch.cat([dist, d_dist], 1)
+    v_now = None
+    if cfg.response_time > 0:  # the observation's velocity, in the same (goal) frame as actions
+        v_now = state[:, STATE_VELOCITY].to(action.dtype) * cfg.v_max
     v, corrected = velocity_obstacle_shield(
-        action * cfg.v_max, rel, vel, radius, valid, planar, cfg, dist=dist
+        action * cfg.v_max, rel, vel, radius, valid, planar, cfg, dist=dist, v_now=v_now
     )
     out = torch.where(corrected[:, None], (v / cfg.v_max).clamp(-1.0, 1.0), action)
     return out, corrected
@@ -442,7 +509,8 @@ class MemoryShield:
     """
 
     def __init__(self, memory: int, cfg: ShieldConfig | None = None, max_static: int | None = None,
-                 map_scan: bool = False, mover_margin: float = 0.0):  # fmt: skip
+                 map_scan: bool = False, mover_margin: float = 0.0,
+                 response: bool = False):  # fmt: skip
         if not 1 <= memory <= 100:
             raise ValueError(f"memory must lie in [1, 100] range images, got {memory}")
         if not 0.0 <= mover_margin <= 2.0:
@@ -450,6 +518,7 @@ class MemoryShield:
         self.memory, self.cfg, self.max_static = int(memory), cfg, max_static
         self.map_scan = bool(map_scan)
         self.mover_margin = float(mover_margin)  # with the env's config (cfg None) only
+        self.response = bool(response)  # ditto: the env's velocity tracker (response_time)
         self._points: torch.Tensor | None = None  # (N, memory, beams, 3) world; FAR = no hit
         self._slot = 0
 
@@ -458,7 +527,9 @@ class MemoryShield:
         self._points, self._slot = None, 0
 
     def __call__(self, env, obs: dict[str, torch.Tensor], action: torch.Tensor) -> torch.Tensor:
-        cfg = self.cfg or ShieldConfig.for_env(env.cfg, mover_margin=self.mover_margin)
+        cfg = self.cfg or ShieldConfig.for_env(
+            env.cfg, mover_margin=self.mover_margin,
+            **(ShieldConfig.response_of(env.cfg) if self.response else {}))  # fmt: skip
         extra = None
         if self.map_scan:
             extra = map_scan_hits(env.heights, env.grid.origin, env.grid.size, env.cfg.grid_resolution,
@@ -512,19 +583,23 @@ class MemoryShield:
         if extra is not None:
             rel, valid, planar, dsel = (torch.cat([a, b.to(a.dtype)], 1)
                                         for a, b in zip((rel, valid, planar, dsel), extra, strict=True))  # fmt: skip
-        return _shield_static_and_tracked(rel, valid, planar, dsel, obs["dynamic"], action, cfg)
+        return _shield_static_and_tracked(rel, valid, planar, dsel, obs["dynamic"], action, cfg,
+                                          obs.get("state"))  # fmt: skip
 
 
 _FAR = 1.0e4
 
 
-def shield_for_memory(memory: int, map_scan: bool = False, mover_margin: float = 0.0):
+def shield_for_memory(memory: int, map_scan: bool = False, mover_margin: float = 0.0,
+                      response: bool = False):  # fmt: skip
     """The evaluation shield of a memory setting (``--shield-memory``): ``None`` for 0 (no
     shield), :func:`env_shield` for 1, a fresh :class:`MemoryShield` of ``memory`` images above;
     with ``map_scan`` (``--shield-map``) or a ``mover_margin`` (m, ``--shield-mover-margin``) a
-    fresh ``MemoryShield(max(memory, 1), map_scan=..., mover_margin=...)``."""
-    if map_scan or mover_margin:
-        return MemoryShield(max(memory, 1), map_scan=map_scan, mover_margin=mover_margin)
+    fresh ``MemoryShield(max(memory, 1), map_scan=..., mover_margin=...)``; ``response``: it
+    models the env's velocity tracker (``ShieldConfig.response_time``)."""
+    if map_scan or mover_margin or response:
+        return MemoryShield(max(memory, 1), map_scan=map_scan, mover_margin=mover_margin,
+                            response=response)  # fmt: skip
     if memory <= 0:
         return None
     return env_shield if memory == 1 else MemoryShield(memory)
