@@ -250,7 +250,7 @@ VERDICTS: dict[str, dict[str, int]] = {
     "eval --env-seed": {"0": ACCEPTED}, "eval --episodes": MEMORY,
     "eval --shield-memory": {"0": ACCEPTED},  # 0-100, and above 1 only with --shield
     "render --shield-memory": {"0": ACCEPTED},
-    **{f"{v} --shield-mover-margin": {"0": ACCEPTED} for v in ("train", "eval", "render")},  # 0-2 m
+    **{f"{v} --shield-mover-margin": {"0": ACCEPTED} for v in ("train", "eval", "render", "fly")},  # 0-2 m
     "train --shield-memory": {"0": ACCEPTED},
     "fly --shield-memory": {"0": ACCEPTED},
     "render --env-seed": {"0": ACCEPTED}, "render --episode": {"0": ACCEPTED}, "render --fps": {},

@@ -274,6 +274,7 @@ def test_fly_takes_the_shield_memory_in_env_steps(capsys, tmp_path, monkeypatch)
     assert RuntimeConfig.for_flight(cfg, 20, 20.0).shield_memory == 40
     assert RuntimeConfig.for_flight(cfg, 20, 10.0).shield_memory == 20
     assert RuntimeConfig.for_flight(cfg, 1, 20.0, shield_map=True).shield_map
+    assert RuntimeConfig.for_flight(cfg, 1, 20.0, mover_margin=0.3).shield.mover_margin == 0.3
     with pytest.raises(SafenavError, match="more than 100"):
         RuntimeConfig.for_flight(cfg, 20, 60.0)
 
@@ -285,7 +286,9 @@ def test_fly_takes_the_shield_memory_in_env_steps(capsys, tmp_path, monkeypatch)
     flown = []
 
     def fake_demo(**kw):
-        flown.append((kw["shield"], kw["shield_memory"], kw["shield_map"]))
+        flown.append(
+            (kw["shield"], kw["shield_memory"], kw["shield_map"], kw["shield_mover_margin"])
+        )
         raise SystemExit(0)
 
     monkeypatch.setattr("safenav.deploy.demo.run_demo", fake_demo)
@@ -294,9 +297,13 @@ def test_fly_takes_the_shield_memory_in_env_steps(capsys, tmp_path, monkeypatch)
         ["--shield"],
         [],
         ["--shield", "--shield-map"],
+        ["--shield", "--shield-mover-margin", "0.3"],
     ):
         assert run_cli(capsys, [*demo, *argv])[0] == 0
-    assert flown == [(True, 20, False), (True, 1, False), (False, 0, False), (True, 1, True)]
+    assert flown == [(True, 20, False, 0.0), (True, 1, False, 0.0), (False, 0, False, 0.0),
+                     (True, 1, True, 0.0), (True, 1, False, 0.3)]  # fmt: skip
+    code, _, err = run_cli(capsys, [*demo, "--shield-mover-margin", "0.3"])
+    assert code == 2 and "--shield-mover-margin needs --shield" in err
 
 
 def test_the_response_aware_shield_tests_candidates_from_where_the_vehicle_drifts():
@@ -310,11 +317,15 @@ def test_the_response_aware_shield_tests_candidates_from_where_the_vehicle_drift
     # |dv| = 2 > a T = 1.2: (4 - 1.44) / 6 + 1.2 * 0.4; |dv| = 1: dv T
     assert response_offset(v0, hover, cfg)[0, 0, 0].item() == pytest.approx(2.56 / 6 + 0.48)
     assert response_offset(v0, slower, cfg)[0, 0, 0].item() == pytest.approx(0.4)
-    assert response_offset(v0, hover, ShieldConfig(response_time=0.4))[0, 0, 0].item() == pytest.approx(0.8)
+    assert response_offset(v0, hover, ShieldConfig(response_time=0.4))[
+        0, 0, 0
+    ].item() == pytest.approx(0.8)
     rel, vel = torch.tensor([[[1.0, 0.0, 0.0]]]), torch.zeros(1, 1, 3)
     radius, valid = torch.tensor([[0.5]]), torch.tensor([[True]])
     _, naive = velocity_obstacle_shield(torch.zeros(1, 3), rel, vel, radius, valid, v_now=v0)
-    _, aware = velocity_obstacle_shield(torch.zeros(1, 3), rel, vel, radius, valid, cfg=cfg, v_now=v0)
+    _, aware = velocity_obstacle_shield(
+        torch.zeros(1, 3), rel, vel, radius, valid, cfg=cfg, v_now=v0
+    )
     assert not naive.item() and aware.item()
     # at rest, far from the pillar, the same command passes either way
     _, calm = velocity_obstacle_shield(torch.zeros(1, 3), rel * 3, vel, radius, valid, cfg=cfg,

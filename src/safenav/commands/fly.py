@@ -26,6 +26,7 @@ def fly(
     shield: bool = False,
     shield_memory: int = 0,
     shield_map: bool = False,
+    shield_mover_margin: float = 0.0,
     takeoff_altitude: float = 1.5,
     origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
     link_timeout: float = 1.0,
@@ -72,6 +73,8 @@ def fly(
             the current image only.
         shield_map: With --shield: it also avoids every pillar the onboard map (built from the
             depth images) holds at the vehicle's lower extent (a level scan of the map).
+        shield_mover_margin: With --shield: metres more clearance from tracked moving obstacles
+            (0-2; 0.3 was chosen on validation maps).
         takeoff_altitude: Takeoff altitude above home, metres.
         origin: World ENU position of PX4's local NED origin.
         link_timeout: Seconds without telemetry that count as link loss (exit status 3).
@@ -100,7 +103,7 @@ def fly(
         )
     from safenav.commands.eval import check_shield_memory
 
-    memory = check_shield_memory(shield, shield_memory, shield_map)
+    memory = check_shield_memory(shield, shield_memory, shield_map, shield_mover_margin)
     check_fly_args(policy, connect, perception, rate, takeoff_altitude, link_timeout,
                    max_flight_time, json_out, demo, preset, episode, gif, goal, origin,
                    checkpoint if demo and not scripted and policy is None else None, record)  # fmt: skip
@@ -109,14 +112,15 @@ def fly(
             from safenav.deploy.demo import run_demo
 
             summary = run_demo(policy=policy, checkpoint=checkpoint, scripted=scripted, preset=preset,
-                               episode=episode, rate=rate, shield=shield, shield_memory=memory, shield_map=shield_map, gif=gif or Path("flight.gif"),
+                               episode=episode, rate=rate, shield=shield, shield_memory=memory, shield_map=shield_map, shield_mover_margin=shield_mover_margin, gif=gif or Path("flight.gif"),
                                max_flight_time=max_flight_time, record=record)  # fmt: skip
         else:
             if policy is None or goal is None:
                 raise SafenavError("pass --policy policy.onnx and --goal X Y Z (or --demo)")
             summary = fly_policy(policy, connect, goal, perception, rate, shield, takeoff_altitude, origin,
                                  link_timeout, max_flight_time, land, record=record,
-                                 shield_memory=memory, shield_map=shield_map)  # fmt: skip
+                                 shield_memory=memory, shield_map=shield_map,
+                                 shield_mover_margin=shield_mover_margin)  # fmt: skip
     except FlightAborted as err:
         summary = getattr(err, "summary", None)
         if json_out is not None and summary is not None:
@@ -264,7 +268,7 @@ def check_connect_url(url: str) -> None:
 def fly_policy(policy: Path, connect: str, goal, perception: str, rate: float, shield: bool,
                takeoff_altitude: float, origin, link_timeout: float, max_flight_time: float, land: bool,
                record: Path | None = None, shield_memory: int | None = None,
-               shield_map: bool = False) -> dict:  # fmt: skip
+               shield_map: bool = False, shield_mover_margin: float = 0.0) -> dict:  # fmt: skip
     """Fly ``policy`` to ``goal`` on the vehicle at ``connect``; ``shield_memory``: the shield's
     memory in range images (default: 1 with ``shield``, the memoryless shield)."""
     import torch
@@ -278,7 +282,8 @@ def fly_policy(policy: Path, connect: str, goal, perception: str, rate: float, s
     torch.set_num_threads(1)  # the runtime is single-threaded by design; leave the other cores
     memory = max(1, shield_memory or 1) if shield else 0  # range images; 0: no shield
     runtime = OnboardRuntime(OnnxPolicy(policy), cfg,
-                             RuntimeConfig.for_flight(cfg, memory, rate, shield_map and shield))  # fmt: skip
+                             RuntimeConfig.for_flight(cfg, memory, rate, shield_map and shield,
+                                                      shield_mover_margin if shield else 0.0))  # fmt: skip
     recorder = None
     if record is not None:  # no ground truth here: the map holds the goal and the geofence
         from safenav.deploy.mcap_log import McapRecorder, Scene
@@ -286,7 +291,8 @@ def fly_policy(policy: Path, connect: str, goal, perception: str, rate: float, s
         recorder = McapRecorder(record, Scene.for_env(cfg, goal, arena=runtime.config.geofence),
                                 metadata={"verb": "fly", "policy": str(policy), "connect": connect,
                                           "rate_hz": rate, "shield": shield, "shield_memory": memory,
-                                          "shield_map": shield_map})  # fmt: skip
+                                          "shield_map": shield_map,
+                                          "shield_mover_margin": shield_mover_margin})  # fmt: skip
     link = MavsdkLink(connect)
     ctl = FlightController(runtime, link, FlyConfig(
         goal=tuple(goal), rate_hz=rate, takeoff_altitude=takeoff_altitude, origin=tuple(origin),

@@ -92,6 +92,7 @@ def run_demo(
     shield: bool = False,
     shield_memory: int | None = None,
     shield_map: bool = False,
+    shield_mover_margin: float = 0.0,
     gif: Path | None = Path("flight.gif"),
     max_flight_time: float = 120.0,
     world_seed: int = 1,
@@ -101,7 +102,8 @@ def run_demo(
     ``record``: write the flight's MCAP log there (:mod:`safenav.deploy.mcap_log`, with the
     simulator's pillars in ``/safenav/map``); ``shield_memory``: the shield's memory in range
     images (default: 1 with ``shield``, the memoryless shield; see ``RuntimeConfig.for_flight``);
-    ``shield_map``: with ``shield``, the map scan too."""
+    ``shield_map``: with ``shield``, the map scan too; ``shield_mover_margin``: with ``shield``,
+    metres more clearance from moving obstacles."""
     from safenav.deploy.export import OnnxPolicy, load_sidecar
     from safenav.deploy.fly import FlightAborted, FlightController, FlyConfig, MavsdkLink
     from safenav.deploy.runtime import OnboardRuntime, RuntimeConfig
@@ -131,7 +133,13 @@ def run_demo(
             runtime = OnboardRuntime(
                 OnnxPolicy(onnx),
                 pcfg,
-                RuntimeConfig.for_flight(pcfg, memory, rate, shield_map and shield),
+                RuntimeConfig.for_flight(
+                    pcfg,
+                    memory,
+                    rate,
+                    shield_map and shield,
+                    shield_mover_margin if shield else 0.0,
+                ),
             )
             link = MavsdkLink(f"udpin://127.0.0.1:{port}")
             recorder = None
@@ -178,7 +186,7 @@ def run_demo(
         "scenario": {"preset": preset, "world_seed": world_seed, "episode": episode,
                      "start": [round(x, 3) for x in start], "goal": [round(x, 3) for x in goal]},
         "policy": str(policy) if policy else ("scripted" if scripted else str(checkpoint)),
-        "shield": shield, "shield_memory": memory, "shield_map": shield_map and shield, "rate_hz": rate, "wall_time_s": round(wall, 1),
+        "shield": shield, "shield_memory": memory, "shield_map": shield_map and shield, "shield_mover_margin": shield_mover_margin if shield else 0.0, "rate_hz": rate, "wall_time_s": round(wall, 1),
         **{k: v for k, v in flight.summary().items() if k not in ("reached_goal", "flight_time_s")},
     }  # fmt: skip
     if gif is not None and ctl.snapshots:

@@ -97,11 +97,12 @@ class RuntimeConfig:
 
     @classmethod
     def for_flight(cls, env_config: EnvConfig, shield_memory: int, rate_hz: float,
-                   shield_map: bool = False) -> RuntimeConfig:  # fmt: skip
+                   shield_map: bool = False, mover_margin: float = 0.0) -> RuntimeConfig:  # fmt: skip
         """The runtime of ``safenav fly``: no shield (``shield_memory`` 0), the shield (1), or the
         memory shield of the last ``shield_memory`` range images at the env's control rate (10 Hz:
         20 is 2 s, as ``safenav eval --shield-memory 20``), i.e. that many seconds of setpoints at
-        ``rate_hz``; ``shield_map``: the shield also takes the map scan. :class:`~safenav.errors.SafenavError`
+        ``rate_hz``; ``shield_map``: the shield also takes the map scan; ``mover_margin``: metres
+        more clearance from tracked moving obstacles. :class:`~safenav.errors.SafenavError`
         if the memory is more than 100 setpoints."""
         from safenav.errors import SafenavError
 
@@ -111,9 +112,8 @@ class RuntimeConfig:
         if steps > 100:
             raise SafenavError(f"--shield-memory {shield_memory} ({shield_memory * env_config.dt:g} s of range "
                                f"images) at --rate {rate_hz:g} Hz is {steps} setpoints, more than 100")  # fmt: skip
-        return cls(
-            shield=ShieldConfig.for_env(env_config), shield_memory=steps, shield_map=shield_map
-        )
+        return cls(shield=ShieldConfig.for_env(env_config, mover_margin=mover_margin),
+                   shield_memory=steps, shield_map=shield_map)  # fmt: skip
 
 
 @dataclass
