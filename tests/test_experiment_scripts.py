@@ -1,7 +1,8 @@
 """The diagnostic scripts of ``experiments/`` that docs/csac.md and docs/csac-v1.md quote run on a
 tiny CSAC run: ``checkpoint_sweep.py`` (with ``--sampled``), ``cost_critic_bias.py``,
 ``flight_grid.py``, ``speed_profile.py``, ``timeout_paths.py`` and ``altitude_profile.py``; and
-``vecenv_overhead.py`` (docs/gymnasium.md) on Pendulum-v1; ``shield_memory.py`` (docs/deployment.md)."""
+``vecenv_overhead.py`` (docs/gymnasium.md) on Pendulum-v1; ``shield_memory.py`` (docs/deployment.md);
+``finish_runs.py`` (docs/csac-v1.md)."""
 
 from __future__ import annotations
 
@@ -263,3 +264,18 @@ def test_shield_memory_flies_each_memory_and_pairs_them_by_policy(tiny_run, tmp_
     for m, base in (("1", "0"), ("3", "0"), ("3", "1"), ("1map", "1"), ("1map-mover0.3", "1")):
         d = rows[settings.index(m)]["collision_rate"] - rows[settings.index(base)]["collision_rate"]
         assert f"| {m} | {base} |" in table and f"{d:+.3f}" in table
+
+
+@pytest.mark.long
+def test_finish_runs_selects_on_validation_and_reports(tiny_run, tmp_path):
+    """``finish_runs.py``: ``--select``'s ending on a run kept with ``--keep-policies``."""
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    script("finish_runs").main([str(run), "--out", str(tmp_path / "out"), "--report-episodes", "2"])
+    final = json.loads((tmp_path / "out" / "run-final.json").read_text())
+    selection = json.loads((tmp_path / "out" / "run-selection.json").read_text())
+    assert selection["selection"] == "validation" and (run / "policy.pt").exists()
+    assert final["test"]["episodes"] == 2 and final["shield"] is None
+    assert len(final["heldout"]["per_seed"]) == 5
