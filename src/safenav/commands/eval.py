@@ -141,7 +141,7 @@ def own_shield_settings(policy, checkpoint, memory: int, shield_map: bool,
     from safenav.cli import ARGS
     from safenav.commands.train import given_flag
 
-    spec = (getattr(policy, "meta", None) or {}).get("shield")
+    spec = policy.meta.get("shield")
     if not spec or any(given_flag(f, ARGS.get()) for f in SHIELD_FLAGS):
         return memory, shield_map, mover_margin
     from rich.console import Console

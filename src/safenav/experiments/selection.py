@@ -59,7 +59,7 @@ def validation_score(episodes: int = 256, device: str = "cpu") -> Callable[[dict
 def own_shield(policy):
     """A fresh shield of the kind ``policy`` trained behind (``safenav train --shield``; its
     ``meta["shield"]``), or None: such a policy is chosen and reported flying behind it."""
-    spec = (getattr(policy, "meta", None) or {}).get("shield")
+    spec = policy.meta.get("shield")
     if not spec:
         return None
     from safenav.deploy.shield import shield_from_spec  # loads Numba: only for such a policy
@@ -158,7 +158,7 @@ def report_policy(
                                                                      "timeout_rate")}  # fmt: skip
     return {"test": test, "heldout": {"seeds": list(heldout), "episodes_per_seed": episodes,
                                       **pooled, "per_seed": held},
-            "shield": (getattr(fn, "meta", None) or {}).get("shield")}  # fmt: skip
+            "shield": fn.meta.get("shield")}  # fmt: skip
 
 
 __all__ = ["HELDOUT_SEEDS", "RESERVED_SEEDS", "TEST_SEED", "VALIDATION_SEEDS", "own_shield", "report_policy",

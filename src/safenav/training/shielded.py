@@ -39,7 +39,7 @@ class ShieldedVecEnv:
         self.nav = env.envs.unwrapped
         self._obs: dict[str, torch.Tensor] | None = None
         self.actions = 0
-        self.corrected = 0
+        self.corrected = torch.zeros((), dtype=torch.long, device=env.device)  # no sync per step
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.inner, name)
@@ -54,15 +54,16 @@ class ShieldedVecEnv:
         action = action.clamp(-1.0, 1.0)
         safe = self.shield(self.nav, self._obs, action)
         self.actions += action.shape[0]
-        self.corrected += int((safe != action).any(-1).sum())
+        self.corrected += (safe != action).any(-1).sum()
         step = self.inner.step(safe)
         self._obs = step.next_obs
         return step
 
     def correction_rate(self) -> float:
         """The share of actions the shield changed since the last call (then counts anew)."""
-        rate = self.corrected / self.actions if self.actions else float("nan")
-        self.actions = self.corrected = 0
+        rate = int(self.corrected) / self.actions if self.actions else float("nan")
+        self.actions = 0
+        self.corrected.zero_()
         return rate
 
 
