@@ -12,7 +12,9 @@ test scenario and the held-out maps for the N chosen.
 (``--shield-map``: ``MemoryShield(N, map_scan=True)``), and a suffix ``-moverX`` X metres more
 clearance from the tracked moving obstacles (``ShieldConfig.mover_margin``), e.g. ``1map-mover0.3``,
 and ``-lag`` a shield that models the env's velocity tracker (``ShieldConfig.response_time``:
-candidates tested from where the vehicle really goes), e.g. ``1map-mover0.3-lag``. One JSON per
+candidates tested from where the vehicle really goes), e.g. ``1map-mover0.3-lag``, and ``-brake``
+the braking cap (``--shield-brake``: ``ShieldConfig.brake_time``), e.g. ``1map-mover0.3-brake``.
+One JSON per
 (policy, setting, map) in OUT
 (a rerun skips those that exist), then a table of the mean over maps per (policy, setting) on
 stdout and in OUT/table-MAPS.md.
@@ -34,7 +36,7 @@ from safenav.experiments.evaluate import evaluate
 from safenav.experiments.selection import HELDOUT_SEEDS, TEST_SEED, VALIDATION_SEEDS
 
 KEYS = ("success_rate", "collision_rate", "timeout_rate", "collision_static_rate",
-        "collision_dynamic_rate", "mean_speed", "mean_time_to_goal")  # fmt: skip
+        "collision_dynamic_rate", "mean_speed", "mean_time_to_goal", "collision_bounds_rate")  # fmt: skip
 
 
 def label(path: Path) -> str:
@@ -48,14 +50,16 @@ def _mean(values: list) -> float:
     return sum(values) / len(values) if values else float("nan")
 
 
-def parse_setting(setting: str) -> tuple[int, bool, float, bool]:
-    """``"20"`` -> (20, False, 0.0, False); ``"20map"`` -> (20, True, 0.0, False);
-    ``"1map-mover0.3-lag"`` -> (1, True, 0.3, True) (``-lag``: the shield models the env's
-    velocity tracker, ``ShieldConfig.response_time``)."""
-    found = re.fullmatch(r"(\d+)(map)?(?:-mover([0-9.]+))?(-lag)?", setting)
+def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool]:
+    """``"20"`` -> (20, False, 0.0, False, False); ``"20map"`` -> (20, True, 0.0, False, False);
+    ``"1map-mover0.3-lag"`` -> (1, True, 0.3, True, False) (``-lag``: the shield models the env's
+    velocity tracker, ``ShieldConfig.response_time``); ``"1map-mover0.3-brake"`` -> (1, True,
+    0.3, False, True) (the braking cap)."""
+    found = re.fullmatch(r"(\d+)(map)?(?:-mover([0-9.]+))?(-lag)?(-brake)?", setting)
     if found is None:
-        raise SystemExit(f"shield setting {setting!r}: N, Nmap or either with -moverX and/or -lag")
-    return int(found[1]), found[2] is not None, float(found[3] or 0.0), found[4] is not None
+        raise SystemExit(f"shield setting {setting!r}: N, Nmap or either with -moverX, -lag, -brake")
+    return (int(found[1]), found[2] is not None, float(found[3] or 0.0), found[4] is not None,
+            found[5] is not None)  # fmt: skip
 
 
 def run(
@@ -71,13 +75,13 @@ def run(
             for seed, episodes in maps:
                 f = out / f"{label(path)}-m{m}-seed{seed}-{episodes}.json"
                 if not f.exists():
-                    memory, scan, mover, lag = parse_setting(m)
-                    shield = shield_for_memory(memory, scan, mover, lag)
+                    memory, scan, mover, lag, brake = parse_setting(m)
+                    shield = shield_for_memory(memory, scan, mover, lag, brake)
                     r = evaluate(fn, cfg, env_seed=seed, episodes=episodes, shield=shield)
                     r.pop("per_episode", None)
                     write_json(f, {**r, "policy": str(path), "shield_memory": memory,
                                    "shield_map": scan, "mover_margin": mover,
-                                   "response": lag})  # fmt: skip
+                                   "response": lag, "brake": brake})  # fmt: skip
                 per_map.append(json.loads(f.read_text()))
             mean = {k: _mean([r[k] for r in per_map]) for k in KEYS}
             rows.append({"policy": label(path), "memory": m, **mean})

@@ -285,11 +285,11 @@ def test_perception_frames_round_trip_and_reject_garbage() -> None:
             decode_frame(bad)
 
 
-@pytest.mark.parametrize("scan", [False, True])
-def test_runtime_memory_shield_is_the_simulators(scan) -> None:
+@pytest.mark.parametrize(("scan", "brake"), [(False, False), (True, False), (True, True)])
+def test_runtime_memory_shield_is_the_simulators(scan, brake) -> None:
     """Given the env's map and the env's state each step, the runtime's memory shield (its own
     range images, placed by odometry; a new goal forgets them; with ``scan`` the map scan of its
-    own map) corrects the actions as ``MemoryShield`` does on the env, over episodes that end and
+    own map; with ``brake`` the braking cap, from its odometry's altitude) corrects the actions as ``MemoryShield`` does on the env, over episodes that end and
     restart. Positions go to the
     world frame and back, so a near-tie may fall the other way now and then (as in
     ``test_memory_shield_of_one_image_is_env_shield``)."""
@@ -299,7 +299,7 @@ def test_runtime_memory_shield_is_the_simulators(scan) -> None:
     cfg = make_config("easy", num_dynamic=0)  # static obstacles: the range image is exact
     env = SafeNavVectorEnv(4, config=cfg, output="torch")
     obs, _ = env.reset(seed=7)
-    shield_cfg = ShieldConfig.for_env(cfg)
+    shield_cfg = ShieldConfig.for_env(cfg, **(ShieldConfig.braking_of(cfg) if brake else {}))
     sim = MemoryShield(10, shield_cfg, map_scan=scan)
     wanted = [np.zeros((1, 3), np.float32)]
     runtimes = [

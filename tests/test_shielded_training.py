@@ -66,7 +66,7 @@ def test_step_before_reset_and_normalised_observations_are_refused():
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [({"shield_map": True}, "add --shield"), ({"shield_memory": 5}, "add --shield"),
-     ({"shield_mover_margin": 0.3}, "add --shield"),
+     ({"shield_mover_margin": 0.3}, "add --shield"), ({"shield_brake": True}, "add --shield"),
      ({"shield": True, "shield_memory": 101}, r"\[0, 100\]"),
      ({"shield": True, "shield_mover_margin": -0.1}, r"\[0, 2\]"),
      ({"shield": True, "shield_mover_margin": 3.0}, r"\[0, 2\]"),
@@ -80,14 +80,18 @@ def test_shield_options_are_checked(kwargs, message):
 def test_the_spec_rebuilds_the_shield():
     assert RunConfig().shield_spec() is None and shield_from_spec(None) is None
     spec = RunConfig(shield=True).shield_spec()
-    assert spec == {"memory": 1, "map": False, "mover_margin": 0.0}
+    assert spec == {"memory": 1, "map": False, "mover_margin": 0.0, "brake": False}
     assert shield_from_spec(spec) is env_shield  # NavRL's memoryless shield
     spec = RunConfig(
         shield=True, shield_memory=5, shield_map=True, shield_mover_margin=0.3
     ).shield_spec()
     shield = shield_from_spec(spec)
     assert isinstance(shield, MemoryShield)
-    assert (shield.memory, shield.map_scan, shield.mover_margin) == (5, True, 0.3)
+    assert (shield.memory, shield.map_scan, shield.mover_margin, shield.brake) == (5, True, 0.3, False)
+    braking = shield_from_spec(RunConfig(shield=True, shield_brake=True).shield_spec())
+    assert isinstance(braking, MemoryShield) and braking.brake and braking.memory == 1
+    # a policy trained before the braking cap records no "brake": it flies without it
+    assert not shield_from_spec({"memory": 1, "map": True, "mover_margin": 0.3}).brake
 
 
 def test_train_behind_the_shield_end_to_end(tmp_path):

@@ -19,6 +19,7 @@ def eval_(
     shield_memory: int = 0,
     shield_map: bool = False,
     shield_mover_margin: float = 0.0,
+    shield_brake: bool = False,
     json_out: Annotated[Path | None, tyro.conf.arg(name="json")] = None,
     policy: Literal["checkpoint", "scripted", "straight", "border", "random"] = "checkpoint",
     preset: str | None = None,
@@ -45,6 +46,8 @@ def eval_(
             lower extent (a level scan of the map, beyond NavRL's shield).
         shield_mover_margin: With --shield: metres more clearance from tracked moving obstacles
             (0-2; beyond NavRL's shield).
+        shield_brake: With --shield: the braking cap: near a static obstacle, the ground or the
+            ceiling the shield slows the vehicle to a speed it can stop from (beyond NavRL's).
         json_out: Also write the metrics here as JSON (no value: null); the directory must exist.
         policy: What flies: the checkpoint, or a baseline without one.
         preset: Env preset (easy, medium, paper); default: the checkpoint's, else paper.
@@ -58,7 +61,8 @@ def eval_(
     from safenav.experiments.flight import resolve_policy, scenario_config
 
     check_eval_args(env_seed, episodes, json_out, device, preset)
-    memory = check_shield_memory(shield, shield_memory, shield_map, shield_mover_margin)
+    memory = check_shield_memory(shield, shield_memory, shield_map, shield_mover_margin,
+                                 shield_brake)  # fmt: skip
     fn, cfg = resolve_policy(checkpoint, policy, device)
     cfg = scenario_config(cfg, preset)
     if policy == "checkpoint":
@@ -70,14 +74,14 @@ def eval_(
             # Same observations, another arena: SafeNav-v0 had no border and a free ring.
             Console(stderr=True).print(f"note: {checkpoint} was trained on {trained_on}; "
                                        f"evaluating it on {ENV_ID}")  # fmt: skip
-        memory, shield_map, shield_mover_margin = own_shield_settings(
-            fn, checkpoint, memory, shield_map, shield_mover_margin)  # fmt: skip
+        memory, shield_map, shield_mover_margin, shield_brake = own_shield_settings(
+            fn, checkpoint, memory, shield_map, shield_mover_margin, shield_brake)  # fmt: skip
         shield = memory > 0
     shield_fn = None
     if memory:  # the shield's module loads Numba (~0.35 s): only when it flies
         from safenav.deploy.shield import shield_for_memory
 
-        shield_fn = shield_for_memory(memory, shield_map, shield_mover_margin)
+        shield_fn = shield_for_memory(memory, shield_map, shield_mover_margin, brake=shield_brake)
     result = evaluate(fn, cfg, env_seed=env_seed, episodes=episodes, device=device,
                       shield=shield_fn, progress=True)  # fmt: skip
     result["checkpoint"] = str(checkpoint) if checkpoint else policy
@@ -86,6 +90,7 @@ def eval_(
         result["shield_memory"] = memory
         result["shield_map"] = shield_map
         result["shield_mover_margin"] = shield_mover_margin
+        result["shield_brake"] = shield_brake
     result["env"] = ENV_ID
     if policy == "checkpoint":
         result["trained_on"] = str(fn.meta.get("env_id", ""))
@@ -110,9 +115,9 @@ def eval_(
 
 
 def check_shield_memory(shield: bool, shield_memory: int, shield_map: bool = False,
-                        shield_mover_margin: float = 0.0) -> int:  # fmt: skip
+                        shield_mover_margin: float = 0.0, shield_brake: bool = False) -> int:  # fmt: skip
     """``--shield-memory N``: 0-100 range images, and only with ``--shield``, as ``--shield-map``
-    and ``--shield-mover-margin`` (0-2 m). Returns the memory the flight gets: 0 without the
+    ``--shield-mover-margin`` (0-2 m) and ``--shield-brake``. Returns the memory the flight gets: 0 without the
     shield, 1 for the memoryless shield, else N."""
     from safenav.common.checks import in_range
     from safenav.errors import SafenavError
@@ -127,35 +132,40 @@ def check_shield_memory(shield: bool, shield_memory: int, shield_map: bool = Fal
         )
     if shield_map and not shield:
         raise SafenavError("--shield-map needs --shield (it is what the shield sees)")
+    if shield_brake and not shield:
+        raise SafenavError("--shield-brake needs --shield (it is how the shield slows the vehicle)")
     return max(shield_memory, 1) if shield else 0
 
 
-SHIELD_FLAGS = ("shield", "shield-memory", "shield-map", "shield-mover-margin")
+SHIELD_FLAGS = ("shield", "shield-memory", "shield-map", "shield-mover-margin", "shield-brake")
 
 
-def own_shield_settings(policy, checkpoint, memory: int, shield_map: bool,
-                        mover_margin: float) -> tuple[int, bool, float]:  # fmt: skip
+def own_shield_settings(policy, checkpoint, memory: int, shield_map: bool, mover_margin: float,
+                        brake: bool = False) -> tuple[int, bool, float, bool]:  # fmt: skip
     """The shield a flight gets: a policy trained behind the shield (``safenav train --shield``,
     its ``meta["shield"]``) flies behind it unless a shield option is given (``--no-shield``
-    flies it alone); otherwise the options' ``(memory, shield_map, mover_margin)`` as they are."""
+    flies it alone); otherwise the options' ``(memory, shield_map, mover_margin, brake)`` as they
+    are."""
     from safenav.cli import ARGS
     from safenav.commands.train import given_flag
 
     spec = policy.meta.get("shield")
     if not spec or any(given_flag(f, ARGS.get()) for f in SHIELD_FLAGS):
-        return memory, shield_map, mover_margin
+        return memory, shield_map, mover_margin, brake
     from rich.console import Console
 
-    memory, shield_map, mover_margin = (
+    memory, shield_map, mover_margin, brake = (
         int(spec["memory"]),
         bool(spec["map"]),
         float(spec["mover_margin"]),
+        bool(spec.get("brake", False)),  # policies trained before the braking cap lack it
     )
     what = ", ".join([f"memory {memory}", *(["map scan"] if shield_map else []),
-                      *([f"+{mover_margin:g} m from movers"] if mover_margin else [])])  # fmt: skip
+                      *([f"+{mover_margin:g} m from movers"] if mover_margin else []),
+                      *(["braking cap"] if brake else [])])  # fmt: skip
     Console(stderr=True).print(f"note: {checkpoint} trained behind the safety shield ({what}) and "
                                "flies behind it (--no-shield: alone)")  # fmt: skip
-    return memory, shield_map, mover_margin
+    return memory, shield_map, mover_margin, brake
 
 
 def check_eval_args(env_seed: int, episodes: int, json_out: Path | None, device: str,

@@ -27,6 +27,7 @@ def fly(
     shield_memory: int = 0,
     shield_map: bool = False,
     shield_mover_margin: float = 0.0,
+    shield_brake: bool = False,
     takeoff_altitude: float = 1.5,
     origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
     link_timeout: float = 1.0,
@@ -75,6 +76,8 @@ def fly(
             depth images) holds at the vehicle's lower extent (a level scan of the map).
         shield_mover_margin: With --shield: metres more clearance from tracked moving obstacles
             (0-2; 0.3 was chosen on validation maps).
+        shield_brake: With --shield: the braking cap: near a static obstacle, the ground or the
+            ceiling the shield slows the vehicle to a speed it can stop from (beyond NavRL's).
         takeoff_altitude: Takeoff altitude above home, metres.
         origin: World ENU position of PX4's local NED origin.
         link_timeout: Seconds without telemetry that count as link loss (exit status 3).
@@ -103,7 +106,8 @@ def fly(
         )
     from safenav.commands.eval import check_shield_memory
 
-    memory = check_shield_memory(shield, shield_memory, shield_map, shield_mover_margin)
+    memory = check_shield_memory(shield, shield_memory, shield_map, shield_mover_margin,
+                                 shield_brake)  # fmt: skip
     check_fly_args(policy, connect, perception, rate, takeoff_altitude, link_timeout,
                    max_flight_time, json_out, demo, preset, episode, gif, goal, origin,
                    checkpoint if demo and not scripted and policy is None else None, record)  # fmt: skip
@@ -112,7 +116,7 @@ def fly(
             from safenav.deploy.demo import run_demo
 
             summary = run_demo(policy=policy, checkpoint=checkpoint, scripted=scripted, preset=preset,
-                               episode=episode, rate=rate, shield=shield, shield_memory=memory, shield_map=shield_map, shield_mover_margin=shield_mover_margin, gif=gif or Path("flight.gif"),
+                               episode=episode, rate=rate, shield=shield, shield_memory=memory, shield_map=shield_map, shield_mover_margin=shield_mover_margin, shield_brake=shield_brake, gif=gif or Path("flight.gif"),
                                max_flight_time=max_flight_time, record=record)  # fmt: skip
         else:
             if policy is None or goal is None:
@@ -120,7 +124,8 @@ def fly(
             summary = fly_policy(policy, connect, goal, perception, rate, shield, takeoff_altitude, origin,
                                  link_timeout, max_flight_time, land, record=record,
                                  shield_memory=memory, shield_map=shield_map,
-                                 shield_mover_margin=shield_mover_margin)  # fmt: skip
+                                 shield_mover_margin=shield_mover_margin,
+                                 shield_brake=shield_brake)  # fmt: skip
     except FlightAborted as err:
         summary = getattr(err, "summary", None)
         if json_out is not None and summary is not None:
@@ -268,7 +273,8 @@ def check_connect_url(url: str) -> None:
 def fly_policy(policy: Path, connect: str, goal, perception: str, rate: float, shield: bool,
                takeoff_altitude: float, origin, link_timeout: float, max_flight_time: float, land: bool,
                record: Path | None = None, shield_memory: int | None = None,
-               shield_map: bool = False, shield_mover_margin: float = 0.0) -> dict:  # fmt: skip
+               shield_map: bool = False, shield_mover_margin: float = 0.0,
+               shield_brake: bool = False) -> dict:  # fmt: skip
     """Fly ``policy`` to ``goal`` on the vehicle at ``connect``; ``shield_memory``: the shield's
     memory in range images (default: 1 with ``shield``, the memoryless shield)."""
     import torch
@@ -283,7 +289,8 @@ def fly_policy(policy: Path, connect: str, goal, perception: str, rate: float, s
     memory = max(1, shield_memory or 1) if shield else 0  # range images; 0: no shield
     runtime = OnboardRuntime(OnnxPolicy(policy), cfg,
                              RuntimeConfig.for_flight(cfg, memory, rate, shield_map and shield,
-                                                      shield_mover_margin if shield else 0.0))  # fmt: skip
+                                                      shield_mover_margin if shield else 0.0,
+                                                      shield_brake and shield))  # fmt: skip
     recorder = None
     if record is not None:  # no ground truth here: the map holds the goal and the geofence
         from safenav.deploy.mcap_log import McapRecorder, Scene
@@ -292,7 +299,8 @@ def fly_policy(policy: Path, connect: str, goal, perception: str, rate: float, s
                                 metadata={"verb": "fly", "policy": str(policy), "connect": connect,
                                           "rate_hz": rate, "shield": shield, "shield_memory": memory,
                                           "shield_map": shield_map,
-                                          "shield_mover_margin": shield_mover_margin})  # fmt: skip
+                                          "shield_mover_margin": shield_mover_margin,
+                                          "shield_brake": shield_brake})  # fmt: skip
     link = MavsdkLink(connect)
     ctl = FlightController(runtime, link, FlyConfig(
         goal=tuple(goal), rate_hz=rate, takeoff_altitude=takeoff_altitude, origin=tuple(origin),

@@ -26,6 +26,7 @@ def render(
     shield_memory: int = 0,
     shield_map: bool = False,
     shield_mover_margin: float = 0.0,
+    shield_brake: bool = False,
 ) -> None:
     """Render one episode (top-down: pillars, moving obstacles, lidar beams, trail, goal) to a GIF.
 
@@ -51,6 +52,8 @@ def render(
             lower extent (a level scan of the map, beyond NavRL's shield).
         shield_mover_margin: With --shield: metres more clearance from tracked moving obstacles
             (0-2; beyond NavRL's shield).
+        shield_brake: With --shield: the braking cap: near a static obstacle, the ground or the
+            ceiling the shield slows the vehicle to a speed it can stop from (beyond NavRL's).
     """
     from safenav.commands.eval import check_shield_memory
     from safenav.common.checks import check_output_file, in_range
@@ -72,7 +75,8 @@ def render(
         from safenav.deploy.mcap_log import check_record_path
 
         check_record_path(record, "--record")
-    memory = check_shield_memory(shield, shield_memory, shield_map, shield_mover_margin)
+    memory = check_shield_memory(shield, shield_memory, shield_map, shield_mover_margin,
+                                 shield_brake)  # fmt: skip
     if checkpoint is None and policy == "checkpoint":
         policy = "scripted"
     if policy == "checkpoint":  # a policy trained behind the shield flies behind it
@@ -80,10 +84,11 @@ def render(
         from safenav.experiments.flight import resolve_policy
 
         fn, _ = resolve_policy(checkpoint, policy)
-        memory, shield_map, shield_mover_margin = own_shield_settings(
-            fn, checkpoint, memory, shield_map, shield_mover_margin)  # fmt: skip
+        memory, shield_map, shield_mover_margin, shield_brake = own_shield_settings(
+            fn, checkpoint, memory, shield_map, shield_mover_margin, shield_brake)  # fmt: skip
     stats = render_episode(out, checkpoint=checkpoint, policy=policy, preset=preset,
                            env_seed=env_seed, episode=episode, fps=fps, record=record,
                            shield_memory=memory, shield_map=shield_map,
-                           shield_mover_margin=shield_mover_margin)  # fmt: skip
+                           shield_mover_margin=shield_mover_margin,
+                           shield_brake=shield_brake)  # fmt: skip
     print(f"wrote {out}{f' and {record}' if record is not None else ''}: {stats}")

@@ -86,6 +86,10 @@ class RunConfig:
     """With ``shield``: it also scans the height map at the UAV's lower extent (``--shield-map``)."""
     shield_mover_margin: float = 0.0
     """With ``shield``: metres more clearance from tracked moving obstacles (0-2)."""
+    shield_brake: bool = False
+    """With ``shield``: the braking cap (``--shield-brake``, beyond NavRL): near a static obstacle
+    (and the ground and ceiling) the vehicle slows to a speed it can stop from, given its 0.4 s
+    velocity lag."""
     keep_policies: bool = False
     """Also keep the policy of every periodic evaluation as ``policies/step_<N>.pt`` (policy-only,
     ~0.6 MB each), to compare a run's policies afterwards (experiments/checkpoint_sweep.py)."""
@@ -159,7 +163,8 @@ class RunConfig:
         if isinstance(margin, bool) or not isinstance(margin, int | float) or not 0 <= margin <= 2:
             raise ValueError(f"shield-mover-margin={margin!r} must lie in [0, 2] m")
         extras = [name for name, on in (("shield-memory", self.shield_memory > 1),
-                  ("shield-map", self.shield_map), ("shield-mover-margin", margin > 0)) if on]  # fmt: skip
+                  ("shield-map", self.shield_map), ("shield-mover-margin", margin > 0),
+                  ("shield-brake", self.shield_brake)) if on]  # fmt: skip
         if extras and not self.shield:
             raise ValueError(f"{' / '.join(extras)} set the shield: add --shield")
         if self.shield and not self.env.split(":")[-1].startswith("SafeNav-"):
@@ -170,7 +175,8 @@ class RunConfig:
         if not self.shield:
             return None
         return {"memory": max(self.shield_memory, 1), "map": bool(self.shield_map),
-                "mover_margin": float(self.shield_mover_margin)}  # fmt: skip
+                "mover_margin": float(self.shield_mover_margin),
+                "brake": bool(self.shield_brake)}  # fmt: skip
 
     def train_env_seed(self, refresh: int) -> int:
         """Seed of the training maps after ``refresh`` redraws: >= 100000, so never the test

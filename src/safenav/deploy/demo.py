@@ -93,6 +93,7 @@ def run_demo(
     shield_memory: int | None = None,
     shield_map: bool = False,
     shield_mover_margin: float = 0.0,
+    shield_brake: bool = False,
     gif: Path | None = Path("flight.gif"),
     max_flight_time: float = 120.0,
     world_seed: int = 1,
@@ -103,7 +104,7 @@ def run_demo(
     simulator's pillars in ``/safenav/map``); ``shield_memory``: the shield's memory in range
     images (default: 1 with ``shield``, the memoryless shield; see ``RuntimeConfig.for_flight``);
     ``shield_map``: with ``shield``, the map scan too; ``shield_mover_margin``: with ``shield``,
-    metres more clearance from moving obstacles."""
+    metres more clearance from moving obstacles; ``shield_brake``: the braking cap."""
     from safenav.deploy.export import OnnxPolicy, load_sidecar
     from safenav.deploy.fly import FlightAborted, FlightController, FlyConfig, MavsdkLink
     from safenav.deploy.runtime import OnboardRuntime, RuntimeConfig
@@ -139,6 +140,7 @@ def run_demo(
                     rate,
                     shield_map and shield,
                     shield_mover_margin if shield else 0.0,
+                    shield_brake and shield,
                 ),
             )
             link = MavsdkLink(f"udpin://127.0.0.1:{port}")
@@ -186,7 +188,7 @@ def run_demo(
         "scenario": {"preset": preset, "world_seed": world_seed, "episode": episode,
                      "start": [round(x, 3) for x in start], "goal": [round(x, 3) for x in goal]},
         "policy": str(policy) if policy else ("scripted" if scripted else str(checkpoint)),
-        "shield": shield, "shield_memory": memory, "shield_map": shield_map and shield, "shield_mover_margin": shield_mover_margin if shield else 0.0, "rate_hz": rate, "wall_time_s": round(wall, 1),
+        "shield": shield, "shield_memory": memory, "shield_map": shield_map and shield, "shield_mover_margin": shield_mover_margin if shield else 0.0, "shield_brake": shield_brake and shield, "rate_hz": rate, "wall_time_s": round(wall, 1),
         **{k: v for k, v in flight.summary().items() if k not in ("reached_goal", "flight_time_s")},
     }  # fmt: skip
     if gif is not None and ctl.snapshots:

@@ -97,12 +97,14 @@ class RuntimeConfig:
 
     @classmethod
     def for_flight(cls, env_config: EnvConfig, shield_memory: int, rate_hz: float,
-                   shield_map: bool = False, mover_margin: float = 0.0) -> RuntimeConfig:  # fmt: skip
+                   shield_map: bool = False, mover_margin: float = 0.0,
+                   brake: bool = False) -> RuntimeConfig:  # fmt: skip
         """The runtime of ``safenav fly``: no shield (``shield_memory`` 0), the shield (1), or the
         memory shield of the last ``shield_memory`` range images at the env's control rate (10 Hz:
         20 is 2 s, as ``safenav eval --shield-memory 20``), i.e. that many seconds of setpoints at
         ``rate_hz``; ``shield_map``: the shield also takes the map scan; ``mover_margin``: metres
-        more clearance from tracked moving obstacles. :class:`~safenav.errors.SafenavError`
+        more clearance from tracked moving obstacles; ``brake``: the braking cap (it needs the
+        odometry's altitude: the memory shield's path). :class:`~safenav.errors.SafenavError`
         if the memory is more than 100 setpoints."""
         from safenav.errors import SafenavError
 
@@ -112,7 +114,8 @@ class RuntimeConfig:
         if steps > 100:
             raise SafenavError(f"--shield-memory {shield_memory} ({shield_memory * env_config.dt:g} s of range "
                                f"images) at --rate {rate_hz:g} Hz is {steps} setpoints, more than 100")  # fmt: skip
-        return cls(shield=ShieldConfig.for_env(env_config, mover_margin=mover_margin),
+        braking = ShieldConfig.braking_of(env_config) if brake else {}
+        return cls(shield=ShieldConfig.for_env(env_config, mover_margin=mover_margin, **braking),
                    shield_memory=steps, shield_map=shield_map)  # fmt: skip
 
 
@@ -170,7 +173,8 @@ class OnboardRuntime:
             raise ValueError("shield_map needs a shield")
         scan = self.config.shield_map
         self._memory_shield = (MemoryShield(memory, self.config.shield, map_scan=scan)
-                               if (memory > 1 or scan) and self.config.shield is not None else None)  # fmt: skip
+                               if (memory > 1 or scan or self.config.shield.brake_time > 0)
+                               and self.config.shield is not None else None)  # fmt: skip
         self._episode_start = True  # the memory shield's next image begins a new memory
         self.clock = clock
         self.spec = RangeImageSpec.for_config(env_config)

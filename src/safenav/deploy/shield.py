@@ -94,6 +94,23 @@ class ShieldConfig:
     obstacles of a fast vehicle are shifted towards it (:func:`response_offset`)."""
     max_acceleration: float = math.inf
     """With ``response_time``: the tracker's acceleration limit (m/s^2; the env's 3)."""
+    brake_time: float = 0.0
+    """The braking cap (beyond NavRL's shield): 0 = off. Above 0, the velocity the shield returns
+    is scaled down until its closing speed ``c`` on every static obstacle is one the vehicle can
+    still stop from before the combined radius, for a first-order tracker of this time constant
+    (s) and ``brake_acceleration``: ``c T + c^2 / (2 a) <= d`` with ``d`` the distance beyond the
+    combined radius (:func:`braking_speed`). It slows the vehicle in clutter, where the velocity
+    obstacles alone let it fly at full speed past pillars it then drifts into. Where the slower
+    velocity would enter a moving obstacle's velocity obstacle, the velocity is left as it was.
+    ``ShieldConfig.braking_of(env_config)`` sets the env's 0.4 s."""
+    brake_acceleration: float = 2.0
+    """With ``brake_time``: the deceleration (m/s^2) the cap counts on (the env's tracker allows 3;
+    2 measured better on the validation maps, docs/deployment.md)."""
+    z_min: float = 0.2
+    """With ``brake_time`` and the vehicle's altitude known (:class:`MemoryShield`): the ground,
+    below which the env counts a collision; the cap limits the descent speed as for a wall."""
+    z_max: float = 4.0
+    """Likewise the ceiling."""
 
     @staticmethod
     def response_of(cfg: EnvConfig) -> dict[str, float]:
@@ -104,9 +121,15 @@ class ShieldConfig:
         }
 
     @staticmethod
+    def braking_of(cfg: EnvConfig) -> dict[str, float]:
+        """``brake_time`` as the env's velocity tracker has it (the braking cap on)."""
+        return {"brake_time": cfg.velocity_time_constant}
+
+    @staticmethod
     def for_env(cfg: EnvConfig, **overrides) -> ShieldConfig:
         base = dict(uav_radius=cfg.uav_radius, v_max=cfg.v_max, lidar_range=cfg.lidar_range,
-                    lidar_v_angles=tuple(cfg.lidar_v_angles), lidar_h_beams=cfg.lidar_h_beams)  # fmt: skip
+                    lidar_v_angles=tuple(cfg.lidar_v_angles), lidar_h_beams=cfg.lidar_h_beams,
+                    z_min=cfg.z_min, z_max=cfg.z_max)  # fmt: skip
         return ShieldConfig(**{**base, **overrides})
 
 
@@ -123,6 +146,45 @@ def response_offset(v0: torch.Tensor, v: torch.Tensor, cfg: ShieldConfig) -> tor
     knee = a * t
     far = (n * n - knee * knee) / (2 * a) + knee * t
     return torch.where(n <= knee, dv * t, dv / n.clamp(min=1e-9) * far)
+
+
+def braking_speed(d: torch.Tensor, cfg: ShieldConfig) -> torch.Tensor:
+    """The largest closing speed ``c`` from which a vehicle with velocity time constant ``T =
+    cfg.brake_time`` and deceleration ``a = cfg.brake_acceleration`` stops within ``d`` metres:
+    the root of ``c T + c^2 / (2 a) = d`` (0 where ``d <= 0``)."""
+    t, a = cfg.brake_time, cfg.brake_acceleration
+    d = d.clamp(min=0.0)
+    return a * (torch.sqrt(t * t + 2.0 * d / a) - t)
+
+
+def braking_cap(v: torch.Tensor, rel: torch.Tensor, valid: torch.Tensor, planar: torch.Tensor,
+                radius: torch.Tensor, cfg: ShieldConfig) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """Scale velocities ``v`` ``(N, 3)`` down so that the closing speed on each static obstacle
+    (``rel`` ``(N, M, 3)``, columns ``planar`` measured in the horizontal plane) is at most
+    :func:`braking_speed` of its distance beyond ``radius`` ``(N, M)``. Scaling a velocity down
+    never enters a static obstacle's velocity obstacle (its path is a prefix of the unscaled
+    one). Returns ``(v, capped)``."""
+    w = torch.ones_like(rel)
+    w[..., 2] = (~planar).to(v.dtype)
+    p = rel * w
+    dist = p.norm(dim=-1).clamp(min=1e-6)
+    closing = (p * v[:, None, :]).sum(-1) / dist  # (N, M)
+    allowed = braking_speed(dist - radius, cfg)
+    ratio = torch.where(valid & (closing > allowed), allowed / closing.clamp(min=1e-9), 1.0)
+    scale = ratio.amin(-1) if ratio.shape[-1] else torch.ones_like(v[:, 0])
+    return v * scale[:, None], scale < 1.0
+
+
+def altitude_cap(v: torch.Tensor, altitude: torch.Tensor,
+                 cfg: ShieldConfig) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """Limit the vertical speed of ``v`` ``(N, 3)`` towards the ground (``cfg.z_min``) and the
+    ceiling (``cfg.z_max``) to :func:`braking_speed` of the vehicle's ``altitude`` ``(N,)``
+    distance to them beyond ``cfg.margin``. Returns ``(v, clamped)``."""
+    z = altitude.to(v.dtype)
+    down = braking_speed(z - cfg.z_min - cfg.margin, cfg)
+    up = braking_speed(cfg.z_max - z - cfg.margin, cfg)
+    vz = torch.minimum(torch.maximum(v[:, 2], -down), up)
+    return torch.cat([v[:, :2], vz[:, None]], 1), vz != v[:, 2]
 
 
 def _vo_test(v: torch.Tensor, rel: torch.Tensor, ovel: torch.Tensor, radius: torch.Tensor,
@@ -397,7 +459,7 @@ def shield_action(
     spec = _spec(cfg)
     lidar, dyn = obs["lidar"], obs["dynamic"]
     one = action.shape[0] == 1 and action.device.type == "cpu" and kernels.AVAILABLE
-    if one and cfg.response_time == 0:
+    if one and cfg.response_time == 0 and cfg.brake_time == 0:
         return _shield_action_compiled(lidar, dyn, action, cfg, spec)
     ranges = cfg.lidar_range * (1.0 - lidar.to(action.dtype))
     rel, valid, planar, dist = _static_hits(ranges, spec, cfg.max_static)
@@ -405,10 +467,12 @@ def shield_action(
 
 
 def _shield_static_and_tracked(rel, valid, planar, dist, dyn, action, cfg: ShieldConfig,
-                               state: torch.Tensor | None = None):  # fmt: skip
+                               state: torch.Tensor | None = None,
+                               altitude: torch.Tensor | None = None):  # fmt: skip
     """shield_action's search once the static obstacles are chosen: they ``(N, M, 3)`` in the
     heading frame (with ``valid``, ``planar``, ``dist``) and the tracked ones decoded from ``dyn``."""
     base = cfg.uav_radius + cfg.margin
+    static = (rel, valid, planar)
     vel = torch.zeros_like(rel)
     radius = torch.full_like(rel[..., 0], base)
     if bool((dyn != 0).any()):  # tracked moving obstacles (rows of zeros are empty slots)
@@ -424,6 +488,17 @@ def _shield_static_and_tracked(rel, valid, planar, dist, dyn, action, cfg: Shiel
     v, corrected = velocity_obstacle_shield(
         action * cfg.v_max, rel, vel, radius, valid, planar, cfg, dist=dist, v_now=v_now
     )
+    if cfg.brake_time > 0:
+        slow, capped = braking_cap(v, *static, torch.full_like(static[1], base, dtype=v.dtype),
+                                   cfg)  # fmt: skip
+        # Slowing down may leave a moving obstacle's path too late: there, the velocity stays.
+        into, _ = _vo_test(slow[:, None], rel, vel, radius, valid, planar, cfg.time_horizon)
+        capped = capped & ~into[:, 0]
+        v = torch.where(capped[:, None], slow, v)
+        corrected = corrected | capped
+        if altitude is not None:
+            v, clamped = altitude_cap(v, altitude, cfg)
+            corrected = corrected | clamped
     out = torch.where(corrected[:, None], (v / cfg.v_max).clamp(-1.0, 1.0), action)
     return out, corrected
 
@@ -510,7 +585,7 @@ class MemoryShield:
 
     def __init__(self, memory: int, cfg: ShieldConfig | None = None, max_static: int | None = None,
                  map_scan: bool = False, mover_margin: float = 0.0,
-                 response: bool = False):  # fmt: skip
+                 response: bool = False, brake: bool = False):  # fmt: skip
         if not 1 <= memory <= 100:
             raise ValueError(f"memory must lie in [1, 100] range images, got {memory}")
         if not 0.0 <= mover_margin <= 2.0:
@@ -519,6 +594,7 @@ class MemoryShield:
         self.map_scan = bool(map_scan)
         self.mover_margin = float(mover_margin)  # with the env's config (cfg None) only
         self.response = bool(response)  # ditto: the env's velocity tracker (response_time)
+        self.brake = bool(brake)  # ditto: the braking cap (brake_time)
         self._points: torch.Tensor | None = None  # (N, memory, beams, 3) world; FAR = no hit
         self._slot = 0
 
@@ -529,7 +605,8 @@ class MemoryShield:
     def __call__(self, env, obs: dict[str, torch.Tensor], action: torch.Tensor) -> torch.Tensor:
         cfg = self.cfg or ShieldConfig.for_env(
             env.cfg, mover_margin=self.mover_margin,
-            **(ShieldConfig.response_of(env.cfg) if self.response else {}))  # fmt: skip
+            **(ShieldConfig.response_of(env.cfg) if self.response else {}),
+            **(ShieldConfig.braking_of(env.cfg) if self.brake else {}))  # fmt: skip
         extra = None
         if self.map_scan:
             extra = map_scan_hits(env.heights, env.grid.origin, env.grid.size, env.cfg.grid_resolution,
@@ -584,22 +661,23 @@ class MemoryShield:
             rel, valid, planar, dsel = (torch.cat([a, b.to(a.dtype)], 1)
                                         for a, b in zip((rel, valid, planar, dsel), extra, strict=True))  # fmt: skip
         return _shield_static_and_tracked(rel, valid, planar, dsel, obs["dynamic"], action, cfg,
-                                          obs.get("state"))  # fmt: skip
+                                          obs.get("state"), pos[:, 2])  # fmt: skip
 
 
 _FAR = 1.0e4
 
 
 def shield_for_memory(memory: int, map_scan: bool = False, mover_margin: float = 0.0,
-                      response: bool = False):  # fmt: skip
+                      response: bool = False, brake: bool = False):  # fmt: skip
     """The evaluation shield of a memory setting (``--shield-memory``): ``None`` for 0 (no
     shield), :func:`env_shield` for 1, a fresh :class:`MemoryShield` of ``memory`` images above;
     with ``map_scan`` (``--shield-map``) or a ``mover_margin`` (m, ``--shield-mover-margin``) a
     fresh ``MemoryShield(max(memory, 1), map_scan=..., mover_margin=...)``; ``response``: it
-    models the env's velocity tracker (``ShieldConfig.response_time``)."""
-    if map_scan or mover_margin or response:
+    models the env's velocity tracker (``ShieldConfig.response_time``); ``brake``
+    (``--shield-brake``): the braking cap (``ShieldConfig.brake_time``)."""
+    if map_scan or mover_margin or response or brake:
         return MemoryShield(max(memory, 1), map_scan=map_scan, mover_margin=mover_margin,
-                            response=response)  # fmt: skip
+                            response=response, brake=brake)  # fmt: skip
     if memory <= 0:
         return None
     return env_shield if memory == 1 else MemoryShield(memory)
@@ -607,12 +685,13 @@ def shield_for_memory(memory: int, map_scan: bool = False, mover_margin: float =
 
 def shield_from_spec(spec: dict | None):
     """A fresh shield as a policy's ``meta["shield"]`` records the one it trained behind
-    (``{"memory": N, "map": bool, "mover_margin": m}``, ``safenav train --shield``); None for
-    a policy trained without one."""
+    (``{"memory": N, "map": bool, "mover_margin": m, "brake": bool}``, ``safenav train
+    --shield``); None for a policy trained without one."""
     if not spec:
         return None
     return shield_for_memory(int(spec["memory"]), bool(spec.get("map", False)),
-                             float(spec.get("mover_margin", 0.0)))  # fmt: skip
+                             float(spec.get("mover_margin", 0.0)),
+                             brake=bool(spec.get("brake", False)))  # fmt: skip
 
 
 __all__ = [

@@ -66,11 +66,12 @@ def render_episode(
     shield_memory: int = 0,
     shield_map: bool = False,
     shield_mover_margin: float = 0.0,
+    shield_brake: bool = False,
 ) -> dict:
     """Fly episode ``episode`` of the fixed scenario and write ``out`` (GIF), and ``record``
     (MCAP, stamped with the simulation time) when given; returns its stats."""
     frames, stats = fly_frames(checkpoint, policy, preset, env_seed, episode, record, shield_memory,
-                               shield_map, shield_mover_margin)  # fmt: skip
+                               shield_map, shield_mover_margin, shield_brake)  # fmt: skip
     Path(out).parent.mkdir(parents=True, exist_ok=True)
     # Hold the last frame for a second so the outcome is visible.
     frames += [frames[-1]] * fps
@@ -89,12 +90,14 @@ def fly_frames(
     shield_memory: int = 0,
     shield_map: bool = False,
     shield_mover_margin: float = 0.0,
+    shield_brake: bool = False,
 ) -> tuple[list, dict]:
     """The rendered frames (top-down RGB arrays, the last with the outcome) and the stats of
     episode ``episode`` of the fixed scenario of map ``env_seed``, flown by the policy, behind
     the safety shield when ``shield_memory`` is 1 (the memoryless shield) or more (a
     :class:`~safenav.deploy.shield.MemoryShield` of that many range images), with the map scan
-    when ``shield_map``, ``shield_mover_margin`` metres more clearance from moving obstacles."""
+    when ``shield_map``, ``shield_mover_margin`` metres more clearance from moving obstacles, the
+    braking cap when ``shield_brake``."""
     fn, cfg = resolve_policy(checkpoint, policy)
     cfg, starts, goals = fixed_test_scenario(scenario_config(cfg, preset), env_seed, episode + 1)
     env = SafeNavVectorEnv(1, config=cfg, output="torch", autoreset_mode="Disabled",
@@ -106,7 +109,8 @@ def fly_frames(
     if shield_memory > 0 or shield_map:  # the shield's module loads Numba: only when it flies
         from safenav.deploy.shield import shield_for_memory
 
-        shield = shield_for_memory(shield_memory, shield_map, shield_mover_margin)
+        shield = shield_for_memory(shield_memory, shield_map, shield_mover_margin,
+                                   brake=shield_brake)  # fmt: skip
         act = lambda o, a=act: shield(env, o, a(o))  # noqa: E731
     frames = [env.render()]
     recorder = None
