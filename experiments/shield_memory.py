@@ -57,7 +57,9 @@ def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool]:
     0.3, False, True) (the braking cap)."""
     found = re.fullmatch(r"(\d+)(map)?(?:-mover([0-9.]+))?(-lag)?(-brake)?", setting)
     if found is None:
-        raise SystemExit(f"shield setting {setting!r}: N, Nmap or either with -moverX, -lag, -brake")
+        raise SystemExit(
+            f"shield setting {setting!r}: N, Nmap or either with -moverX, -lag, -brake"
+        )
     return (int(found[1]), found[2] is not None, float(found[3] or 0.0), found[4] is not None,
             found[5] is not None)  # fmt: skip
 

@@ -297,8 +297,13 @@ def test_fly_takes_the_shield_memory_in_env_steps(capsys, tmp_path, monkeypatch)
 
     def fake_demo(**kw):
         flown.append(
-            (kw["shield"], kw["shield_memory"], kw["shield_map"], kw["shield_mover_margin"],
-             kw["shield_brake"])
+            (
+                kw["shield"],
+                kw["shield_memory"],
+                kw["shield_map"],
+                kw["shield_mover_margin"],
+                kw["shield_brake"],
+            )
         )
         raise SystemExit(0)
 

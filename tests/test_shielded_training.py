@@ -87,7 +87,12 @@ def test_the_spec_rebuilds_the_shield():
     ).shield_spec()
     shield = shield_from_spec(spec)
     assert isinstance(shield, MemoryShield)
-    assert (shield.memory, shield.map_scan, shield.mover_margin, shield.brake) == (5, True, 0.3, False)
+    assert (shield.memory, shield.map_scan, shield.mover_margin, shield.brake) == (
+        5,
+        True,
+        0.3,
+        False,
+    )
     braking = shield_from_spec(RunConfig(shield=True, shield_brake=True).shield_spec())
     assert isinstance(braking, MemoryShield) and braking.brake and braking.memory == 1
     # a policy trained before the braking cap records no "brake": it flies without it
