@@ -112,7 +112,7 @@ def test_train_behind_the_shield_end_to_end(tmp_path):
         ]
     assert rates and all(0.0 <= r <= 1.0 for r in rates)
     policy = load_policy(run_dir / "best.pt")
-    assert policy.meta["shield"] == {"memory": 1, "map": True, "mover_margin": 0.3}
+    assert policy.meta["shield"] == {"memory": 1, "map": True, "mover_margin": 0.3, "brake": False}
     shield = own_shield(policy)  # what its selection and report fly behind
     assert isinstance(shield, MemoryShield) and shield.map_scan and shield.mover_margin == 0.3
     # safenav eval flies it behind its shield unless a shield option says otherwise

@@ -173,8 +173,9 @@ class OnboardRuntime:
             raise ValueError("shield_map needs a shield")
         scan = self.config.shield_map
         self._memory_shield = (MemoryShield(memory, self.config.shield, map_scan=scan)
-                               if (memory > 1 or scan or self.config.shield.brake_time > 0)
-                               and self.config.shield is not None else None)  # fmt: skip
+                               if self.config.shield is not None
+                               and (memory > 1 or scan or self.config.shield.brake_time > 0)
+                               else None)  # fmt: skip
         self._episode_start = True  # the memory shield's next image begins a new memory
         self.clock = clock
         self.spec = RangeImageSpec.for_config(env_config)
