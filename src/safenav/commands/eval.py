@@ -116,9 +116,9 @@ def eval_(
 
 def check_shield_memory(shield: bool, shield_memory: int, shield_map: bool = False,
                         shield_mover_margin: float = 0.0, shield_brake: bool = False) -> int:  # fmt: skip
-    """``--shield-memory N``: 0-100 range images, and only with ``--shield``, as ``--shield-map``
-    ``--shield-mover-margin`` (0-2 m) and ``--shield-brake``. Returns the memory the flight gets: 0 without the
-    shield, 1 for the memoryless shield, else N."""
+    """``--shield-memory N``: 0-100 range images, and only with ``--shield``, as ``--shield-map``,
+    ``--shield-mover-margin`` (0-2 m) and ``--shield-brake``. Returns the memory the flight gets:
+    0 without the shield, 1 for the memoryless shield, else N."""
     from safenav.common.checks import in_range
     from safenav.errors import SafenavError
 

@@ -472,7 +472,7 @@ def _shield_static_and_tracked(rel, valid, planar, dist, dyn, action, cfg: Shiel
     """shield_action's search once the static obstacles are chosen: they ``(N, M, 3)`` in the
     heading frame (with ``valid``, ``planar``, ``dist``) and the tracked ones decoded from ``dyn``."""
     base = cfg.uav_radius + cfg.margin
-    static = (rel, valid, planar)
+    m = rel.shape[1]  # the static obstacles are the first m columns; tracked ones follow
     vel = torch.zeros_like(rel)
     radius = torch.full_like(rel[..., 0], base)
     if bool((dyn != 0).any()):  # tracked moving obstacles (rows of zeros are empty slots)
@@ -489,8 +489,7 @@ def _shield_static_and_tracked(rel, valid, planar, dist, dyn, action, cfg: Shiel
         action * cfg.v_max, rel, vel, radius, valid, planar, cfg, dist=dist, v_now=v_now
     )
     if cfg.brake_time > 0:
-        slow, capped = braking_cap(v, *static, torch.full_like(static[1], base, dtype=v.dtype),
-                                   cfg)  # fmt: skip
+        slow, capped = braking_cap(v, rel[:, :m], valid[:, :m], planar[:, :m], radius[:, :m], cfg)
         # Slowing down may leave a moving obstacle's path too late: there, the velocity stays.
         into, _ = _vo_test(slow[:, None], rel, vel, radius, valid, planar, cfg.time_horizon)
         capped = capped & ~into[:, 0]
