@@ -67,6 +67,7 @@ def test_step_before_reset_and_normalised_observations_are_refused():
     ("kwargs", "message"),
     [({"shield_map": True}, "add --shield"), ({"shield_memory": 5}, "add --shield"),
      ({"shield_mover_margin": 0.3}, "add --shield"), ({"shield_brake": True}, "add --shield"),
+     ({"shield_flight_brake": True}, "add --shield"),
      ({"shield": True, "shield_memory": 101}, r"\[0, 100\]"),
      ({"shield": True, "shield_mover_margin": -0.1}, r"\[0, 2\]"),
      ({"shield": True, "shield_mover_margin": 3.0}, r"\[0, 2\]"),
@@ -103,7 +104,7 @@ def test_train_behind_the_shield_end_to_end(tmp_path):
     run_dir = tmp_path / "run"
     main(["train", "--algo", "csac", "--env", "SafeNav-v1", "--preset", "easy", "--seed", "3",
           "--total-steps", "400", "--shield", "--shield-map", "--shield-mover-margin", "0.3",
-          "--keep-policies", "--run-dir", str(run_dir), *FAST])  # fmt: skip
+          "--shield-flight-brake", "--keep-policies", "--run-dir", str(run_dir), *FAST])  # fmt: skip
     config = json.loads((run_dir / "config.json").read_text())
     assert config["run"]["shield"] and config["run"]["shield_mover_margin"] == 0.3
     with (run_dir / "progress.csv").open(newline="") as f:
@@ -112,17 +113,21 @@ def test_train_behind_the_shield_end_to_end(tmp_path):
         ]
     assert rates and all(0.0 <= r <= 1.0 for r in rates)
     policy = load_policy(run_dir / "best.pt")
+    # it trained behind the shield without the braking cap and flies with it
     assert policy.meta["shield"] == {"memory": 1, "map": True, "mover_margin": 0.3, "brake": False}
+    assert policy.meta["flight_shield"] == {**policy.meta["shield"], "brake": True}
     shield = own_shield(policy)  # what its selection and report fly behind
     assert isinstance(shield, MemoryShield) and shield.map_scan and shield.mover_margin == 0.3
-    # safenav eval flies it behind its shield unless a shield option says otherwise
-    for extra, expected in (([], (True, 1, True, 0.3)), (["--no-shield"], (False, None, None, None)),
-                            (["--shield"], (True, 1, False, 0.0))):  # fmt: skip
+    assert shield.brake
+    # safenav eval flies it behind its flight shield unless a shield option says otherwise
+    for extra, expected in (([], (True, 1, True, 0.3, True)),
+                            (["--no-shield"], (False, None, None, None, None)),
+                            (["--shield"], (True, 1, False, 0.0, False))):  # fmt: skip
         out = tmp_path / "eval.json"
         main(["eval", str(run_dir / "best.pt"), "--episodes", "2", "--json", str(out), *extra])
         got = json.loads(out.read_text())
         assert (got["shield"], got.get("shield_memory"), got.get("shield_map"),
-                got.get("shield_mover_margin")) == expected, extra  # fmt: skip
+                got.get("shield_mover_margin"), got.get("shield_brake")) == expected, extra  # fmt: skip
     # resumed, it goes on behind the same shield
     main(["train", "--resume", str(run_dir), "--total-steps", "600", "--no-progress"])
     assert load_policy(run_dir / "best.pt").meta["shield"]["mover_margin"] == 0.3

@@ -142,14 +142,16 @@ SHIELD_FLAGS = ("shield", "shield-memory", "shield-map", "shield-mover-margin", 
 
 def own_shield_settings(policy, checkpoint, memory: int, shield_map: bool, mover_margin: float,
                         brake: bool = False) -> tuple[int, bool, float, bool]:  # fmt: skip
-    """The shield a flight gets: a policy trained behind the shield (``safenav train --shield``,
-    its ``meta["shield"]``) flies behind it unless a shield option is given (``--no-shield``
+    """The shield a flight gets: a policy trained behind the shield (``safenav train --shield``)
+    flies behind the shield it records for flight (``meta["flight_shield"]``, else
+    ``meta["shield"]``) unless a shield option is given (``--no-shield``
     flies it alone); otherwise the options' ``(memory, shield_map, mover_margin, brake)`` as they
     are."""
     from safenav.cli import ARGS
     from safenav.commands.train import given_flag
+    from safenav.common.config import flight_shield_spec
 
-    spec = policy.meta.get("shield")
+    spec = flight_shield_spec(policy.meta)
     if not spec or any(given_flag(f, ARGS.get()) for f in SHIELD_FLAGS):
         return memory, shield_map, mover_margin, brake
     from rich.console import Console

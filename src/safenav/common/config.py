@@ -90,6 +90,11 @@ class RunConfig:
     """With ``shield``: the braking cap (``--shield-brake``, beyond NavRL): near a static obstacle
     (and the ground and ceiling) the vehicle slows to a speed it can stop from, given its 0.4 s
     velocity lag."""
+    shield_flight_brake: bool = False
+    """With ``shield``: train behind the shield without the braking cap but fly with it: the
+    periodic evaluation, the selection, the final report and ``safenav eval`` / ``render`` (by
+    default) add the cap (``meta["flight_shield"]``; the validation choice of docs/csac-v1.md,
+    "Training behind the braking cap")."""
     keep_policies: bool = False
     """Also keep the policy of every periodic evaluation as ``policies/step_<N>.pt`` (policy-only,
     ~0.6 MB each), to compare a run's policies afterwards (experiments/checkpoint_sweep.py)."""
@@ -164,7 +169,8 @@ class RunConfig:
             raise ValueError(f"shield-mover-margin={margin!r} must lie in [0, 2] m")
         extras = [name for name, on in (("shield-memory", self.shield_memory > 1),
                   ("shield-map", self.shield_map), ("shield-mover-margin", margin > 0),
-                  ("shield-brake", self.shield_brake)) if on]  # fmt: skip
+                  ("shield-brake", self.shield_brake),
+                  ("shield-flight-brake", self.shield_flight_brake)) if on]  # fmt: skip
         if extras and not self.shield:
             raise ValueError(f"{' / '.join(extras)} set the shield: add --shield")
         if self.shield and not self.env.split(":")[-1].startswith("SafeNav-"):
@@ -178,10 +184,26 @@ class RunConfig:
                 "mover_margin": float(self.shield_mover_margin),
                 "brake": bool(self.shield_brake)}  # fmt: skip
 
+    def flight_shield_spec(self) -> dict[str, Any] | None:
+        """The shield the policy flies behind (evaluation, selection, report; its
+        ``meta["flight_shield"]``): the training shield, with the braking cap for
+        ``shield_flight_brake``; None without a shield."""
+        spec = self.shield_spec()
+        if spec is not None and self.shield_flight_brake:
+            spec["brake"] = True
+        return spec
+
     def train_env_seed(self, refresh: int) -> int:
         """Seed of the training maps after ``refresh`` redraws: >= 100000, so never the test
         scenario's env seed 1 nor the evaluation seed 12345."""
         return 100_000 + (self.seed * 7919 + refresh) * 1000
+
+
+def flight_shield_spec(meta: dict[str, Any]) -> dict[str, Any] | None:
+    """The shield a policy's ``meta`` says it flies behind: ``flight_shield`` (``safenav train
+    --shield-flight-brake`` adds the braking cap there), else the one it trained behind (policies
+    from before ``flight_shield``), else None."""
+    return meta.get("flight_shield") or meta.get("shield")
 
 
 def to_dict(obj: Any) -> Any:

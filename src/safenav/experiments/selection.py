@@ -26,6 +26,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from safenav.common.config import flight_shield_spec
 from safenav.common.jsonout import write_json
 from safenav.errors import SafenavError
 from safenav.training.evaluation import EVAL_SEED
@@ -57,9 +58,10 @@ def validation_score(episodes: int = 256, device: str = "cpu") -> Callable[[dict
 
 
 def own_shield(policy):
-    """A fresh shield of the kind ``policy`` trained behind (``safenav train --shield``; its
-    ``meta["shield"]``), or None: such a policy is chosen and reported flying behind it."""
-    spec = policy.meta.get("shield")
+    """A fresh shield of the kind ``policy`` flies behind (``safenav train --shield``: its
+    ``meta["flight_shield"]``, or ``meta["shield"]`` for policies from before it), or None: such a
+    policy is chosen and reported flying behind it."""
+    spec = flight_shield_spec(policy.meta)
     if not spec:
         return None
     from safenav.deploy.shield import shield_from_spec  # loads Numba: only for such a policy

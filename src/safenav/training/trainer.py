@@ -203,8 +203,10 @@ class Trainer:
             eval_kwargs = {**env_kwargs, "density": run.density.end} if self.nav else env_kwargs
             self.eval_env = TorchVecEnv(make_vec_env(run.env, min(run.eval_episodes, 32), run.device,
                                                      run.preset, **eval_kwargs), self.device)  # fmt: skip
-            if spec is not None:  # the policy is evaluated behind its shield (a fresh one)
-                self.eval_env = ShieldedVecEnv(self.eval_env, shield_factory(spec))
+            if spec is not None:  # the policy is evaluated behind the shield it flies behind
+                self.eval_env = ShieldedVecEnv(
+                    self.eval_env, shield_factory(run.flight_shield_spec())
+                )
         self.learner: Learner = LEARNERS[algo](self.env, run, cfg)
         self.agent = self.learner.agent
         self.curriculum = ConstraintCurriculum(cfg.curriculum)
@@ -382,7 +384,8 @@ class Trainer:
                 "obs_shapes": {k: list(v) for k, v in env.obs_shapes.items()}, "action_dim": env.action_dim,
                 "action_low": env._low.tolist(), "action_high": env._high.tolist(),
                 "net": to_dict(self.cfg.net), "global_step": int(self.global_step),
-                **({"shield": self.run_cfg.shield_spec()} if self.run_cfg.shield else {}),
+                **({"shield": self.run_cfg.shield_spec(),
+                    "flight_shield": self.run_cfg.flight_shield_spec()} if self.run_cfg.shield else {}),
                 **self.learner.policy_meta,
                 **(self.normalization.meta() if self.normalization is not None else {})}  # fmt: skip
 
