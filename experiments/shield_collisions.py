@@ -1,8 +1,10 @@
-"""Why does a policy collide behind its safety shield? (docs/deployment.md, "The braking cap")
+"""Why does a policy collide, or time out, behind its safety shield? (docs/deployment.md, "The
+braking cap")
 
 Flies EPISODES episodes of one map (a validation map: 12345-12348) with a policy behind the shield
-it records (``safenav train --shield``; its ``meta["shield"]``), optionally with ShieldConfig
-fields overridden (JSON, e.g. ``'{"brake_time": 0.4}'``), and for each collision prints what
+it flies behind (``safenav train --shield``; its ``meta["flight_shield"]`` or ``meta["shield"]``),
+optionally with ShieldConfig fields overridden (JSON, e.g. ``'{"brake_time": 0.4}'``; the key
+``brake`` sets the shield's braking cap as ``--shield-brake`` does), and for each collision prints what
 was struck (static, moving, the altitude band), the altitude (UAV, goal), whether the shield
 corrected each of the last 10 actions, whether its correction was the last resort (no admissible
 candidate: the latest time to collision) and the speed of the last 5 steps.
@@ -12,7 +14,10 @@ candidate: the latest time to collision) and the speed of the last 5 steps.
 
 The first line is the outcome count, the last the collisions by kind and by what the shield did
 in the last 3 steps (``fb_last3``: a last resort, ``corr_last3``: a correction, ``free_last3``:
-none). Found: most collisions come after 10 corrected steps that were admissible to the shield,
+none). For each timeout it prints the horizontal distance left to the goal, the share of the
+episode's actions the shield changed, the mean speed, and over the last 20 s the path flown
+against the displacement (a hovering UAV flies neither, an oscillating one a path without
+displacement). Found: most collisions come after 10 corrected steps that were admissible to the shield,
 at 1.2-2 m/s: the vehicle drifts into the pillar behind its 0.4 s velocity lag.
 """
 
@@ -26,6 +31,7 @@ from pathlib import Path
 import torch
 
 import safenav.deploy.shield as S
+from safenav.common.config import flight_shield_spec
 from safenav.envs.nav import SafeNavVectorEnv
 from safenav.experiments.evaluate import fixed_test_scenario
 from safenav.experiments.flight import resolve_policy
@@ -34,11 +40,14 @@ LOOKBACK = 10
 
 
 def main() -> None:
-    torch.set_num_threads(2)
+    torch.set_num_threads(1)
     ckpt, seed, n = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
     overrides = json.loads(sys.argv[4]) if len(sys.argv) > 4 else {}
     policy, cfg = resolve_policy(Path(ckpt), "checkpoint", "cpu")
-    shield = S.shield_from_spec(policy.meta.get("shield") or {"memory": 1})
+    spec = {**(flight_shield_spec(policy.meta) or {"memory": 1})}
+    if "brake" in overrides:
+        spec["brake"] = bool(overrides.pop("brake"))
+    shield = S.shield_from_spec(spec)
     if overrides:
         for_env = S.ShieldConfig.for_env
         S.ShieldConfig.for_env = staticmethod(lambda c, **kw: for_env(c, **{**kw, **overrides}))
@@ -58,6 +67,9 @@ def main() -> None:
     obs, _ = env.reset(seed=seed, options={"starts": starts, "goals": goals})
     done = torch.zeros(n, dtype=torch.bool)
     history: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
+    window = int(round(20.0 / cfg.dt))  # the last 20 s of a timeout
+    positions: list[torch.Tensor] = []
+    changed = torch.zeros(n)
     outcomes, by_cause, lines = Counter(), Counter(), []
     with torch.no_grad():
         for t in range(cfg.max_episode_steps):
@@ -67,12 +79,25 @@ def main() -> None:
             none = torch.zeros(n, dtype=torch.bool)
             history = [*history[-(LOOKBACK - 1):], (flags.get("corrected", none).clone(),
                        flags.get("last_resort", none).clone(), env.vel.norm(dim=-1).clone())]  # fmt: skip
+            changed += (shielded != act).any(-1).float() * ~done
+            positions = [*positions[-window:], env.pos.clone()]
             obs, _, term, trunc, info = env.step(torch.where(done[:, None], 0.0, shielded))
             ended = (term | trunc) & ~done
-            ep = info["episode"]
+            ep = info.get("episode")  # present at the steps where an episode ends
+            if ep is None:
+                continue
             for i in ended.nonzero().flatten().tolist():
                 if not bool(ep["collision"][i]):
                     outcomes["success" if bool(ep["success"][i]) else "timeout"] += 1
+                    if not bool(ep["success"][i]):
+                        track = torch.stack([p[i] for p in positions])
+                        path = float((track[1:] - track[:-1]).norm(dim=-1).sum())
+                        moved = float((track[-1] - track[0]).norm())
+                        left = float((env.pos[i, :2] - env.goal[i, :2]).norm())
+                        lines.append(f"timeout goal {left:.1f} m away, shield changed "
+                                     f"{float(changed[i]) / (t + 1):.0%} of actions, mean speed "
+                                     f"{float(ep['mean_speed'][i]):.2f} m/s, last 20 s: "
+                                     f"path {path:.1f} m, displacement {moved:.1f} m")  # fmt: skip
                     continue
                 kind = ("band" if bool(ep["out_of_bounds"][i]) else
                         "static" if bool(ep["hit_static"][i]) else "moving")  # fmt: skip
