@@ -13,7 +13,8 @@ test scenario and the held-out maps for the N chosen.
 clearance from the tracked moving obstacles (``ShieldConfig.mover_margin``), e.g. ``1map-mover0.3``,
 and ``-lag`` a shield that models the env's velocity tracker (``ShieldConfig.response_time``:
 candidates tested from where the vehicle really goes), e.g. ``1map-mover0.3-lag``, and ``-brake``
-the braking cap (``--shield-brake``: ``ShieldConfig.brake_time``), e.g. ``1map-mover0.3-brake``.
+the braking cap (``--shield-brake``: ``ShieldConfig.brake_time``), e.g. ``1map-mover0.3-brake``,
+or ``-slide`` its sliding form (``ShieldConfig.brake_slide``), e.g. ``1map-mover0.3-slide``.
 One JSON per
 (policy, setting, map) in OUT
 (a rerun skips those that exist), then a table of the mean over maps per (policy, setting) on
@@ -50,18 +51,19 @@ def _mean(values: list) -> float:
     return sum(values) / len(values) if values else float("nan")
 
 
-def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool]:
+def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str]:
     """``"20"`` -> (20, False, 0.0, False, False); ``"20map"`` -> (20, True, 0.0, False, False);
     ``"1map-mover0.3-lag"`` -> (1, True, 0.3, True, False) (``-lag``: the shield models the env's
     velocity tracker, ``ShieldConfig.response_time``); ``"1map-mover0.3-brake"`` -> (1, True,
-    0.3, False, True) (the braking cap)."""
-    found = re.fullmatch(r"(\d+)(map)?(?:-mover([0-9.]+))?(-lag)?(-brake)?", setting)
+    0.3, False, True) (the braking cap); ``-slide``: its sliding form, ``"slide"`` there."""
+    found = re.fullmatch(r"(\d+)(map)?(?:-mover([0-9.]+))?(-lag)?(-brake|-slide)?", setting)
     if found is None:
         raise SystemExit(
-            f"shield setting {setting!r}: N, Nmap or either with -moverX, -lag, -brake"
+            f"shield setting {setting!r}: N, Nmap or either with -moverX, -lag, -brake or -slide"
         )
+    brake = {None: False, "-brake": True, "-slide": "slide"}[found[5]]
     return (int(found[1]), found[2] is not None, float(found[3] or 0.0), found[4] is not None,
-            found[5] is not None)  # fmt: skip
+            brake)  # fmt: skip
 
 
 def run(

@@ -399,6 +399,39 @@ def test_the_braking_cap_slows_the_approach_only_and_stays_admissible():
     assert before.any() and bool((after | ~before).all())
 
 
+def test_the_sliding_cap_keeps_the_velocity_along_the_pillar():
+    """``brake_slide``: head-on into a pillar it has no room left for, the scaled cap stops the
+    vehicle and the sliding one keeps its sideways component; on random scenes every closing
+    speed ends within its braking speed, as the scaled cap's do."""
+    from safenav.deploy.shield import _shield_static_and_tracked, braking_slide, braking_speed
+
+    cfg = ShieldConfig(brake_time=0.4, brake_acceleration=2.0)
+    rel, _, rad, valid, planar = scene([[0.45, 0.0, 0.0]], planar=True)  # 0.05 m of room
+    v = torch.tensor([[1.5, 1.0, 0.0]])
+    out, changed = braking_slide(v, rel, valid, planar, rad, cfg)
+    assert changed.item() and out[0, 1].item() == pytest.approx(1.0)
+    assert out[0, 0].item() == pytest.approx(
+        braking_speed(torch.tensor(0.05), cfg).item(), abs=1e-5
+    )
+    gen = torch.Generator().manual_seed(1)
+    pts = torch.rand(64, 6, 3, generator=gen) * 6 - 3
+    pts[..., 2] = 0.0
+    v = torch.rand(64, 3, generator=gen) * 4 - 2
+    ok, flat = torch.ones(64, 6, dtype=torch.bool), torch.ones(64, 6, dtype=torch.bool)
+    r = torch.full((64, 6), 0.4)
+    slid, changed = braking_slide(v, pts, ok, flat, r, cfg)
+    dist = pts.norm(dim=-1)
+    closing = (pts * slid[:, None, :]).sum(-1) / dist
+    assert changed.any() and bool((closing <= braking_speed(dist - r, cfg) + 1e-5).all())
+    # in the shield, off by default; on, it slides where the scaled cap stops
+    d = rel.norm(dim=-1)
+    act = torch.tensor([[0.75, 0.5, 0.0]])
+    scaled, _ = _shield_static_and_tracked(rel, valid, planar, d, torch.zeros(1, 5, 10), act, cfg)
+    slide = ShieldConfig(brake_time=0.4, brake_acceleration=2.0, brake_slide=True)
+    slid, c = _shield_static_and_tracked(rel, valid, planar, d, torch.zeros(1, 5, 10), act, slide)
+    assert c.item() and slid[0, 1].item() > 2 * scaled[0, 1].abs().item()
+
+
 def test_the_braking_cap_spares_moving_obstacles_and_keeps_the_altitude_band():
     """In the shield: off by default (bit for bit); on, it slows the vehicle near a pillar,
     leaves the velocity where slowing down would stay in a mover's path, and limits the descent

@@ -103,6 +103,12 @@ class ShieldConfig:
     obstacles alone let it fly at full speed past pillars it then drifts into. Where the slower
     velocity would enter a moving obstacle's velocity obstacle, the velocity is left as it was.
     ``ShieldConfig.braking_of(env_config)`` sets the env's 0.4 s."""
+    brake_slide: bool = False
+    """With ``brake_time``: remove only the excess closing speed on each static obstacle (the
+    velocity keeps its component along the pillar and slides past it: :func:`braking_slide`)
+    instead of scaling the whole velocity down, which stops a vehicle that keeps asking to fly
+    into a pillar it is close to, for good. The slid velocity is kept only where it enters no
+    velocity obstacle; elsewhere the scaled one is."""
     brake_acceleration: float = 2.0
     """With ``brake_time``: the deceleration (m/s^2) the cap counts on (the env's tracker allows 3;
     2 measured better on the validation maps, docs/deployment.md)."""
@@ -173,6 +179,32 @@ def braking_cap(v: torch.Tensor, rel: torch.Tensor, valid: torch.Tensor, planar:
     ratio = torch.where(valid & (closing > allowed), allowed / closing.clamp(min=1e-9), 1.0)
     scale = ratio.amin(-1) if ratio.shape[-1] else torch.ones_like(v[:, 0])
     return v * scale[:, None], scale < 1.0
+
+
+def braking_slide(v: torch.Tensor, rel: torch.Tensor, valid: torch.Tensor, planar: torch.Tensor,
+                  radius: torch.Tensor, cfg: ShieldConfig,
+                  passes: int = 4) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """:func:`braking_cap` by removal rather than scaling: ``passes`` times, the closing speed on
+    the obstacle whose closing speed most exceeds :func:`braking_speed` of its distance is cut
+    to that speed, along the direction to it, so the velocity keeps its other components (it
+    slides along the pillar); what still exceeds after the passes is then scaled as
+    :func:`braking_cap` does, so every closing speed ends within its bound. Returns ``(v,
+    changed)``."""
+    w = torch.ones_like(rel)
+    w[..., 2] = (~planar).to(v.dtype)
+    p = rel * w
+    dist = p.norm(dim=-1).clamp(min=1e-6)
+    unit = p / dist[..., None]  # (N, M, 3) towards each obstacle
+    allowed = braking_speed(dist - radius, cfg)
+    out = v
+    for _ in range(passes if rel.shape[1] else 0):
+        closing = (unit * out[:, None, :]).sum(-1)
+        excess = torch.where(valid, (closing - allowed).clamp(min=0.0), 0.0)
+        worst = excess.argmax(-1)
+        cut = excess.gather(1, worst[:, None])  # (N, 1)
+        out = out - cut * unit[torch.arange(out.shape[0], device=v.device), worst]
+    out, _ = braking_cap(out, rel, valid, planar, radius, cfg)
+    return out, (out != v).any(-1)
 
 
 def altitude_cap(v: torch.Tensor, altitude: torch.Tensor,
@@ -490,6 +522,10 @@ def _shield_static_and_tracked(rel, valid, planar, dist, dyn, action, cfg: Shiel
     )
     if cfg.brake_time > 0:
         slow, capped = braking_cap(v, rel[:, :m], valid[:, :m], planar[:, :m], radius[:, :m], cfg)
+        if cfg.brake_slide:  # slide along the pillar where that enters no velocity obstacle
+            slid, _ = braking_slide(v, rel[:, :m], valid[:, :m], planar[:, :m], radius[:, :m], cfg)
+            into, _ = _vo_test(slid[:, None], rel, vel, radius, valid, planar, cfg.time_horizon)
+            slow = torch.where((capped & ~into[:, 0])[:, None], slid, slow)
         # Slowing down may leave a moving obstacle's path too late: there, the velocity stays.
         into, _ = _vo_test(slow[:, None], rel, vel, radius, valid, planar, cfg.time_horizon)
         capped = capped & ~into[:, 0]
@@ -584,7 +620,7 @@ class MemoryShield:
 
     def __init__(self, memory: int, cfg: ShieldConfig | None = None, max_static: int | None = None,
                  map_scan: bool = False, mover_margin: float = 0.0,
-                 response: bool = False, brake: bool = False):  # fmt: skip
+                 response: bool = False, brake: bool | str = False):  # fmt: skip
         if not 1 <= memory <= 100:
             raise ValueError(f"memory must lie in [1, 100] range images, got {memory}")
         if not 0.0 <= mover_margin <= 2.0:
@@ -593,7 +629,10 @@ class MemoryShield:
         self.map_scan = bool(map_scan)
         self.mover_margin = float(mover_margin)  # with the env's config (cfg None) only
         self.response = bool(response)  # ditto: the env's velocity tracker (response_time)
+        if brake not in (False, True, "scale", "slide"):
+            raise ValueError(f"brake must be False, True (= 'scale') or 'slide', got {brake!r}")
         self.brake = bool(brake)  # ditto: the braking cap (brake_time)
+        self.brake_slide = brake == "slide"  # ditto: ShieldConfig.brake_slide
         self._points: torch.Tensor | None = None  # (N, memory, beams, 3) world; FAR = no hit
         self._slot = 0
 
@@ -605,7 +644,8 @@ class MemoryShield:
         cfg = self.cfg or ShieldConfig.for_env(
             env.cfg, mover_margin=self.mover_margin,
             **(ShieldConfig.response_of(env.cfg) if self.response else {}),
-            **(ShieldConfig.braking_of(env.cfg) if self.brake else {}))  # fmt: skip
+            **(ShieldConfig.braking_of(env.cfg) if self.brake else {}),
+            brake_slide=self.brake_slide)  # fmt: skip
         extra = None
         if self.map_scan:
             extra = map_scan_hits(env.heights, env.grid.origin, env.grid.size, env.cfg.grid_resolution,
@@ -667,13 +707,14 @@ _FAR = 1.0e4
 
 
 def shield_for_memory(memory: int, map_scan: bool = False, mover_margin: float = 0.0,
-                      response: bool = False, brake: bool = False):  # fmt: skip
+                      response: bool = False, brake: bool | str = False):  # fmt: skip
     """The evaluation shield of a memory setting (``--shield-memory``): ``None`` for 0 (no
     shield), :func:`env_shield` for 1, a fresh :class:`MemoryShield` of ``memory`` images above;
     with ``map_scan`` (``--shield-map``) or a ``mover_margin`` (m, ``--shield-mover-margin``) a
     fresh ``MemoryShield(max(memory, 1), map_scan=..., mover_margin=...)``; ``response``: it
     models the env's velocity tracker (``ShieldConfig.response_time``); ``brake``
-    (``--shield-brake``): the braking cap (``ShieldConfig.brake_time``)."""
+    (``--shield-brake``): the braking cap (``ShieldConfig.brake_time``), ``"slide"`` its sliding
+    form (``ShieldConfig.brake_slide``)."""
     if map_scan or mover_margin or response or brake:
         return MemoryShield(max(memory, 1), map_scan=map_scan, mover_margin=mover_margin,
                             response=response, brake=brake)  # fmt: skip
@@ -684,13 +725,18 @@ def shield_for_memory(memory: int, map_scan: bool = False, mover_margin: float =
 
 def shield_from_spec(spec: dict | None):
     """A fresh shield as a policy's ``meta["shield"]`` records the one it trained behind
-    (``{"memory": N, "map": bool, "mover_margin": m, "brake": bool}``, ``safenav train
-    --shield``); None for a policy trained without one."""
+    (``{"memory": N, "map": bool, "mover_margin": m, "brake": bool or "slide"}``, ``safenav
+    train --shield``); None for a policy trained without one."""
     if not spec:
         return None
     return shield_for_memory(int(spec["memory"]), bool(spec.get("map", False)),
                              float(spec.get("mover_margin", 0.0)),
-                             brake=bool(spec.get("brake", False)))  # fmt: skip
+                             brake=_brake_of(spec.get("brake", False)))  # fmt: skip
+
+
+def _brake_of(value) -> bool | str:
+    """A spec's ``brake``: a bool or ``"slide"`` (checked as MemoryShield checks it)."""
+    return value if value == "slide" else bool(value)
 
 
 __all__ = [
