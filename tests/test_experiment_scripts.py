@@ -2,10 +2,11 @@
 tiny CSAC run: ``checkpoint_sweep.py`` (with ``--sampled``), ``cost_critic_bias.py``,
 ``flight_grid.py``, ``speed_profile.py``, ``timeout_paths.py`` and ``altitude_profile.py``; and
 ``vecenv_overhead.py`` (docs/gymnasium.md) on Pendulum-v1; ``shield_memory.py`` (docs/deployment.md);
-``finish_runs.py`` (docs/csac-v1.md)."""
+``finish_runs.py`` (docs/csac-v1.md); ``shield_collisions.py`` (docs/deployment.md)."""
 
 from __future__ import annotations
 
+import ast
 import importlib.util
 import json
 import math
@@ -264,6 +265,28 @@ def test_shield_memory_flies_each_memory_and_pairs_them_by_policy(tiny_run, tmp_
     for m, base in (("1", "0"), ("3", "0"), ("3", "1"), ("1map", "1"), ("1map-mover0.3", "1")):
         d = rows[settings.index(m)]["collision_rate"] - rows[settings.index(base)]["collision_rate"]
         assert f"| {m} | {base} |" in table and f"{d:+.3f}" in table
+
+
+def test_shield_memory_parses_the_braking_settings():
+    sm = script("shield_memory")
+    assert sm.parse_setting("1map-mover0.3-brake") == (1, True, 0.3, False, True)
+    assert sm.parse_setting("1map-mover0.3-slide") == (1, True, 0.3, False, "slide")
+    with pytest.raises(SystemExit, match="-slide"):
+        sm.parse_setting("1map-brake-slide")
+
+
+def test_shield_collisions_says_how_each_episode_ended(tiny_run, monkeypatch, capsys):
+    """experiments/shield_collisions.py (docs/deployment.md): the outcome count, a line per
+    collision and per timeout, behind the braking cap."""
+    monkeypatch.setattr(sys, "argv", ["shield_collisions.py", str(tiny_run / "best.pt"), "12345",
+                                      "3", '{"brake": true}'])  # fmt: skip
+    script("shield_collisions").main()
+    lines = capsys.readouterr().out.strip().splitlines()
+    outcomes = ast.literal_eval(lines[0])  # the script prints a dict of counts
+    assert sum(outcomes.values()) == 3
+    collided = sum(outcomes.get(k, 0) for k in ("static", "moving", "band"))
+    assert len([x for x in lines if x.startswith("timeout")]) == outcomes.get("timeout", 0)
+    assert len(lines) == 2 + collided + outcomes.get("timeout", 0)
 
 
 @pytest.mark.long
