@@ -1,7 +1,8 @@
 """End training runs as ``safenav train --select`` ends one: the policy chosen on validation maps
 only (greedy soup of the policies kept in the run's last half, ``RUN/policy.pt``,
 ``selection.json``), then its report on the test scenario and the held-out maps (``final.json``),
-behind the shield the policy trained behind, if any. For runs trained without ``--select`` but
+behind the shield the policy flies behind, if any (``meta["flight_shield"]``, else the one it
+trained behind). For runs trained without ``--select`` but
 with ``--keep-policies`` (``experiments/seed_levers.sh``); copies ``selection.json`` and
 ``final.json`` to ``OUT/<run name>-{selection,final}.json``.
 

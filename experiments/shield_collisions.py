@@ -6,7 +6,8 @@ it flies behind (``safenav train --shield``; its ``meta["flight_shield"]`` or ``
 optionally with ShieldConfig fields overridden (JSON, e.g. ``'{"brake_time": 0.4}'``; the key
 ``brake`` sets the shield's braking cap as ``--shield-brake`` does), and for each collision prints what
 was struck (static, moving, the altitude band), the altitude (UAV, goal), whether the shield
-corrected each of the last 10 actions, whether its correction was the last resort (no admissible
+corrected each of the last 10 actions in its velocity-obstacle search (a change by the braking
+cap alone is not counted there), whether its correction was the last resort (no admissible
 candidate: the latest time to collision) and the speed of the last 5 steps.
 
     .venv/bin/python experiments/shield_collisions.py runs/levers/shield1map03-s1/policy.pt \\
@@ -46,7 +47,7 @@ def main() -> None:
     policy, cfg = resolve_policy(Path(ckpt), "checkpoint", "cpu")
     spec = {**(flight_shield_spec(policy.meta) or {"memory": 1})}
     if "brake" in overrides:
-        spec["brake"] = bool(overrides.pop("brake"))
+        spec["brake"] = overrides.pop("brake")  # true / false / "slide", checked by the shield
     shield = S.shield_from_spec(spec)
     if overrides:
         for_env = S.ShieldConfig.for_env
@@ -90,7 +91,7 @@ def main() -> None:
                 if not bool(ep["collision"][i]):
                     outcomes["success" if bool(ep["success"][i]) else "timeout"] += 1
                     if not bool(ep["success"][i]):
-                        track = torch.stack([p[i] for p in positions])
+                        track = torch.stack([*(p[i] for p in positions), env.pos[i]])
                         path = float((track[1:] - track[:-1]).norm(dim=-1).sum())
                         moved = float((track[-1] - track[0]).norm())
                         left = float((env.pos[i, :2] - env.goal[i, :2]).norm())

@@ -403,7 +403,12 @@ def test_the_sliding_cap_keeps_the_velocity_along_the_pillar():
     """``brake_slide``: head-on into a pillar it has no room left for, the scaled cap stops the
     vehicle and the sliding one keeps its sideways component; on random scenes every closing
     speed ends within its braking speed, as the scaled cap's do."""
-    from safenav.deploy.shield import _shield_static_and_tracked, braking_slide, braking_speed
+    from safenav.deploy.shield import (
+        _shield_static_and_tracked,
+        braking_cap,
+        braking_slide,
+        braking_speed,
+    )
 
     cfg = ShieldConfig(brake_time=0.4, brake_acceleration=2.0)
     rel, _, rad, valid, planar = scene([[0.45, 0.0, 0.0]], planar=True)  # 0.05 m of room
@@ -423,6 +428,11 @@ def test_the_sliding_cap_keeps_the_velocity_along_the_pillar():
     dist = pts.norm(dim=-1)
     closing = (pts * slid[:, None, :]).sum(-1) / dist
     assert changed.any() and bool((closing <= braking_speed(dist - r, cfg) + 1e-5).all())
+    # the passes, not the final scaling, do the work: the slid velocities keep more speed
+    scaled, capped = braking_cap(v, pts, ok, flat, r, cfg)
+    assert torch.equal(changed, capped)
+    assert slid[changed].norm(dim=-1).mean() > 1.2 * scaled[changed].norm(dim=-1).mean()
+    assert torch.equal(braking_slide(v, pts, ok, flat, r, cfg, passes=0)[0], scaled)
     # in the shield, off by default; on, it slides where the scaled cap stops
     d = rel.norm(dim=-1)
     act = torch.tensor([[0.75, 0.5, 0.0]])

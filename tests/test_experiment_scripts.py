@@ -281,7 +281,7 @@ def test_shield_collisions_says_how_each_episode_ended(tiny_run, monkeypatch, ca
     monkeypatch.setattr(sys, "argv", ["shield_collisions.py", str(tiny_run / "best.pt"), "12345",
                                       "3", '{"brake": true}'])  # fmt: skip
     script("shield_collisions").main()
-    lines = capsys.readouterr().out.strip().splitlines()
+    lines = [x for x in capsys.readouterr().out.splitlines() if x.strip()]
     outcomes = ast.literal_eval(lines[0])  # the script prints a dict of counts
     assert sum(outcomes.values()) == 3
     collided = sum(outcomes.get(k, 0) for k in ("static", "moving", "band"))

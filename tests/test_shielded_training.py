@@ -98,6 +98,13 @@ def test_the_spec_rebuilds_the_shield():
     assert isinstance(braking, MemoryShield) and braking.brake and braking.memory == 1
     # a policy trained before the braking cap records no "brake": it flies without it
     assert not shield_from_spec({"memory": 1, "map": True, "mover_margin": 0.3}).brake
+    slide = shield_from_spec({"memory": 1, "brake": "slide"})
+    assert slide.brake and slide.brake_slide
+    for bad in ("off", "sliding", 1):
+        with pytest.raises(ValueError, match="brake must be"):
+            shield_from_spec({"memory": 1, "brake": bad})
+    # the flight shield is recorded only where it differs from the training one
+    assert RunConfig(shield=True).flight_shield_spec() == RunConfig(shield=True).shield_spec()
 
 
 def test_train_behind_the_shield_end_to_end(tmp_path):

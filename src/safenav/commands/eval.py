@@ -150,6 +150,7 @@ def own_shield_settings(policy, checkpoint, memory: int, shield_map: bool, mover
     from safenav.cli import ARGS
     from safenav.commands.train import given_flag
     from safenav.common.config import flight_shield_spec
+    from safenav.deploy.shield import _brake_of
 
     spec = flight_shield_spec(policy.meta)
     if not spec or any(given_flag(f, ARGS.get()) for f in SHIELD_FLAGS):
@@ -160,13 +161,13 @@ def own_shield_settings(policy, checkpoint, memory: int, shield_map: bool, mover
         int(spec["memory"]),
         bool(spec["map"]),
         float(spec["mover_margin"]),
-        bool(spec.get("brake", False)),  # policies trained before the braking cap lack it
+        _brake_of(spec.get("brake", False)),  # policies trained before the braking cap lack it
     )
     what = ", ".join([f"memory {memory}", *(["map scan"] if shield_map else []),
                       *([f"+{mover_margin:g} m from movers"] if mover_margin else []),
                       *(["braking cap"] if brake else [])])  # fmt: skip
-    Console(stderr=True).print(f"note: {checkpoint} trained behind the safety shield ({what}) and "
-                               "flies behind it (--no-shield: alone)")  # fmt: skip
+    Console(stderr=True).print(f"note: {checkpoint} trained behind the safety shield and flies "
+                               f"behind it ({what}; --no-shield: alone)")  # fmt: skip
     return memory, shield_map, mover_margin, brake
 
 

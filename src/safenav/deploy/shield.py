@@ -629,8 +629,7 @@ class MemoryShield:
         self.map_scan = bool(map_scan)
         self.mover_margin = float(mover_margin)  # with the env's config (cfg None) only
         self.response = bool(response)  # ditto: the env's velocity tracker (response_time)
-        if brake not in (False, True, "scale", "slide"):
-            raise ValueError(f"brake must be False, True (= 'scale') or 'slide', got {brake!r}")
+        brake = _brake_of(brake)
         self.brake = bool(brake)  # ditto: the braking cap (brake_time)
         self.brake_slide = brake == "slide"  # ditto: ShieldConfig.brake_slide
         self._points: torch.Tensor | None = None  # (N, memory, beams, 3) world; FAR = no hit
@@ -735,8 +734,12 @@ def shield_from_spec(spec: dict | None):
 
 
 def _brake_of(value) -> bool | str:
-    """A spec's ``brake``: a bool or ``"slide"`` (checked as MemoryShield checks it)."""
-    return value if value == "slide" else bool(value)
+    """A spec's ``brake``: ``False``, ``True`` (the scaled cap, also ``"scale"``) or ``"slide"``."""
+    if isinstance(value, str) and value in ("scale", "slide"):
+        return True if value == "scale" else value
+    if isinstance(value, bool):
+        return value
+    raise ValueError(f"shield spec: brake must be false, true, 'scale' or 'slide', got {value!r}")
 
 
 __all__ = [

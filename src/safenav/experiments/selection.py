@@ -160,7 +160,7 @@ def report_policy(
                                                                      "timeout_rate")}  # fmt: skip
     return {"test": test, "heldout": {"seeds": list(heldout), "episodes_per_seed": episodes,
                                       **pooled, "per_seed": held},
-            "shield": fn.meta.get("shield")}  # fmt: skip
+            "shield": fn.meta.get("shield"), "flight_shield": flight_shield_spec(fn.meta)}  # fmt: skip
 
 
 __all__ = ["HELDOUT_SEEDS", "RESERVED_SEEDS", "TEST_SEED", "VALIDATION_SEEDS", "own_shield", "report_policy",

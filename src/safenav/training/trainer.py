@@ -384,10 +384,18 @@ class Trainer:
                 "obs_shapes": {k: list(v) for k, v in env.obs_shapes.items()}, "action_dim": env.action_dim,
                 "action_low": env._low.tolist(), "action_high": env._high.tolist(),
                 "net": to_dict(self.cfg.net), "global_step": int(self.global_step),
-                **({"shield": self.run_cfg.shield_spec(),
-                    "flight_shield": self.run_cfg.flight_shield_spec()} if self.run_cfg.shield else {}),
+                **self._shield_meta(),
                 **self.learner.policy_meta,
                 **(self.normalization.meta() if self.normalization is not None else {})}  # fmt: skip
+
+    def _shield_meta(self) -> dict[str, Any]:
+        """The shield the policy trained behind, and the one it flies behind where they differ
+        (``--shield-flight-brake``; only then, so the policies of a run resumed from before it
+        still average)."""
+        if not self.run_cfg.shield:
+            return {}
+        train, flight = self.run_cfg.shield_spec(), self.run_cfg.flight_shield_spec()
+        return {"shield": train, **({"flight_shield": flight} if flight != train else {})}
 
     def policy_state(self) -> dict[str, Any]:
         """The policy-only part of a checkpoint (``best.pt``, ``policies/``)."""
