@@ -252,6 +252,7 @@ VERDICTS: dict[str, dict[str, int]] = {
     "render --shield-memory": {"0": ACCEPTED},
     **{f"{v} --shield-mover-margin": {"0": ACCEPTED} for v in ("train", "eval", "render", "fly")},  # 0-2 m
     "train --shield-memory": {"0": ACCEPTED},
+    "train --shield-penalty": {"0": ACCEPTED},  # 0-10 per m/s, above 0 only with --shield
     "fly --shield-memory": {"0": ACCEPTED},
     "render --env-seed": {"0": ACCEPTED}, "render --episode": {"0": ACCEPTED}, "render --fps": {},
     "reproduce --seeds": {}, "reproduce --first-seed": {"0": ACCEPTED},

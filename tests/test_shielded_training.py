@@ -57,6 +57,27 @@ def test_the_env_executes_the_shields_action_and_the_learner_keeps_its_own():
     )
 
 
+def test_the_shield_penalty_charges_the_learner_for_each_correction():
+    """``--shield-penalty K``: the reward falls by K per m/s of correction (halt: the whole
+    commanded speed), nothing where the shield lets the action through."""
+    rewards = []
+    for shield, penalty in ((lambda nav, obs, a: torch.zeros_like(a), 0.0),
+                            (lambda nav, obs, a: torch.zeros_like(a), 0.5),
+                            (lambda nav, obs, a: a, 0.5)):  # fmt: skip
+        env = TorchVecEnv(make_vec_env("SafeNav-v1", 4, "cpu", "easy"), "cpu")
+        shielded = ShieldedVecEnv(env, shield, penalty)
+        shielded.reset(seed=3)
+        action = torch.tensor([[0.6, 0.8, 0.0]] * 4)
+        rewards.append(shielded.step(action).reward)
+    v_max = env.envs.unwrapped.cfg.v_max
+    assert torch.allclose(rewards[0] - rewards[1], torch.full((4,), 0.5 * v_max))
+    with pytest.raises(ValueError, match="penalty"):
+        ShieldedVecEnv(env, env_shield, -1.0)
+    free = TorchVecEnv(make_vec_env("SafeNav-v1", 4, "cpu", "easy"), "cpu")
+    free.reset(seed=3)
+    assert torch.equal(rewards[2], free.step(torch.tensor([[0.6, 0.8, 0.0]] * 4)).reward)
+
+
 def test_step_before_reset_and_normalised_observations_are_refused():
     env = TorchVecEnv(make_vec_env("SafeNav-v1", 2, "cpu", "easy"), "cpu")
     with pytest.raises(RuntimeError, match="before reset"):
@@ -67,7 +88,9 @@ def test_step_before_reset_and_normalised_observations_are_refused():
     ("kwargs", "message"),
     [({"shield_map": True}, "add --shield"), ({"shield_memory": 5}, "add --shield"),
      ({"shield_mover_margin": 0.3}, "add --shield"), ({"shield_brake": True}, "add --shield"),
-     ({"shield_flight_brake": True}, "add --shield"),
+     ({"shield_flight_brake": True}, "add --shield"), ({"shield_penalty": 0.5}, "add --shield"),
+     ({"shield": True, "shield_penalty": -1.0}, r"\[0, 10\]"),
+     ({"shield": True, "shield_penalty": True}, r"\[0, 10\]"),
      ({"shield": True, "shield_memory": 101}, r"\[0, 100\]"),
      ({"shield": True, "shield_mover_margin": -0.1}, r"\[0, 2\]"),
      ({"shield": True, "shield_mover_margin": 3.0}, r"\[0, 2\]"),
@@ -111,9 +134,10 @@ def test_train_behind_the_shield_end_to_end(tmp_path):
     run_dir = tmp_path / "run"
     main(["train", "--algo", "csac", "--env", "SafeNav-v1", "--preset", "easy", "--seed", "3",
           "--total-steps", "400", "--shield", "--shield-map", "--shield-mover-margin", "0.3",
-          "--shield-flight-brake", "--keep-policies", "--run-dir", str(run_dir), *FAST])  # fmt: skip
+          "--shield-flight-brake", "--shield-penalty", "0.2", "--keep-policies", "--run-dir", str(run_dir), *FAST])  # fmt: skip
     config = json.loads((run_dir / "config.json").read_text())
     assert config["run"]["shield"] and config["run"]["shield_mover_margin"] == 0.3
+    assert config["run"]["shield_penalty"] == 0.2
     with (run_dir / "progress.csv").open(newline="") as f:
         rates = [
             float(r["charts/shield_rate"]) for r in csv.DictReader(f) if r["charts/shield_rate"]

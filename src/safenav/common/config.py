@@ -95,6 +95,10 @@ class RunConfig:
     periodic evaluation, the selection, the final report and ``safenav eval`` / ``render`` (by
     default) add the cap (``meta["flight_shield"]``; the validation choice of docs/csac-v1.md,
     "Training behind the braking cap")."""
+    shield_penalty: float = 0.0
+    """With ``shield``: the training reward falls by this much per m/s of the shield's correction
+    of the policy's action at each step (beyond the paper; 0 = none): the policy learns to need
+    the shield less. Evaluations and the logged returns are without it."""
     keep_policies: bool = False
     """Also keep the policy of every periodic evaluation as ``policies/step_<N>.pt`` (policy-only,
     ~0.6 MB each), to compare a run's policies afterwards (experiments/checkpoint_sweep.py)."""
@@ -164,13 +168,21 @@ class RunConfig:
             raise ValueError(
                 f"shield-memory={self.shield_memory} must lie in [0, 100] range images"
             )
+        penalty = self.shield_penalty
+        if (
+            isinstance(penalty, bool)
+            or not isinstance(penalty, int | float)
+            or not 0 <= penalty <= 10
+        ):
+            raise ValueError(f"shield-penalty={penalty!r} must lie in [0, 10] per m/s")
         margin = self.shield_mover_margin
         if isinstance(margin, bool) or not isinstance(margin, int | float) or not 0 <= margin <= 2:
             raise ValueError(f"shield-mover-margin={margin!r} must lie in [0, 2] m")
         extras = [name for name, on in (("shield-memory", self.shield_memory > 1),
                   ("shield-map", self.shield_map), ("shield-mover-margin", margin > 0),
                   ("shield-brake", self.shield_brake),
-                  ("shield-flight-brake", self.shield_flight_brake)) if on]  # fmt: skip
+                  ("shield-flight-brake", self.shield_flight_brake),
+                  ("shield-penalty", penalty > 0)) if on]  # fmt: skip
         if extras and not self.shield:
             raise ValueError(f"{' / '.join(extras)} set the shield: add --shield")
         if self.shield and not self.env.split(":")[-1].startswith("SafeNav-"):

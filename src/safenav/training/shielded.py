@@ -8,6 +8,12 @@ the env the policy learns in (Alshiekh et al., 2018, "Safe Reinforcement Learnin
 Shielding": the shield as a post-posed layer), and the policy is meant to fly behind it: its
 periodic evaluation, selection and final report do.
 
+With a ``penalty`` (``safenav train --shield-penalty K``, beyond the paper and NavRL), the
+learner's reward falls by ``K`` per m/s of correction at each step, so that it learns to ask for
+velocities the shield lets through rather than to lean on it (a shield's penalty on the unsafe
+action, as in Alshiekh et al.'s shielding with punishment). The episode statistics (returns in
+the logs) are the env's own, without it.
+
 The shield itself lives with the deployment code (:mod:`safenav.deploy.shield`), above this
 layer: the caller passes a factory, ``shield_factory(spec)`` with ``spec`` from
 :meth:`~safenav.common.config.RunConfig.shield_spec`, that returns a fresh shield (a memory shield
@@ -32,10 +38,12 @@ class ShieldedVecEnv:
     """A :class:`TorchVecEnv` whose env executes the shield's corrections (module docstring);
     every other attribute is the wrapped env's."""
 
-    def __init__(self, env: TorchVecEnv, shield: ShieldFn) -> None:
+    def __init__(self, env: TorchVecEnv, shield: ShieldFn, penalty: float = 0.0) -> None:
         if env.normalization is not None:  # the shield reads the env's own range image
             raise ValueError("the shield reads raw SafeNav observations: no --normalize-obs")
-        self.inner, self.shield = env, shield
+        if not 0.0 <= penalty < float("inf"):
+            raise ValueError(f"shield penalty must be >= 0, got {penalty}")
+        self.inner, self.shield, self.penalty = env, shield, float(penalty)
         self.nav = env.envs.unwrapped
         self._obs: dict[str, torch.Tensor] | None = None
         self.actions = 0
@@ -57,6 +65,9 @@ class ShieldedVecEnv:
         self.corrected += (safe != action).any(-1).sum()
         step = self.inner.step(safe)
         self._obs = step.next_obs
+        if self.penalty > 0:  # the learner pays for the correction it needed (m/s of it)
+            change = (safe - action).norm(dim=-1) * self.nav.cfg.v_max
+            step = step._replace(reward=step.reward - self.penalty * change * step.valid)
         return step
 
     def correction_rate(self) -> float:

@@ -188,7 +188,7 @@ class Trainer:
         if spec is not None and shield_factory is None:
             raise SafenavError("--shield: this caller of train() passes no shield_factory")
         if spec is not None:  # the env executes the shield's corrections (training/shielded.py)
-            self.env = ShieldedVecEnv(self.env, shield_factory(spec))
+            self.env = ShieldedVecEnv(self.env, shield_factory(spec), run.shield_penalty)
         self.refresh_every = 0  # map redraws: SafeNav only
         if self.nav:
             horizon = env_horizon(envs)
