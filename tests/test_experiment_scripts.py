@@ -302,3 +302,32 @@ def test_finish_runs_selects_on_validation_and_reports(tiny_run, tmp_path):
     assert selection["selection"] == "validation" and (run / "policy.pt").exists()
     assert final["test"]["episodes"] == 2 and final["shield"] is None
     assert len(final["heldout"]["per_seed"]) == 5
+
+
+def test_compare_trials_pairs_the_test_episodes_of_two_labels(tmp_path, monkeypatch, capsys):
+    """experiments/compare_trials.py (docs/csac-v1.md): the seed means' difference and McNemar's
+    exact test on the episodes of the seeds both labels have."""
+    for label, outcomes in (("a", ["SSSC", "SSTS"]), ("b", ["SCCC", "CSTC", "SSSS"])):
+        for seed, o in enumerate(outcomes, start=1):
+            record = {"seed": seed, "test_outcomes": o, "success_rate": o.count("S") / len(o),
+                      "collision_rate": o.count("C") / len(o)}  # fmt: skip
+            (tmp_path / f"{label}-s{seed}.json").write_text(json.dumps(record))
+    out = tmp_path / "cmp.json"
+    monkeypatch.setattr(sys, "argv", ["compare_trials.py", str(tmp_path / "a"),
+                                      str(tmp_path / "b"), "--json", str(out)])  # fmt: skip
+    script("compare_trials").main()
+    text = capsys.readouterr().out
+    assert "seeds [1, 2]" in text and "seeds [1, 2, 3]" in text
+    result = json.loads(out.read_text())
+    # seeds 1-2 paired: B collides at s1 episodes 1-2 and s2 episodes 0, 3 where A does not;
+    # A's one collision (s1 episode 3) is B's too
+    m = result["collision_rate"]["mcnemar"]
+    assert (m["pairs"], m["only_a"], m["only_b"]) == (8, 0, 4)
+    assert result["success_rate"]["mean_difference"]["difference"] == pytest.approx(
+        (0.75 + 0.75) / 2 - (0.25 + 0.25 + 1.0) / 3
+    )
+    monkeypatch.setattr(
+        sys, "argv", ["compare_trials.py", str(tmp_path / "none"), str(tmp_path / "b")]
+    )
+    with pytest.raises(SystemExit, match="no trial files"):
+        script("compare_trials").main()

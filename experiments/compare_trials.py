@@ -1,0 +1,61 @@
+"""Two `safenav reproduce` labels compared on the same test episodes, from their committed trial
+files: per rate (success, collision) the difference of the per-seed means with its 95 %
+bootstrap CI (scipy) and McNemar's exact test on the paired test episodes of the seeds both have
+(``safenav.experiments.stats.compare``, the statistics of the paper comparison's results.json).
+
+    .venv/bin/python experiments/compare_trials.py results/csac_shielded/trials/csac_shielded \\
+        results/csac/trials/csac [--json OUT]
+
+Each argument is a trial-file prefix: ``PREFIX-s<seed>.json`` are that label's trials.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+from pathlib import Path
+
+from safenav.common.jsonout import write_json
+from safenav.experiments.stats import compare
+
+
+def trials(prefix: str) -> list[dict]:
+    """The trial records ``PREFIX-s<seed>.json``, by seed."""
+    base = Path(prefix)
+    found = sorted((int(m[1]), p) for p in base.parent.glob(f"{base.name}-s*.json")
+                   if (m := re.fullmatch(rf"{re.escape(base.name)}-s(\d+)\.json", p.name)))  # fmt: skip
+    if not found:
+        raise SystemExit(f"no trial files {prefix}-s<seed>.json")
+    return [json.loads(p.read_text()) for _, p in found]
+
+
+def table(a_label: str, b_label: str, result: dict) -> list[str]:
+    """The comparison as markdown rows."""
+    rows = [f"| {a_label} minus {b_label} | difference of seed means (95 % bootstrap CI) | McNemar "
+            "exact p (episodes only A / only B) |", "|---|---|---|"]  # fmt: skip
+    for key, entry in result.items():
+        d, m = entry["mean_difference"], entry["mcnemar"]
+        means = "- (fewer than 2 seeds)" if d is None else (
+            f"{d['difference']:+.3f} ({d['ci95'][0]:+.3f} to {d['ci95'][1]:+.3f})")  # fmt: skip
+        paired = "-" if m is None else f"{m['p_value']:.2g} ({m['only_a']} / {m['only_b']})"
+        rows.append(f"| {key} | {means} | {paired} |")
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("a", help="trial-file prefix of label A, e.g. results/csac/trials/csac")
+    parser.add_argument("b", help="trial-file prefix of label B")
+    parser.add_argument("--json", type=Path, default=None, help="write the comparison here too")
+    args = parser.parse_args()
+    a, b = trials(args.a), trials(args.b)
+    result = compare(a, b)
+    print(f"A: {args.a} seeds {[r['seed'] for r in a]}; B: {args.b} seeds {[r['seed'] for r in b]}")
+    print("\n".join(table(Path(args.a).name, Path(args.b).name, result)))
+    if args.json:
+        write_json(args.json, {"a": args.a, "b": args.b, **result})
+
+
+if __name__ == "__main__":
+    main()
