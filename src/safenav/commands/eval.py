@@ -150,18 +150,19 @@ def own_shield_settings(policy, checkpoint, memory: int, shield_map: bool, mover
     from safenav.cli import ARGS
     from safenav.commands.train import given_flag
     from safenav.common.config import flight_shield_spec
-    from safenav.deploy.shield import _brake_of
 
     spec = flight_shield_spec(policy.meta)
     if not spec or any(given_flag(f, ARGS.get()) for f in SHIELD_FLAGS):
         return memory, shield_map, mover_margin, brake
     from rich.console import Console
 
+    from safenav.deploy.shield import brake_setting  # loads Numba: only for a shielded policy
+
     memory, shield_map, mover_margin, brake = (
         int(spec["memory"]),
         bool(spec["map"]),
         float(spec["mover_margin"]),
-        _brake_of(spec.get("brake", False)),  # policies trained before the braking cap lack it
+        brake_setting(spec.get("brake", False)),  # policies trained before the braking cap lack it
     )
     what = ", ".join([f"memory {memory}", *(["map scan"] if shield_map else []),
                       *([f"+{mover_margin:g} m from movers"] if mover_margin else []),

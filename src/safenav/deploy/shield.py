@@ -629,7 +629,7 @@ class MemoryShield:
         self.map_scan = bool(map_scan)
         self.mover_margin = float(mover_margin)  # with the env's config (cfg None) only
         self.response = bool(response)  # ditto: the env's velocity tracker (response_time)
-        brake = _brake_of(brake)
+        brake = brake_setting(brake)
         self.brake = bool(brake)  # ditto: the braking cap (brake_time)
         self.brake_slide = brake == "slide"  # ditto: ShieldConfig.brake_slide
         self._points: torch.Tensor | None = None  # (N, memory, beams, 3) world; FAR = no hit
@@ -730,10 +730,10 @@ def shield_from_spec(spec: dict | None):
         return None
     return shield_for_memory(int(spec["memory"]), bool(spec.get("map", False)),
                              float(spec.get("mover_margin", 0.0)),
-                             brake=_brake_of(spec.get("brake", False)))  # fmt: skip
+                             brake=brake_setting(spec.get("brake", False)))  # fmt: skip
 
 
-def _brake_of(value) -> bool | str:
+def brake_setting(value) -> bool | str:
     """A spec's ``brake``: ``False``, ``True`` (the scaled cap, also ``"scale"``) or ``"slide"``."""
     if isinstance(value, str) and value in ("scale", "slide"):
         return True if value == "scale" else value
@@ -745,6 +745,7 @@ def _brake_of(value) -> bool | str:
 __all__ = [
     "MemoryShield",
     "ShieldConfig",
+    "brake_setting",
     "env_shield",
     "dynamic_obstacles_from_features",
     "map_scan_hits",
