@@ -44,8 +44,9 @@ def reproduce(
     With no --algos (or --algos paper) and no --variants it runs the paper's comparison (docs/reproduce.md): CSAC,
     SAC and PPO with seeds 1-5; SAC-Lag, PPO-Lag and the CSAC ablations (csac_paper: the paper's
     values exactly; csac_min: min cost target; csac_fixed_d: no constraint curriculum) with seeds
-    1-3; 1M env steps each, and CSAC, SAC and PPO at 3M as extra rows (csac_3m, sac_3m, ppo_3m;
-    seeds 1-3), compared among themselves; into results/paper.
+    1-3; 1M env steps each; and the comparison at 3M, where the curves flatten (csac_3m, sac_3m,
+    ppo_3m with seeds 1-5; sac_lag_3m, ppo_lag_3m with 1-3), compared among themselves; into
+    results/paper.
 
     Example: safenav reproduce  # the paper's comparison, results/paper/ (many CPU-hours: it
     prints the estimate first; rerun the same command to resume)
