@@ -149,3 +149,16 @@ def test_ci95_band_is_the_bootstrap_interval_of_the_mean():
     low, high = plots.ci95_band(stack)
     assert 0.1 <= low[0] < 0.3 < high[0] <= 0.5
     assert low[1] == high[1] == 0.5 and low[2] == high[2] == 0.2  # no spread / one seed
+
+
+def test_an_algorithm_at_another_budget_keeps_its_hue_and_line_style():
+    """csac_3m and ppo_3m once shared one brown (extra colours wrapped round): a label naming
+    another budget takes a dark shade of its algorithm's colour and its line style."""
+    order = ["csac", "sac", "ppo", "csac_paper", "csac_min", "csac_fixed_d", "csac_3m", "sac_3m",
+             "ppo_3m", "sac_lag_3m", "ppo_lag_3m", "my_variant"]  # fmt: skip
+    colors = {label: plots.color_of(label, order) for label in order}
+    assert len(set(colors.values())) == len(order)
+    assert colors["csac_3m"] == plots.DARK_COLORS["csac"] != colors["csac"]
+    assert plots.linestyle_of("sac_3m") == plots.linestyle_of("sac") == "--"
+    assert plots.budget_base("csac_paper") is None and plots.budget_base("ppo_lag_3m") == "ppo_lag"
+    assert plots.linestyle_of("my_variant") == "-"

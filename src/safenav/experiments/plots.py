@@ -12,6 +12,7 @@ cover each grid point, so a grid point beyond a short seed's last step averages 
 
 from __future__ import annotations
 
+import re
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -134,12 +135,37 @@ def run_from_record(path: Path) -> Run | None:
     return Run(rec["algo"], rec.get("seed"), path, progress, test)
 
 
+#: A dark shade of each fixed colour, for the same algorithm at another budget (``csac_3m``).
+DARK_COLORS: dict[str, str] = {
+    "csac": "#7f0000",
+    "sac": "#08306b",
+    "ppo": "#00441b",
+    "ppo_lag": "#3f007d",
+    "sac_lag": "#a63603",
+}
+
+
+def budget_base(label: str) -> str | None:
+    """``"csac_3m"`` -> ``"csac"``: the algorithm of a label that only names another budget
+    (``ALGO_<steps>[km]``, ALGO one with a fixed colour), else None."""
+    m = re.fullmatch(r"(.+)_\d+(\.\d+)?[km]", label)
+    return m.group(1) if m and m.group(1) in COLORS else None
+
+
 def color_of(algo: str, order: Sequence[str]) -> str:
-    """The algorithm's fixed colour (CSAC red, SAC blue, PPO green, ...)."""
+    """The algorithm's fixed colour (CSAC red, SAC blue, PPO green, ...); at another budget
+    (``csac_3m``) a dark shade of it, so that each algorithm keeps its hue across budgets."""
     if algo in COLORS:
         return COLORS[algo]
-    extras = [a for a in order if a not in COLORS]
+    if (base := budget_base(algo)) is not None:
+        return DARK_COLORS[base]
+    extras = [a for a in order if a not in COLORS and budget_base(a) is None]
     return _EXTRA_COLORS[extras.index(algo) % len(_EXTRA_COLORS)] if algo in extras else "#333"
+
+
+def linestyle_of(algo: str) -> str:
+    """The algorithm's line style, the same at every budget."""
+    return LINESTYLES.get(algo, LINESTYLES.get(budget_base(algo) or "", "-"))
 
 
 def group(runs: Sequence[Run]) -> dict[str, list[Run]]:
@@ -247,7 +273,7 @@ def _curve_panel(ax, groups, column, ylabel, title, percent, window, hold=False)
         scale = 100.0 if percent else 1.0
         color = color_of(algo, order)
         label = f"{display_name(algo)} ({n} seed{'s' if n != 1 else ''})"
-        ax.plot(grid, mean * scale, color=color, lw=2, label=label, ls=LINESTYLES.get(algo, "-"),
+        ax.plot(grid, mean * scale, color=color, lw=2, label=label, ls=linestyle_of(algo),
                 drawstyle="steps-post" if hold else "default")  # fmt: skip
         ax.fill_between(grid, (mean - std) * scale, (mean + std) * scale, color=color, alpha=0.2,
                         lw=0, step="post" if hold else None)  # fmt: skip
@@ -322,7 +348,7 @@ def _validation_panel(ax, groups, column: str, x_column: str, title: str, ylabel
         scale = 1 / 60 if x_column == "time/elapsed_s" else 1.0
         color = color_of(algo, order)
         n = len(series)
-        ax.plot(grid * scale, mean * 100, color=color, lw=2, ls=LINESTYLES.get(algo, "-"),
+        ax.plot(grid * scale, mean * 100, color=color, lw=2, ls=linestyle_of(algo),
                 label=f"{display_name(algo)} ({n} seed{'s' if n != 1 else ''})")  # fmt: skip
         for x, y in series:  # each seed's evaluations, so the reader sees where the band comes from
             ax.plot(x * scale, y * 100, "o", color=color, ms=3, alpha=0.5)
