@@ -441,7 +441,14 @@ def aggregate(
 def is_reference(label: str) -> bool:
     """CSAC's own labels, what the others are compared with: ``csac``, and ``csac_3m`` style
     labels (the csac recipe at another budget)."""
-    return label == "csac" or re.fullmatch(r"csac_\d+(\.\d+)?[km]", label) is not None
+    return label == "csac" or budget_label_algo(label) == "csac"
+
+
+def budget_label_algo(label: str) -> str | None:
+    """``"csac_3m"`` -> ``"csac"``: the algorithm part of a label that names another budget
+    (``ALGO_<steps>[km]``, as in the paper plan's 3M rows), else None."""
+    m = re.fullmatch(r"(.+)_\d+(\.\d+)?[km]", label)
+    return m.group(1) if m else None
 
 
 def label_budget(records: Sequence[dict[str, Any]]) -> int | None:

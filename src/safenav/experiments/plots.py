@@ -12,7 +12,6 @@ cover each grid point, so a grid point beyond a short seed's last step averages 
 
 from __future__ import annotations
 
-import re
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -30,6 +29,7 @@ from matplotlib.ticker import FuncFormatter, PercentFormatter  # noqa: E402
 from safenav.errors import SafenavError  # noqa: E402
 from safenav.experiments.aggregate import (  # noqa: E402
     PAPER_RESULTS,
+    budget_label_algo,
     confidence_intervals,
     display_name,
     mean_std,
@@ -146,10 +146,10 @@ DARK_COLORS: dict[str, str] = {
 
 
 def budget_base(label: str) -> str | None:
-    """``"csac_3m"`` -> ``"csac"``: the algorithm of a label that only names another budget
-    (``ALGO_<steps>[km]``, ALGO one with a fixed colour), else None."""
-    m = re.fullmatch(r"(.+)_\d+(\.\d+)?[km]", label)
-    return m.group(1) if m and m.group(1) in COLORS else None
+    """``"csac_3m"`` -> ``"csac"``: the algorithm of a label that names another budget, where
+    that algorithm has a fixed colour, else None."""
+    algo = budget_label_algo(label)
+    return algo if algo in COLORS else None
 
 
 def color_of(algo: str, order: Sequence[str]) -> str:
