@@ -314,6 +314,9 @@ if "--hang" in args:  # runs until stopped; answers SIGTERM as the trainer does 
     signal.signal(signal.SIGTERM, stop)
     (run.parent / f"hang-{{seed}}.pid").write_text(str(os.getpid()))
     time.sleep(600)
+if "--interrupted" in args:  # the trainer's answer to Ctrl-C: a checkpoint, then exit 130
+    run.mkdir(parents=True, exist_ok=True)
+    (run / "checkpoint.pt").write_text(json.dumps({{"step": 100}})); sys.exit(130)
 if "--killed-once" in args and not (run.parent / f"killed-{{seed}}").exists():
     run.parent.mkdir(parents=True, exist_ok=True)
     (run.parent / f"killed-{{seed}}").write_text("")  # as the OOM killer would: SIGKILL
@@ -416,6 +419,17 @@ def test_failed_trial_raises_with_the_log_tail(tmp_path, fake_python):
     with pytest.raises(rep.TrialFailed, match="boom: something broke"):
         rep.run_trial(trial)
     assert rep.trial_state(trial) == "fresh"
+
+
+def test_a_trainer_stopped_by_sigint_is_reported_as_stopped_not_retried(tmp_path, fake_python):
+    """``kill -INT`` of one trainer (exit 130, checkpoint written): no retry, and the sweep's
+    report says it can be resumed instead of showing a bare exit code."""
+    trial = make_trial(tmp_path, fake_python, train_args=("--interrupted",))
+    with pytest.raises(rep.TrialFailed, match="stopped by SIGINT with a checkpoint") as err:
+        rep.run_trial(trial)
+    assert not isinstance(err.value, rep.TrialKilled)
+    assert rep.trial_state(trial) == "resume"
+    assert trial.log("status").read_text() == "stopped"
 
 
 def test_a_killed_trial_raises_trial_killed_which_ray_retries(tmp_path, fake_python):

@@ -96,7 +96,7 @@ def test_sweep_on_local_ray_then_rerun_skips(tmp_path, fake_python, monkeypatch)
 def test_failed_trial_is_reported_and_the_rest_aggregated(tmp_path, fake_python):  # noqa: F811
     cfg = sweep(tmp_path, fake_python, variants=("broken=sac --fail",))
     cfg.algos = ("csac",)
-    with pytest.raises(rep.TrialFailed, match=r"2 of 4 trials failed: \['broken-seed0'"):
+    with pytest.raises(rep.TrialFailed, match=r"2 of 4 trials stopped or failed: \['broken-seed0'"):
         rep.run_sweep(cfg)
     data = json.loads((cfg.out / "results.json").read_text())
     assert list(data["algos"]) == ["csac"] and data["failed"] == ["broken-seed0", "broken-seed1"]

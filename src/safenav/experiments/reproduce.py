@@ -203,6 +203,11 @@ class TrialFailed(RuntimeError):
     """A trial's subprocess exited with an error; the message ends with its log's last lines."""
 
 
+class TrialStopped(TrialFailed):
+    """A trial's trainer was stopped on purpose (Ctrl-C or ``kill -INT`` of the trainer, or the
+    sweep's own stop) and wrote its checkpoint: not retried; the same command resumes it."""
+
+
 class TrialKilled(TrialFailed):
     """A trial's subprocess was killed by a signal (the OOM killer, a node going away): Ray runs
     the task again (:data:`RETRIES`), which resumes the trial from its last checkpoint. A trial
@@ -267,6 +272,11 @@ def _run_logged(cmd: list[str], log: Path, threads: int, pid_file: Path | None =
             128 + signal.SIGKILL,
             128 + signal.SIGTERM,
         )
+        if rc == 128 + signal.SIGINT:  # Ctrl-C or ``kill -INT`` of the trainer itself
+            raise TrialStopped(
+                f"stopped by SIGINT with a checkpoint (exit code {rc}); rerun to resume\n"
+                + "\n".join(tail)
+            )
         raise (TrialKilled if killed else TrialFailed)(
             f"exit code {rc} from: {shlex.join(cmd[1:])}\n" + "\n".join(tail)
         )
@@ -315,9 +325,17 @@ def run_trial(trial: Trial) -> dict[str, Any]:
                                           pid_file=trial.log("trainer.pid"))  # fmt: skip
         except TrialKilled:
             if stop_marker(trial.log("trainer.pid")).exists():  # the sweep stopped it: no retry
-                raise TrialFailed(
+                status.write_text("stopped")
+                raise TrialStopped(
                     f"{trial.name} stopped with a checkpoint; rerun to resume"
                 ) from None
+            status.write_text("killed")  # Ray runs it again (a resume)
+            raise
+        except TrialStopped:
+            status.write_text("stopped")
+            raise
+        except TrialFailed:
+            status.write_text("failed")
             raise
         finally:
             # Keep the record of every attempt, including failed ones, for the wall-clock total.
@@ -684,10 +702,16 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
         figures = plot_all([out], out / "figures")
     _print_summary(console, results, [js, md, *figures])
     if failures:
+        by_name = {t.name: t for t in trials}
         for name, why in failures.items():
-            console.print(f"[red]failed[/] {name}: {why.splitlines()[0]}  (log: {out / 'logs'})")
-        raise TrialFailed(f"{len(failures)} of {len(trials)} trials failed: {sorted(failures)}; "
-                          f"rerun the same command to retry them")  # fmt: skip
+            stopped = by_name[name].log("status").exists() and (
+                by_name[name].log("status").read_text().strip() == "stopped"
+            )
+            word = "[yellow]stopped[/]" if stopped else "[red]failed[/]"
+            console.print(f"{word} {name}: {why.splitlines()[0]}  (log: {out / 'logs'})")
+        raise TrialFailed(f"{len(failures)} of {len(trials)} trials stopped or failed: "
+                          f"{sorted(failures)}; rerun the same command to resume or retry "
+                          "them")  # fmt: skip
     return results
 
 
@@ -819,7 +843,7 @@ def _run_on_ray(cfg: SweepConfig, todo: list[Trial], states: dict[str, str], con
                     except ray.exceptions.RayError as err:
                         cause = getattr(err, "cause", None) or err
                         failures[trial.name] = str(cause)
-                        status = "failed"
+                        status = "stopped" if isinstance(cause, TrialStopped) else "failed"
                     now[trial.name] = last_step(trial.run_dir)
                     bar.update(rows[trial.name], completed=now[trial.name], status=status)
                     bar.stop_task(rows[trial.name])
