@@ -212,3 +212,29 @@ def test_csac_measured_cost_scale_logs_its_threshold_and_resumes(tmp_path, monke
     main(["train", "--resume", str(run_dir), "--total-steps", "16384", *FAST])
     resumed = load_checkpoint(run_dir)["cost_scale"]
     assert resumed["cost_n"] > scale["cost_n"] and resumed["q_n"] > scale["q_n"]
+
+
+@pytest.mark.parametrize("window", [0, 3])
+def test_sac_lag_lambda_reads_the_episodes_since_its_last_step_or_a_window_of_the_last_ones(window):
+    """``lambda_window`` 0: J_c is the mean over the episodes that ended since lambda's last step
+    (then forgotten); N: over the last N episodes, kept across steps (OmniSafe's logger window)."""
+    from safenav.algos.csac import CSACLearner
+    from safenav.common.config import RunConfig
+    from safenav.envs.vector import TorchVecEnv, make_vec_env
+
+    env = TorchVecEnv(make_vec_env("Pendulum-v1", 1, "cpu"), "cpu")
+    cfg = sac_lag_config(CSACConfig(learning_starts=10_000, batch_size=8, lambda_every=1,
+                                    lambda_window=window, episode_lambda_lr=0.1,
+                                    net=NetConfig(hidden=(8, 8))))  # fmt: skip
+    learner = CSACLearner(env, RunConfig(env="Pendulum-v1", total_steps=20_000), cfg)
+    learner.warmup_until = 0  # lambda steps from the start; no gradient update (empty buffer)
+    seen = []
+    for step, costs in enumerate([[40.0], [], [10.0, 30.0], [], [0.0]], start=1):
+        learner.observe({"cost": costs})
+        learner.update(step, 25.0)
+        seen.append(learner.pending.pop("constraint/episode_cost", None))
+    if window:  # every step once an episode has ended, over the last (up to) 3 episodes
+        assert seen == [40.0, 40.0, pytest.approx(80 / 3), pytest.approx(80 / 3), 40 / 3]
+    else:  # only at steps where episodes ended, each over those episodes alone
+        assert seen == [40.0, None, 20.0, None, 0.0]
+    env.close()

@@ -56,6 +56,10 @@ class CSACConfig:
     ``lambda_every`` env steps against the episode budget d (OmniSafe SAC-Lag)."""
     lambda_every: int = 2000
     """``episode_cost``: env steps between lambda updates (OmniSafe's ``update_cycle``)."""
+    lambda_window: int = 0
+    """``episode_cost``: J_c is the mean cost of the last ``lambda_window`` episodes, kept across
+    updates (OmniSafe's logger window, ``window_lens`` 10, read at every update); 0 = the episodes
+    that ended since the last update, then forgotten."""
     episode_lambda_lr: float = 1e-3
     """``episode_cost``: Adam learning rate of lambda, one step per update (OmniSafe SAC-Lag)."""
     scale_actor_loss: bool = False
@@ -108,8 +112,10 @@ class CSACConfig:
             raise ValueError(f"cost-n-step={self.cost_n_step} must be >= 1")
         if self.cost_gamma is not None and not 0 < self.cost_gamma <= 1:
             raise ValueError(f"cost-gamma={self.cost_gamma} must lie in (0, 1] (or None: gamma)")
-        if self.num_cost_critics < 0 or self.lambda_every < 1 or self.episode_lambda_lr <= 0:
-            raise ValueError("num-cost-critics >= 0, lambda-every >= 1, episode-lambda-lr > 0")
+        if (self.num_cost_critics < 0 or self.lambda_every < 1 or self.episode_lambda_lr <= 0
+                or self.lambda_window < 0):  # fmt: skip
+            raise ValueError("num-cost-critics >= 0, lambda-every >= 1, episode-lambda-lr > 0 and "
+                             "lambda-window >= 0 are required")  # fmt: skip
         if self.init_alpha <= 0 or self.init_lambda < 0:
             raise ValueError("init-alpha must be > 0 and init-lambda >= 0")
         if self.lambda_max is not None and self.lambda_max < 0:

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import copy
 import math
+from collections import deque
 from typing import Any
 
 import torch
@@ -278,7 +279,8 @@ class CSACLearner:
         self.measured_scale = (MeasuredCostScale(fallback=episode_cost_to_q_scale(1.0, cfg.cost_discount, self.horizon))
                                if cfg.constrained and cfg.cost_scale == "measured" else None)  # fmt: skip
         self.episode_lambda = cfg.constrained and cfg.lambda_from == "episode_cost"
-        self.lam_costs: list[float] = []  # episode costs since the last lambda update (SAC-Lag)
+        # SAC-Lag: the episode costs since the last lambda update, or the last lambda_window
+        self.lam_costs: deque[float] = deque(maxlen=cfg.lambda_window or None)
         self.next_lambda = cfg.lambda_every
         self.warmup_until, self.update_debt, self.resumed = cfg.learning_starts, 0.0, False
         self.pending: dict[str, float] = {}  # SAC-Lag's lambda step, for the next progress row
@@ -342,7 +344,8 @@ class CSACLearner:
                 j_c = sum(self.lam_costs) / len(self.lam_costs)
                 loss = self.agent.lagrange.update(torch.tensor([j_c], device=self.device), d)
                 self.pending.update({"losses/lambda": float(loss), "constraint/episode_cost": j_c})
-                self.lam_costs = []
+                if not cfg.lambda_window:
+                    self.lam_costs.clear()
         # lines 11-15 (len: an n-step window delays the first rows of the buffer)
         metrics = []
         if global_step >= self.warmup_until and len(self.buffer):

@@ -7,7 +7,8 @@ is shared, so ``csac`` vs ``sac_lag`` isolates the Lagrangian design):
 
 - **one** cost critic ``Q_C`` (``num_cost_critics=1``): no min/mean choice to make;
 - lambda driven by the **mean episode cost** ``J_c`` of the episodes that ended in the last
-  ``lambda_every`` env steps, against the episode budget ``d`` (``lambda_from="episode_cost"``):
+  ``lambda_every`` env steps (or, with ``lambda_window`` N, of the last N episodes, as OmniSafe's
+  logger window does), against the episode budget ``d`` (``lambda_from="episode_cost"``):
   ``lambda <- max(0, lambda + Adam step on (J_c - d))`` at ``episode_lambda_lr``, instead of Eq. 11
   on ``E[Q_C]`` at every gradient update;
 - the actor loss divided by ``1 + lambda`` (``scale_actor_loss``):

@@ -288,6 +288,13 @@ def stop_marker(pid_file: Path) -> Path:
     return pid_file.with_suffix(".stop")
 
 
+def was_stopped(trial: Trial) -> bool:
+    """Whether the trial's last attempt ended stopped on purpose, with a checkpoint (its status
+    file, written by :func:`run_trial`, is the one record of it, in a Ray worker or not)."""
+    status = trial.log("status")
+    return status.exists() and status.read_text().strip() == "stopped"
+
+
 def _write_json(path: Path, data: dict[str, Any]) -> None:
     write_json(path, data, default=str)  # atomic and fsynced
 
@@ -704,10 +711,7 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
     if failures:
         by_name = {t.name: t for t in trials}
         for name, why in failures.items():
-            stopped = by_name[name].log("status").exists() and (
-                by_name[name].log("status").read_text().strip() == "stopped"
-            )
-            word = "[yellow]stopped[/]" if stopped else "[red]failed[/]"
+            word = "[yellow]stopped[/]" if was_stopped(by_name[name]) else "[red]failed[/]"
             console.print(f"{word} {name}: {why.splitlines()[0]}  (log: {out / 'logs'})")
         raise TrialFailed(f"{len(failures)} of {len(trials)} trials stopped or failed: "
                           f"{sorted(failures)}; rerun the same command to resume or retry "
@@ -843,7 +847,7 @@ def _run_on_ray(cfg: SweepConfig, todo: list[Trial], states: dict[str, str], con
                     except ray.exceptions.RayError as err:
                         cause = getattr(err, "cause", None) or err
                         failures[trial.name] = str(cause)
-                        status = "stopped" if isinstance(cause, TrialStopped) else "failed"
+                        status = "stopped" if was_stopped(trial) else "failed"
                     now[trial.name] = last_step(trial.run_dir)
                     bar.update(rows[trial.name], completed=now[trial.name], status=status)
                     bar.stop_task(rows[trial.name])
