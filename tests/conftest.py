@@ -63,6 +63,24 @@ class CounterEnv(gym.Env):
         )
 
 
+@pytest.fixture
+def world_seeds(monkeypatch) -> list[int]:
+    """Every world seed drawn while the fixture is active (generate_world is the one door)."""
+    import safenav.envs.nav as nav
+    import safenav.envs.world as world
+
+    seen: list[int] = []
+    original = world.generate_world
+
+    def recording(cfg, seed):
+        seen.append(int(seed))
+        return original(cfg, seed)
+
+    monkeypatch.setattr(world, "generate_world", recording)
+    monkeypatch.setattr(nav, "generate_world", recording)
+    return seen
+
+
 def run_cli(capsys, argv: list[str]) -> tuple[int, str, str]:
     """``safenav ARGV`` in-process: ``(exit code, stdout, stderr)`` (``from conftest import run_cli``)."""
     from safenav.cli import main

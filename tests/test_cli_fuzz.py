@@ -60,6 +60,7 @@ STUBS = [
     ("safenav.bench.latency", "bench_latency"),
     ("safenav.bench.soak", "bench_soak"),
     ("safenav.bench.gym", "bench_suite"),
+    ("safenav.experiments.tune", "tune"),
 ]
 
 
@@ -163,6 +164,7 @@ def base(verb: str, flag: str, ws: Path) -> list[str]:
             "udpin://127.0.0.1:0",
         ],  # fmt: skip
         "bench": ["bench", "env", "--preset", "easy"],
+        "tune": ["tune", "--space", "sac", "--out", str(s / "tune"), "--preset", "easy"],
     }[verb]
 
 
@@ -224,6 +226,7 @@ VERDICTS: dict[str, dict[str, int]] = {
     "train --csac.init-lambda": NONNEG, "train --csac.lambda-max": NONNEG,
     "train --csac.num-critics": MEMORY, "train --csac.num-cost-critics": {"0": ACCEPTED, "huge": 1},
     "train --csac.lambda-every": POSITIVE, "train --csac.episode-lambda-lr": POSITIVE,
+    "train --csac.lambda-window": NONNEG,
     "train --csac.cost-n-step": MEMORY, "train --csac.cost-horizon": NONNEG,
     "train --csac.cost-gamma": {},  # in (0, 1]
     **{f"train --{a}.net.{n}": MEMORY for a in ("csac", "ppo")
@@ -270,6 +273,9 @@ VERDICTS: dict[str, dict[str, int]] = {
     "bench --repeats": {}, "bench --num-envs": MEMORY, "bench --env-steps": POSITIVE,
     "bench --updates": POSITIVE, "bench --seeds": {}, "bench --steps": NONNEG, "bench --jobs": {},
     "bench --cost-limit": NONNEG,
+    "tune --trials": {}, "tune --total-steps": POSITIVE, "tune --seed": {"0": ACCEPTED},
+    "tune --episodes": {}, "tune --jobs": {}, "tune --torch-threads": {},
+    "tune --space-seed": {"0": ACCEPTED},
 }  # fmt: skip
 
 
@@ -314,6 +320,7 @@ def path_cases(ws: Path) -> dict[str, list[tuple[str, int]]]:
         "fly --record": [*out_file("flight.mcap"), (str(ws / "scratch" / "f.gif"), 2)],
         "bench --json": out_file("env.json"),
         "bench --out": out_dir("results"),
+        "tune --out": out_dir("tune"),
     }
 
 
@@ -345,6 +352,9 @@ STR_CASES: dict[str, list[tuple[str, int]]] = {
     "bench --algos": [("foo", 2)],
     "bench --sb3": [("NoSuchEnv-v0", 2)],
     "bench --train-args": [("--nope 1", 2)],
+    "tune --space": [("nope", 2), ("missing.toml", 2)],
+    "tune --preset": [("hard", 2)],
+    "tune --train-args": [("--nope 1", 2), ("--csac.gamma 2", 2), ("--num-envs -1", 2), ("'", 2)],
     "train --cost-fn": [("nomodule:cost", 2), ("math", 2), ("math:nosuch", 2), ("math:sqrt", 2)],
     "train --env-kwargs": [("nonesuch", 2)],  # a name without its value
 }

@@ -8,8 +8,6 @@ from pathlib import Path
 
 import pytest
 
-import safenav.envs.nav as nav
-import safenav.envs.world as world
 from safenav.cli import main
 from safenav.common.checkpoint import load_checkpoint
 from safenav.experiments import selection
@@ -22,21 +20,6 @@ from safenav.experiments.selection import (
     select_final_policy,
 )
 from safenav.experiments.soup import greedy_soup
-
-
-@pytest.fixture
-def world_seeds(monkeypatch) -> list[int]:
-    """Every world seed drawn while the fixture is active (generate_world is the one door)."""
-    seen: list[int] = []
-    original = world.generate_world
-
-    def recording(cfg, seed):
-        seen.append(int(seed))
-        return original(cfg, seed)
-
-    monkeypatch.setattr(world, "generate_world", recording)
-    monkeypatch.setattr(nav, "generate_world", recording)
-    return seen
 
 
 def test_the_seed_sets_are_disjoint():

@@ -36,6 +36,7 @@ VERBS = {
     "eval": "fly a policy on the fixed test scenario: success / collision / timeout",
     "render": "fly one test episode and write a GIF",
     "reproduce": "every algorithm x seed trained and evaluated on Ray; results table",
+    "tune": "a recipe's hyperparameters searched on validation maps only",
     "plot": "learning curves and test results of runs as PNG",
     "average": "weight average of a run's kept policies into one policy",
     "export": "a checkpoint's policy as ONNX (or as a small policy-only file)",

@@ -19,8 +19,6 @@ import csv
 import math
 import os
 import platform
-import signal
-import subprocess
 import sys
 import time
 from dataclasses import dataclass
@@ -196,107 +194,30 @@ def say(text: str) -> None:
 
 def run_trials(trials: list[Trial], out: Path, cost_limit: float, jobs: int = 1,
                progress: bool = True, extra: tuple[str, ...] = ()) -> list[str]:  # fmt: skip
-    """Run the trials that have no trial file yet, ``jobs`` at a time; returns the failures."""
+    """Run the trials that have no trial file yet, ``jobs`` at a time (each a child process,
+    :func:`safenav.common.child_runs.run_queue`); returns the failures."""
     from rich.console import Console
 
-    from safenav.common.stopping import enable_sigint
+    from safenav.common.child_runs import ChildRun, run_queue
+    from safenav.common.jsonout import write_json
 
     for sub in ("trials", "runs", "logs"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     todo = [t for t in trials if not (out / "trials" / f"{t.name}.json").is_file()]
-    console = Console(stderr=True)
     say(f"{len(trials)} trials, {len(trials) - len(todo)} already done (skipped), {len(todo)} to "
         f"run; results in {out}")  # fmt: skip
-    failures: list[str] = []
-    total = sum(t.steps for t in todo)
-    enable_sigint()  # SIGTERM raises here too, so that the trials below are stopped with it
-    running: dict[Trial, tuple[subprocess.Popen, Any, float, int]] = {}
-    try:
-        _run_queue(todo, running, out, cost_limit, jobs, progress, extra, failures, total, console)
-    except KeyboardInterrupt:
-        stop_trials([proc for proc, *_ in running.values()])
-        raise
-    return failures
 
-
-def stop_trials(procs: list[subprocess.Popen], timeout_s: float = 300.0) -> None:
-    """The bench was interrupted (Ctrl-C, ``kill``): let each running trial checkpoint and stop
-    before the bench exits, so that none trains on as an orphan (a rerun would then find its run
-    directory in use). The trials run in their own sessions, so a Ctrl-C at the terminal reaches
-    the bench alone, and the bench sends each one SIGTERM, once. A trial still running after
-    ``timeout_s`` is killed (its last periodic checkpoint stays); an SB3 trial has none and
-    starts again."""
-    live = [p for p in procs if p.poll() is None]
-    if not live:
-        return
-    say(f"stopping {len(live)} running trial(s); safenav trials write a checkpoint, and the same "
-        "command resumes them")  # fmt: skip
-    for proc in live:
-        proc.send_signal(signal.SIGTERM)
-    deadline = time.monotonic() + timeout_s
-    for proc in live:
-        try:
-            proc.wait(timeout=max(0.1, deadline - time.monotonic()))
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-
-
-def _run_queue(todo: list[Trial], running: dict, out: Path, cost_limit: float, jobs: int,
-               progress: bool, extra: tuple[str, ...], failures: list[str], total: int,
-               console) -> None:  # fmt: skip
-    """Run ``todo``, ``jobs`` trials at a time, each a subprocess; ``running`` holds the live ones
-    (what :func:`stop_trials` stops), ``failures`` gets a line per failed trial."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    from safenav.common.jsonout import write_json
-    from safenav.common.stopping import die_with_parent
-
-    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-               TimeElapsedColumn())  # fmt: skip
-    with Progress(*columns, console=console, disable=not progress) as bar:
-        overall = bar.add_task("all trials (env steps)", total=total)
-        queue = list(todo)
-        finished_steps = 0
-        while queue or running:
-            while queue and len(running) < jobs:
-                trial = queue.pop(0)
-                log = (out / "logs" / f"{trial.name}.log").open("a")
-                # Its own session: Ctrl-C reaches the bench only, which stops each trial once
-                # (stop_trials); and SIGTERM when the bench dies, however it dies.
-                preexec = die_with_parent if sys.platform.startswith("linux") else None
-                task = bar.add_task(trial.name, total=trial.steps)
-                proc = subprocess.Popen(train_command(trial, out, cost_limit, extra), stdout=log,
-                                        stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                        start_new_session=True, preexec_fn=preexec)  # fmt: skip
-                # at once, with nothing between: stop_trials must see every trial started
-                running[trial] = (proc, log, time.perf_counter(), task)
-            time.sleep(0.5 if progress else 0.2)
-            live = 0
-            for trial, (proc, log, t0, task) in list(running.items()):
-                done = min(steps_done(trial, out), trial.steps)
-                bar.update(task, completed=done)
-                live += done
-                if proc.poll() is None:
-                    continue
-                log.close()
-                bar.remove_task(task)
-                del running[trial]
-                finished_steps += trial.steps
-                if proc.returncode != 0:
-                    failures.append(f"{trial.name}: exit {proc.returncode} "
-                                    f"(log: {out / 'logs' / (trial.name + '.log')})")  # fmt: skip
-                    say(failures[-1])
-                    continue
-                try:
-                    result = collect(trial, out, time.perf_counter() - t0)
-                except (OSError, KeyError, ValueError, SafenavError) as err:
-                    failures.append(f"{trial.name}: {err}")
-                    continue
-                write_json(out / "trials" / f"{trial.name}.json", result)
-                say(f"{trial.name} done: return {result['final']['return']:.1f}, "
+    def child(trial: Trial) -> ChildRun:
+        def finish(wall_s: float) -> str:
+            result = collect(trial, out, wall_s)
+            write_json(out / "trials" / f"{trial.name}.json", result)
+            return (f"{trial.name} done: return {result['final']['return']:.1f}, "
                     f"{result['wall_clock_s']:.0f} s")  # fmt: skip
-            bar.update(overall, completed=finished_steps + live)
+
+        return ChildRun(trial.name, trial.steps, lambda: train_command(trial, out, cost_limit, extra),
+                        lambda: steps_done(trial, out), finish, out / "logs" / f"{trial.name}.log")  # fmt: skip
+
+    return run_queue([child(t) for t in todo], jobs, say, progress, Console(stderr=True))
 
 
 # ------------------------------------------------------------------------------ the report

@@ -12,4 +12,5 @@ from safenav.commands import (  # noqa: F401
     reproduce,
     sim_vehicle,
     train,
+    tune,
 )
