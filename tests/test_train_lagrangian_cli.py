@@ -238,3 +238,25 @@ def test_sac_lag_lambda_reads_the_episodes_since_its_last_step_or_a_window_of_th
     else:  # only at steps where episodes ended, each over those episodes alone
         assert seen == [40.0, None, 20.0, None, 0.0]
     env.close()
+
+
+def test_sac_lag_lambda_window_survives_a_resume():
+    """The J_c window is learner state: a resumed run reads the same last episodes."""
+    from safenav.algos.csac import CSACLearner
+    from safenav.common.config import RunConfig
+    from safenav.envs.vector import TorchVecEnv, make_vec_env
+
+    env = TorchVecEnv(make_vec_env("Pendulum-v1", 1, "cpu"), "cpu")
+    cfg = sac_lag_config(CSACConfig(batch_size=8, lambda_every=1, lambda_window=3,
+                                    net=NetConfig(hidden=(8, 8))))  # fmt: skip
+    run = RunConfig(env="Pendulum-v1", total_steps=20_000)
+    learner = CSACLearner(env, run, cfg)
+    learner.observe({"cost": [1.0, 2.0, 3.0, 4.0]})
+    state = learner.state_dict() | {"global_step": 100}
+    assert state["lambda_costs"] == [2.0, 3.0, 4.0]
+    resumed = CSACLearner(env, run, cfg)
+    resumed.load_state_dict(json.loads(json.dumps(state)))  # what a checkpoint keeps: plain values
+    assert list(resumed.lam_costs) == [2.0, 3.0, 4.0] and resumed.lam_costs.maxlen == 3
+    resumed.observe({"cost": [5.0]})
+    assert list(resumed.lam_costs) == [3.0, 4.0, 5.0]
+    env.close()

@@ -7,6 +7,7 @@ import json
 
 import pytest
 
+from conftest import run_cli
 from safenav.algos.config import CSACConfig
 from safenav.cli import main
 from safenav.errors import SafenavError
@@ -70,7 +71,7 @@ def test_bad_spaces_are_refused_with_the_reason(tmp_path):
 def test_option_args_and_the_best_recipe_round_trip(tmp_path):
     params = {"csac.actor_lr": 0.0007, "csac.net.hidden": (64, 64), "run.shield": True}
     assert option_args(params) == ["--csac.actor-lr", "0.0007", "--csac.net.hidden", "64", "64",
-                                   "--run.shield"]  # fmt: skip
+                                   "--shield"]  # fmt: skip
     assert option_args({"csac.constrained": False}) == ["--csac.no-constrained"]
     space = load_space("sac")
     best = {"index": 3, "params": {"csac.actor_lr": 0.0007, "csac.gamma": 0.98}, "seed": 101,
@@ -125,8 +126,48 @@ def test_a_tiny_tuning_writes_trials_report_and_recipe_and_a_rerun_skips(tmp_pat
     assert config["recipe"]["name"] == "sac" and config["run"]["seed"] == 101
     assert (out / "results.md").read_text().count("\n| ") == 3  # header + 2 trials
     assert load_recipe(str(out / "best.toml")).algo == "sac"
+    best = (out / "best.toml").read_text()  # it trains as the trials did: preset, --train-args
+    assert 'preset = "easy"' in best and "num_envs = 4" in best and "hidden = [32, 32]" in best
     capsys.readouterr()
     main(args)  # nothing left to run
     assert "2 already done (skipped), 0 to run" in capsys.readouterr().err
+    # a trial stopped after training, before its file: the rerun resumes its run (with its
+    # --algo: sac, not train's default csac) and scores it
+    (out / "trials" / "t001.json").unlink()
+    main(args)
+    assert "1 already done (skipped), 1 to run" in capsys.readouterr().err
+    again = json.loads((out / "trials" / "t001.json").read_text())
+    assert again["params"] == trials[1]["params"]
+    assert '"resume"' in (out / "runs" / "t001" / "events.jsonl").read_text()
     with pytest.raises(SafenavError, match="another space"):
         tune(load_space("sac"), out, trials=2, total_steps=600, seed=7, progress=False)
+    with pytest.raises(SafenavError, match="another space"):  # another Sobol scramble
+        tune(load_space("sac", seed=3), out, trials=2, total_steps=600, progress=False)
+
+
+@pytest.mark.parametrize(
+    ("train_args", "message"),
+    [("--select", "--select is tune's to set"), ("--seed 3", "--seed is tune's"),
+     ("--csac.actor-lr 0.1", "--csac.actor_lr is tune's"), ("--nope", "unrecognized")],
+)  # fmt: skip
+def test_train_args_may_not_fly_the_test_maps_or_override_the_search(
+    tmp_path, capsys, train_args, message
+):
+    code, _, err = run_cli(capsys, ["tune", "--space", "sac", "--out", str(tmp_path / "t"),
+                                    f"--train-args={train_args}"])  # fmt: skip
+    assert code == 2 and message in err, err
+    assert not (tmp_path / "t").exists()
+
+
+def test_a_space_of_the_other_family_or_without_options_is_refused(tmp_path, capsys):
+    (tmp_path / "mixed.toml").write_text('algo = "sac"\nrecipe = "sac"\n[params]\n'
+                                         '"ppo.lr" = { low = 1e-4, high = 1e-3 }\n')  # fmt: skip
+    with pytest.raises(SafenavError, match="do nothing for --algo sac"):
+        load_space(str(tmp_path / "mixed.toml"))
+    (tmp_path / "none.toml").write_text('algo = "sac"\nrecipe = "sac"\n')
+    code, _, err = run_cli(
+        capsys, ["tune", "--space", str(tmp_path / "none.toml"), "--trials", "2"]
+    )
+    assert code == 2 and "searches no option" in err
+    # run.* options reach train without a prefix
+    assert option_args({"run.num_envs": 8}) == ["--num-envs", "8"]

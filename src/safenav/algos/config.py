@@ -53,7 +53,8 @@ class CSACConfig:
     lambda_from: Literal["q_cost", "episode_cost"] = "q_cost"
     """What drives lambda: ``q_cost`` = E[Q_C] against d on the Q_C scale at every update
     (Eq. 11, CSAC); ``episode_cost`` = the mean cost of the episodes that ended in the last
-    ``lambda_every`` env steps against the episode budget d (OmniSafe SAC-Lag)."""
+    ``lambda_every`` env steps (or of the last ``lambda_window`` episodes) against the episode
+    budget d, every ``lambda_every`` env steps (OmniSafe SAC-Lag)."""
     lambda_every: int = 2000
     """``episode_cost``: env steps between lambda updates (OmniSafe's ``update_cycle``)."""
     lambda_window: int = 0

@@ -373,6 +373,8 @@ class CSACLearner:
         state: dict[str, Any] = {"update_debt": self.update_debt}
         if self.measured_scale is not None:
             state["cost_scale"] = self.measured_scale.state_dict()
+        if self.episode_lambda:  # SAC-Lag's J_c window: a resumed run reads the same episodes
+            state["lambda_costs"] = [float(c) for c in self.lam_costs]
         if self.save_buffer:
             state["buffer"] = self.buffer.state_dict()
             if self.nstep is not None:
@@ -389,6 +391,8 @@ class CSACLearner:
         if self.measured_scale is not None and state.get("cost_scale"):
             self.measured_scale.load_state_dict(state["cost_scale"])
         self.update_debt = state.get("update_debt", 0.0)
+        if self.episode_lambda:
+            self.lam_costs = deque(state.get("lambda_costs", ()), maxlen=cfg.lambda_window or None)
         if "buffer" in state:
             self.buffer.load_state_dict(state["buffer"])
             if self.nstep is not None and state.get("nstep_window"):

@@ -31,7 +31,7 @@ class ChildRun:
     """How far it has come (read from its progress file; polled while it runs)."""
     finish: Callable[[float], str]
     """Called with its wall clock (s) after exit code 0: writes its result, returns one line to
-    print; raises ``OSError``, ``KeyError``, ``ValueError`` or ``SafenavError`` on a bad result."""
+    print; an exception it raises fails this run alone (the others go on)."""
     log: Path
 
 
@@ -79,7 +79,6 @@ def _run(runs: list[ChildRun], jobs: int, running: dict, say: Callable[[str], No
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from safenav.common.stopping import die_with_parent
-    from safenav.errors import SafenavError
 
     failures: list[str] = []
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
@@ -120,8 +119,8 @@ def _run(runs: list[ChildRun], jobs: int, running: dict, say: Callable[[str], No
                     continue
                 try:
                     say(run.finish(time.perf_counter() - t0))
-                except (OSError, KeyError, ValueError, SafenavError) as err:
-                    failures.append(f"{name}: {err}")
+                except Exception as err:  # noqa: BLE001  (any bad result fails this run alone)
+                    failures.append(f"{name}: {type(err).__name__}: {err}")
                     say(failures[-1])
             bar.update(overall, completed=finished_steps + live)
     return failures

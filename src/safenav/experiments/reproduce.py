@@ -364,7 +364,11 @@ def run_trial(trial: Trial) -> dict[str, Any]:
         _write_json(marker_path, marker)
     if state != "done":
         status.write_text("evaluating")
-        info["eval_s"] = _run_logged(trial.eval_command(), trial.log("eval.log"), trial.cpus)
+        try:
+            info["eval_s"] = _run_logged(trial.eval_command(), trial.log("eval.log"), trial.cpus)
+        except TrialStopped:
+            status.write_text("stopped")
+            raise
     write_trial_record(trial)
     status.write_text("done")
     return info

@@ -26,6 +26,7 @@ by construction: N configurations per algorithm, the same budget, training seed 
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 import sys
@@ -36,9 +37,8 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-import tomllib
-
 from safenav.errors import SafenavError
+from safenav.recipes import PPO_ALGOS, tomllib
 
 SPACES = "safenav.experiments.spaces"
 MAX_PARAMS = 16
@@ -69,8 +69,9 @@ class Param:
 
     @property
     def flag(self) -> str:
-        """The ``safenav train`` option: ``csac.actor_lr`` -> ``--csac.actor-lr``."""
-        return "--" + self.name.replace("_", "-")
+        """The ``safenav train`` option: ``csac.actor_lr`` -> ``--csac.actor-lr``, ``run.num_envs``
+        -> ``--num-envs`` (the run options have no prefix)."""
+        return "--" + self.name.removeprefix("run.").replace("_", "-")
 
 
 @dataclass(frozen=True)
@@ -83,7 +84,12 @@ class Space:
 
     def configurations(self, n: int) -> list[dict[str, Any]]:
         """The first ``n`` configurations: ``{}`` (the recipe as it is), then Sobol points."""
-        from scipy.stats import qmc
+        try:
+            from scipy.stats import qmc
+        except ImportError:
+            raise SafenavError(
+                "safenav tune needs scipy: pip install 'safenav[experiments]'"
+            ) from None
 
         if n <= 1 or not self.params:
             return [{}][:n]
@@ -98,7 +104,7 @@ class Space:
                        for row in points]  # fmt: skip
 
     def record(self) -> dict[str, Any]:
-        return {"algo": self.algo, "recipe": self.recipe, "seed": self.seed, "source": self.source,
+        return {"algo": self.algo, "recipe": self.recipe, "space_seed": self.seed, "source": self.source,
                 "params": [p.__dict__ | {"choices": list(p.choices)} for p in self.params]}  # fmt: skip
 
 
@@ -116,7 +122,7 @@ def load_space(name_or_path: str, seed: int = 0) -> Space:
     if name_or_path.endswith(".toml") or path.exists():
         if not path.is_file():
             raise SafenavError(f"--space {name_or_path}: no such file")
-        text, source = path.read_text(), str(path)
+        text, source = path.read_text(), str(path.resolve())
     else:
         shipped = resources.files(SPACES) / f"{name_or_path}.toml"
         if not shipped.is_file():
@@ -132,6 +138,11 @@ def load_space(name_or_path: str, seed: int = 0) -> Space:
     if not isinstance(data.get("algo"), str) or not isinstance(data.get("recipe"), str):
         raise SafenavError(f'--space {name_or_path}: needs algo = "..." and recipe = "..."')
     params = [_param(name, spec, name_or_path) for name, spec in (data.get("params") or {}).items()]
+    family = "ppo" if data["algo"] in PPO_ALGOS else "csac"
+    alien = [p.name for p in params if p.name.split(".")[0] not in ("run", family)]
+    if alien:
+        raise SafenavError(f"--space {name_or_path}: {alien} do nothing for --algo {data['algo']} "
+                           f"(its options are run.* and {family}.*)")  # fmt: skip
     if len(params) > MAX_PARAMS:
         raise SafenavError(f"--space {name_or_path}: {len(params)} options; at most {MAX_PARAMS}")
     return Space(data["algo"], data["recipe"], tuple(params), source, seed)
@@ -168,7 +179,7 @@ def option_args(params: dict[str, Any]) -> list[str]:
     """``safenav train`` options for a configuration (a list value gives several words)."""
     args: list[str] = []
     for name, value in params.items():
-        flag = "--" + name.replace("_", "-")
+        flag = "--" + name.removeprefix("run.").replace("_", "-")
         if isinstance(value, bool):
             dotted, _, last = flag[2:].rpartition(".")
             args.append(f"--{dotted + '.' if dotted else ''}{'' if value else 'no-'}{last}")
@@ -209,7 +220,8 @@ def _rank_key(trial: dict[str, Any]) -> tuple[float, float, int]:
     return (-v["success_rate"], v["collision_rate"], trial["index"])
 
 
-def write_report(out: Path, space: Space, trials: list[dict[str, Any]]) -> Path | None:
+def write_report(out: Path, space: Space, trials: list[dict[str, Any]],
+                 fixed: dict[str, Any] | None = None) -> Path | None:  # fmt: skip
     """``OUT/results.md`` (every finished trial, best first) and ``OUT/best.toml``."""
     ranked = sorted(trials, key=_rank_key)
     names = [p.name for p in space.params]
@@ -234,7 +246,7 @@ def write_report(out: Path, space: Space, trials: list[dict[str, Any]]) -> Path 
         return None
     best = ranked[0]
     path = out / "best.toml"
-    path.write_text(best_recipe(space, best))
+    path.write_text(best_recipe(space, best, fixed))
     return path
 
 
@@ -242,18 +254,20 @@ def _cell(value: Any) -> str:
     return ", ".join(map(str, value)) if isinstance(value, list | tuple) else str(value)
 
 
-def best_recipe(space: Space, best: dict[str, Any]) -> str:
-    """A recipe file: the space's recipe with the best trial's values (dotted names as TOML)."""
+def best_recipe(space: Space, best: dict[str, Any], fixed: dict[str, Any] | None = None) -> str:
+    """A recipe file: the space's recipe with what every trial changed (``fixed``: the preset and
+    ``--train-args``) and the best trial's values, dotted names as TOML sections."""
     v = best["validation"]
-    what = "its values unchanged (trial 0 was best)" if not best["params"] else "these values"
+    what = ("its own values of the searched options (trial 0 was best)" if not best["params"]
+            else "the best trial's values")  # fmt: skip
     lines = [f"# {space.algo}, tuned: recipe {space.recipe} with {what}, chosen by safenav tune",
              f"# ({space.source}) on validation maps only: trial {best['index']} of "
              f"{best['trials_planned']}, validation success {v['success_rate']:.3f} / collision "
              f"{v['collision_rate']:.3f} ({v['episodes']} episodes), {best['total_steps']} env steps,",
              f"# training seed {best['seed']}, {best['date']}.", "",
-             "[recipe]", f'algo = "{space.algo}"', f'base = "{space.recipe}"']  # fmt: skip
+             "[recipe]", f"algo = {_toml(space.algo)}", f"base = {_toml(space.recipe)}"]  # fmt: skip
     sections: dict[str, list[str]] = {}
-    for name, value in best["params"].items():
+    for name, value in ({**(fixed or {}), **best["params"]}).items():
         section, _, key = name.rpartition(".")
         sections.setdefault(section, []).append(f"{key} = {_toml(value)}")
     for section, items in sections.items():
@@ -273,9 +287,12 @@ def _toml(value: Any) -> str:
 
 def tune(space: Space, out: Path, trials: int = 8, total_steps: int = 1_000_000, seed: int = 101,
          episodes: int = 400, jobs: int = 1, torch_threads: int = 2, preset: str = "paper",
-         extra: tuple[str, ...] = (), progress: bool = True) -> list[dict[str, Any]]:  # fmt: skip
+         extra: tuple[str, ...] = (), fixed: dict[str, Any] | None = None,
+         progress: bool = True) -> list[dict[str, Any]]:  # fmt: skip
     """Run (or resume) ``trials`` configurations of ``space`` into ``out``; returns the finished
-    trial records. See the module docstring."""
+    trial records. ``extra``: more ``safenav train`` options for every trial; ``fixed``: what
+    they and ``preset`` change in the recipe's values (dotted names), written into ``best.toml``
+    so that it trains as the trials did. See the module docstring."""
     from rich.console import Console
 
     from safenav.common.child_runs import ChildRun, run_queue
@@ -285,8 +302,10 @@ def tune(space: Space, out: Path, trials: int = 8, total_steps: int = 1_000_000,
 
     for sub in ("trials", "runs", "logs"):
         (out / sub).mkdir(parents=True, exist_ok=True)
-    record = space.record() | {"total_steps": total_steps, "seed": seed, "episodes": episodes,
-                               "preset": preset, "train_args": list(extra)}  # fmt: skip
+    configs = space.configurations(trials)  # first: a missing scipy is refused before any write
+    record = space.record() | {"total_steps": total_steps, "train_seed": seed, "episodes": episodes,
+                               "preset": preset, "train_args": list(extra),
+                               "fixed": fixed or {}}  # fmt: skip
     record_path = out / "space.json"
     if record_path.exists():
         before = json.loads(record_path.read_text())
@@ -295,8 +314,13 @@ def tune(space: Space, out: Path, trials: int = 8, total_steps: int = 1_000_000,
                                f"({record_path}); give a new --out")  # fmt: skip
     else:
         write_json(record_path, record)
-    configs = space.configurations(trials)
-    say = _say
+    for i, params in enumerate(configs):  # a finished trial must be the configuration asked for
+        path = out / "trials" / f"t{i:03d}.json"
+        if path.exists() and json.loads(path.read_text())["params"] != json.loads(
+            json.dumps(params)
+        ):
+            raise SafenavError(f"{path} tried other values than configuration {i} of this space "
+                               "(another scipy's Sobol sequence?); give a new --out")  # fmt: skip
 
     def child(index: int, params: dict[str, Any]) -> ChildRun:
         name = f"t{index:03d}"
@@ -308,17 +332,21 @@ def tune(space: Space, out: Path, trials: int = 8, total_steps: int = 1_000_000,
                 *option_args(params), *extra]  # fmt: skip
 
         def command() -> list[str]:
-            if (run_dir / "checkpoint.pt").is_file():
-                return [*train, "--resume", str(run_dir)]
+            if (run_dir / "checkpoint.pt").is_file():  # its config.json holds the rest
+                return [*train, "--algo", space.algo, "--resume", str(run_dir)]
             return [*train, *args]
 
         def finish(wall_s: float) -> str:
+            import torch
+
             t0 = time.perf_counter()
+            torch.set_num_threads(torch_threads)  # beside the other running trials, not over them
             validation = score_run(run_dir, episodes)
+            train_s = max(wall_s, _elapsed(run_dir))  # all sessions of a resumed run
             trial = {"index": index, "name": name, "algo": space.algo, "recipe": space.recipe,
                      "params": params, "args": option_args(params), "seed": seed,
                      "total_steps": total_steps, "trials_planned": trials, "validation": validation,
-                     "wall_clock_s": round(wall_s + time.perf_counter() - t0, 1),
+                     "wall_clock_s": round(train_s + time.perf_counter() - t0, 1),
                      "command": " ".join(["safenav", "train", *train[4:], *args]),
                      "machine": machine_description(), "date": time.strftime("%Y-%m-%d")}  # fmt: skip
             write_json(out / "trials" / f"{name}.json", trial)
@@ -331,17 +359,28 @@ def tune(space: Space, out: Path, trials: int = 8, total_steps: int = 1_000_000,
     todo = [
         (i, p) for i, p in enumerate(configs) if not (out / "trials" / f"t{i:03d}.json").exists()
     ]
+    say = _say
     say(f"{space.algo}: {len(configs)} configurations, {len(configs) - len(todo)} already done "
         f"(skipped), {len(todo)} to run, {total_steps} env steps each; results in {out}")  # fmt: skip
     failures = run_queue([child(i, p) for i, p in todo], jobs, say, progress, Console(stderr=True))
     done = [json.loads(p.read_text()) for p in sorted((out / "trials").glob("t*.json"))]
     done = [t for t in done if t["index"] < trials]
-    best = write_report(out, space, done)
+    best = write_report(out, space, done, fixed or {})
     say(f"{out / 'results.md'}" + (f", {best} (safenav train --config {best})" if best else ""))
     if failures:
         raise SafenavError(f"{len(failures)} trial(s) failed: {'; '.join(failures)}; rerun the "
                            "same command to resume or retry them")  # fmt: skip
     return done
+
+
+def _elapsed(run_dir: Path) -> float:
+    """The run's training wall clock from its last progress row (it adds up resumed sessions)."""
+    try:
+        with (run_dir / "progress.csv").open(newline="") as f:
+            rows = list(csv.DictReader(f))
+        return float(rows[-1]["time/elapsed_s"]) if rows else 0.0
+    except (OSError, KeyError, ValueError):
+        return 0.0
 
 
 def _say(text: str) -> None:
