@@ -226,7 +226,7 @@ VERDICTS: dict[str, dict[str, int]] = {
     "train --csac.init-lambda": NONNEG, "train --csac.lambda-max": NONNEG,
     "train --csac.num-critics": MEMORY, "train --csac.num-cost-critics": {"0": ACCEPTED, "huge": 1},
     "train --csac.lambda-every": POSITIVE, "train --csac.episode-lambda-lr": POSITIVE,
-    "train --csac.lambda-window": NONNEG,
+    "train --csac.lambda-window": NONNEG, "train --csac.cost-scale-episodes": POSITIVE,
     "train --csac.cost-n-step": MEMORY, "train --csac.cost-horizon": NONNEG,
     "train --csac.cost-gamma": {},  # in (0, 1]
     **{f"train --{a}.net.{n}": MEMORY for a in ("csac", "ppo")

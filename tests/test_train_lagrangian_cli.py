@@ -260,3 +260,18 @@ def test_sac_lag_lambda_window_survives_a_resume():
     resumed.observe({"cost": [5.0]})
     assert list(resumed.lam_costs) == [3.0, 4.0, 5.0]
     env.close()
+
+
+def test_cost_scale_episodes_sets_the_measured_scale_span():
+    from safenav.algos.csac import CSACLearner
+    from safenav.common.config import RunConfig
+    from safenav.envs.vector import TorchVecEnv, make_vec_env
+
+    env = TorchVecEnv(make_vec_env("Pendulum-v1", 1, "cpu"), "cpu")
+    cfg = CSACConfig(batch_size=8, cost_scale="measured", cost_scale_episodes=7,
+                     net=NetConfig(hidden=(8, 8)))  # fmt: skip
+    learner = CSACLearner(env, RunConfig(env="Pendulum-v1", total_steps=1000), cfg)
+    assert learner.measured_scale.span_episodes == 7
+    with pytest.raises(ValueError, match="cost-scale-episodes"):
+        CSACConfig(cost_scale_episodes=0)
+    env.close()

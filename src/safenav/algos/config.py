@@ -87,6 +87,10 @@ class CSACConfig:
     """How d maps onto the Q_C scale of Eq. 11: ``horizon`` = cost spread evenly over T steps
     (``cost_horizon``); ``measured`` = d times the measured ratio E[Q_C] / episode cost, so that
     the constraint holds the episode cost at d (``common.curriculum.MeasuredCostScale``)."""
+    cost_scale_episodes: int = 1000
+    """``measured``: episodes the episode-cost mean runs over (an exact mean until then, then a
+    moving one). 1000 spans ~150k env steps of a SafeNav ``paper`` run; a single-env Gymnasium
+    task needs far fewer, or the warm-up's random episodes weigh on the ratio for the whole run."""
     action_noise_beta: float = 0.0
     """Exponent of the colored noise of the rollout actions: the standard-normal sample of
     ``a = tanh(mu + sigma * eps)`` becomes, per env and action dimension, a Gaussian sequence with
@@ -126,6 +130,8 @@ class CSACConfig:
         if not (math.isfinite(self.action_noise_beta) and 0 <= self.action_noise_beta <= 2):
             raise ValueError(f"action-noise-beta={self.action_noise_beta} must be a finite number "
                              "in [0, 2] (0 = white noise, 1 = pink)")  # fmt: skip
+        if self.cost_scale_episodes < 1:
+            raise ValueError(f"cost-scale-episodes={self.cost_scale_episodes} must be >= 1")
         if self.cost_horizon < 0:
             raise ValueError(f"cost-horizon={self.cost_horizon} must be >= 0 (0 = the env's limit)")
         # 0 is allowed: it freezes that part (tests freeze the critics that way)

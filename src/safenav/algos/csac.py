@@ -276,7 +276,8 @@ class CSACLearner:
                                    env.obs_shapes, env.action_dim, env.device, n_step=n_step)  # fmt: skip
         self.nstep = NStepWindow(cfg.cost_n_step, cfg.cost_discount) if n_step else None
         self.horizon = cfg.cost_horizon or env_horizon(env.envs)
-        self.measured_scale = (MeasuredCostScale(fallback=episode_cost_to_q_scale(1.0, cfg.cost_discount, self.horizon))
+        self.measured_scale = (MeasuredCostScale(fallback=episode_cost_to_q_scale(1.0, cfg.cost_discount, self.horizon),
+                                                 span_episodes=cfg.cost_scale_episodes)
                                if cfg.constrained and cfg.cost_scale == "measured" else None)  # fmt: skip
         self.episode_lambda = cfg.constrained and cfg.lambda_from == "episode_cost"
         # SAC-Lag: the episode costs since the last lambda update, or the last lambda_window
