@@ -342,6 +342,7 @@ def plot_curves(suite: str, results: list[dict[str, Any]], path: Path, cost_limi
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
     import numpy as np
 
     envs = list(dict.fromkeys(r["trial"]["env"] for r in results))
@@ -364,6 +365,10 @@ def plot_curves(suite: str, results: list[dict[str, Any]], path: Path, cost_limi
                 ax.plot(steps, mean, label=label, ls="--" if "sb3" in label else "-")
                 ax.fill_between(steps, np.nanmin(values, axis=0), np.nanmax(values, axis=0),
                                 alpha=0.15)  # fmt: skip
+        for row in axes:  # 100k, 1M: plain integers run into each other on a narrow panel
+            row[j].xaxis.set_major_formatter(
+                matplotlib.ticker.FuncFormatter(lambda x, _: _count(int(x)) if x else "0")
+            )
         axes[0][j].set_title(env, fontsize=10)
         axes[0][j].set_ylabel("evaluation return")
         axes[-1][j].set_xlabel("env steps")
