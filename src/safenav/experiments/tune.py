@@ -26,7 +26,6 @@ by construction: N configurations per algorithm, the same budget, training seed 
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 import sys
@@ -66,12 +65,6 @@ class Param:
             else lo + u * (hi - lo)
         )
         return int(round(x)) if self.integer else float(f"{x:.4g}")
-
-    @property
-    def flag(self) -> str:
-        """The ``safenav train`` option: ``csac.actor_lr`` -> ``--csac.actor-lr``, ``run.num_envs``
-        -> ``--num-envs`` (the run options have no prefix)."""
-        return "--" + self.name.removeprefix("run.").replace("_", "-")
 
 
 @dataclass(frozen=True)
@@ -176,7 +169,9 @@ def _param(name: str, spec: Any, where: str) -> Param:
 
 
 def option_args(params: dict[str, Any]) -> list[str]:
-    """``safenav train`` options for a configuration (a list value gives several words)."""
+    """``safenav train`` options for a configuration (a list value gives several words):
+    ``csac.actor_lr`` -> ``--csac.actor-lr``, ``run.num_envs`` -> ``--num-envs`` (the run options
+    have no prefix)."""
     args: list[str] = []
     for name, value in params.items():
         flag = "--" + name.removeprefix("run.").replace("_", "-")
@@ -359,14 +354,13 @@ def tune(space: Space, out: Path, trials: int = 8, total_steps: int = 1_000_000,
     todo = [
         (i, p) for i, p in enumerate(configs) if not (out / "trials" / f"t{i:03d}.json").exists()
     ]
-    say = _say
-    say(f"{space.algo}: {len(configs)} configurations, {len(configs) - len(todo)} already done "
+    _say(f"{space.algo}: {len(configs)} configurations, {len(configs) - len(todo)} already done "
         f"(skipped), {len(todo)} to run, {total_steps} env steps each; results in {out}")  # fmt: skip
-    failures = run_queue([child(i, p) for i, p in todo], jobs, say, progress, Console(stderr=True))
+    failures = run_queue([child(i, p) for i, p in todo], jobs, _say, progress, Console(stderr=True))
     done = [json.loads(p.read_text()) for p in sorted((out / "trials").glob("t*.json"))]
     done = [t for t in done if t["index"] < trials]
     best = write_report(out, space, done, fixed or {})
-    say(f"{out / 'results.md'}" + (f", {best} (safenav train --config {best})" if best else ""))
+    _say(f"{out / 'results.md'}" + (f", {best} (safenav train --config {best})" if best else ""))
     if failures:
         raise SafenavError(f"{len(failures)} trial(s) failed: {'; '.join(failures)}; rerun the "
                            "same command to resume or retry them")  # fmt: skip
@@ -375,12 +369,13 @@ def tune(space: Space, out: Path, trials: int = 8, total_steps: int = 1_000_000,
 
 def _elapsed(run_dir: Path) -> float:
     """The run's training wall clock from its last progress row (it adds up resumed sessions)."""
+    from safenav.experiments.aggregate import elapsed_seconds, read_progress
+
     try:
-        with (run_dir / "progress.csv").open(newline="") as f:
-            rows = list(csv.DictReader(f))
-        return float(rows[-1]["time/elapsed_s"]) if rows else 0.0
-    except (OSError, KeyError, ValueError):
+        elapsed = elapsed_seconds(read_progress(run_dir))
+    except OSError:
         return 0.0
+    return float(elapsed[-1]) if elapsed is not None and len(elapsed) else 0.0
 
 
 def _say(text: str) -> None:
