@@ -209,6 +209,28 @@ def test_sac_has_no_cost_side_and_csac_lambda_moves():
     assert clone.lam.item() == csac.lam.item()
 
 
+def test_softplus_cost_critics_cannot_go_below_zero():
+    """``cost_critic_output="softplus"``: however the weights move, Q_C >= 0 (online and target),
+    and the update still fits it; the default is the paper's linear output."""
+    assert not CSAC(NAV, 3, CSACConfig(net=SMALL)).qc.nonnegative
+    torch.manual_seed(0)
+    agent = CSAC(NAV, 3, CSACConfig(cost_critic_output="softplus", cost_critic_lr=1e-2, net=SMALL))
+    assert agent.qc.nonnegative and agent.qc_target.nonnegative
+    with torch.no_grad():  # drive the last layer's bias far below 0: a linear Q_C would be ~-100
+        agent.qc.mlp.layers[-1].bias.fill_(-100.0)
+    batch = random_batch()
+    x = agent.encoder(batch.obs)
+    assert (agent.qc(x, batch.actions) >= 0).all()
+    before = agent.qc(x, batch.actions).detach()
+    agent.qc.mlp.layers[-1].bias.data.fill_(0.0)
+    for _ in range(20):
+        agent.update(batch, d_q=0.1)
+    after = agent.qc(agent.encoder(batch.obs), batch.actions).detach()
+    assert (after >= 0).all() and not torch.equal(before, after)
+    with pytest.raises(ValueError):
+        CSACConfig(cost_critic_output="relu")
+
+
 class DictCounterEnv(CounterEnv):
     """CounterEnv with a Dict observation (``t`` and a constant vector)."""
 

@@ -134,6 +134,11 @@ def test_measured_cost_scale_holds_the_episode_cost_at_d():
         scale.observe_episodes([0.0])
         scale.observe_q(float("nan"))
     assert scale.ratio == pytest.approx(0.02, rel=1e-3)
+    # a cost critic below its floor (mean Q_C <= 0) is no measurement either: not d_Q = 0
+    for _ in range(50):
+        scale.observe_episodes([0.5])
+        scale.observe_q(-3.0)
+    assert scale.q_mean < 0 and scale.ratio == pytest.approx(0.02, rel=1e-3)
     restored = MeasuredCostScale(fallback=0.14, span_episodes=4, span_updates=4, min_episodes=4)
     restored.load_state_dict(scale.state_dict())
     assert restored.state_dict() == scale.state_dict() and restored.ratio == scale.ratio

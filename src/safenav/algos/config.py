@@ -74,6 +74,11 @@ class CSACConfig:
     extractor; elsewhere it changes nothing."""
     cost_target: Literal["mean", "min", "max"] = "mean"
     """Reduction of the target cost critics in Eq. 6: mean (paper); min/max are ablations."""
+    cost_critic_output: Literal["linear", "softplus"] = "linear"
+    """Output of each cost critic: ``linear`` (paper) or ``softplus``, so that Q_C >= 0 as a sum
+    of non-negative costs is. Beyond the paper: a linear Q_C extrapolates below 0 at actions the
+    data never showed, the actor's ``lambda * Q_C`` term (Eq. 9) seeks them out, the negative
+    values feed Eq. 6's targets and Eq. 11 reads a constraint met (docs/gymnasium.md, Hopper)."""
     cost_n_step: int = 1
     """Steps of the cost target: 1 = Eq. 6; n > 1 = the n-step return of the behaviour policy's
     costs, then the target critics (beyond the paper, ``common.nstep``); reward stays one-step."""
@@ -130,6 +135,8 @@ class CSACConfig:
         if not (math.isfinite(self.action_noise_beta) and 0 <= self.action_noise_beta <= 2):
             raise ValueError(f"action-noise-beta={self.action_noise_beta} must be a finite number "
                              "in [0, 2] (0 = white noise, 1 = pink)")  # fmt: skip
+        if self.cost_critic_output not in ("linear", "softplus"):
+            raise ValueError(f"cost-critic-output={self.cost_critic_output!r}: linear or softplus")
         if self.cost_scale_episodes < 1:
             raise ValueError(f"cost-scale-episodes={self.cost_scale_episodes} must be >= 1")
         if self.cost_horizon < 0:

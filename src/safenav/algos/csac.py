@@ -75,8 +75,9 @@ class CSAC(nn.Module):
             critic_ex = lambda k: make_extractor(obs_shapes, net, k)  # noqa: E731
         self.actor = Actor(actor_ex, feat, action_dim, net.hidden)
         self.qr = QEnsemble(critic_ex(e), feat, action_dim, net.hidden, e)
+        nonnegative = cfg.cost_critic_output == "softplus"
         self.qc = (
-            QEnsemble(critic_ex(e_cost), feat, action_dim, net.hidden, e_cost)
+            QEnsemble(critic_ex(e_cost), feat, action_dim, net.hidden, e_cost, nonnegative)
             if cfg.constrained
             else None
         )

@@ -74,7 +74,8 @@ class MeasuredCostScale:
     Running means are exponential with weight ``max(1 / n, 1 / span)`` per observation (an exact
     average until ``span`` observations, then a moving one); the defaults, 1000 episodes and 5000
     updates, both span ~150k env steps of a ``paper`` run. Until ``min_episodes`` episodes have
-    ended ``fallback`` is used; while the episode cost is ~0 (no ratio to measure), the last ratio.
+    ended ``fallback`` is used; while the episode cost is ~0 or the mean Q_C is not positive (no
+    ratio to measure), the last ratio.
     """
 
     def __init__(self, fallback: float, span_episodes: int = 1000, span_updates: int = 5000,
@@ -106,8 +107,11 @@ class MeasuredCostScale:
     @property
     def ratio(self) -> float:
         """``rho``: Q_C-scale value per unit of episode cost (the last valid one while unmeasurable)."""
-        if self.cost_n >= self.min_episodes and self.q_n > 0 and self.cost_mean > 1e-3:
-            self.last = max(self.q_mean, 0.0) / self.cost_mean
+        # Q_C's mean <= 0 is no ratio either (a cost critic gone below its floor, seen on Hopper):
+        # a ratio of 0 would make d_Q 0 and every Q_C a violation, then a negative Q_C none
+        if (self.cost_n >= self.min_episodes and self.q_n > 0 and self.q_mean > 0
+                and self.cost_mean > 1e-3):  # fmt: skip
+            self.last = self.q_mean / self.cost_mean
         return self.last if self.cost_n >= self.min_episodes else self.fallback
 
     def d_q(self, d: float) -> float:

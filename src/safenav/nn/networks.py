@@ -99,13 +99,16 @@ class Actor(nn.Module):
 
 class QEnsemble(nn.Module):
     """``E`` critics ``Q(s, a)`` in one module: features (or an observation dict, when it owns an
-    ensemble ``extractor``) and action -> ``(E, N)``. Each member: MLP ``hidden`` with ReLU -> 1."""
+    ensemble ``extractor``) and action -> ``(E, N)``. Each member: MLP ``hidden`` with ReLU -> 1,
+    then ``softplus`` when ``nonnegative`` (a value that cannot be below 0, such as a cost's)."""
 
     def __init__(self, extractor: nn.Module | None, in_features: int, action_dim: int,
-                 hidden: tuple[int, ...], ensemble_size: int = 2) -> None:  # fmt: skip
+                 hidden: tuple[int, ...], ensemble_size: int = 2,
+                 nonnegative: bool = False) -> None:  # fmt: skip
         super().__init__()
         self.extractor = extractor
         self.ensemble_size = ensemble_size
+        self.nonnegative = nonnegative
         self.mlp = EnsembleMLP(in_features + action_dim, hidden, 1, ensemble_size)
 
     def forward(self, x, action: torch.Tensor) -> torch.Tensor:
@@ -113,7 +116,8 @@ class QEnsemble(nn.Module):
             x = self.extractor(x)
         if x.dim() == 3:
             action = action.expand(x.shape[0], *action.shape)
-        return self.mlp(torch.cat([x, action], -1)).squeeze(-1)
+        q = self.mlp(torch.cat([x, action], -1)).squeeze(-1)
+        return nn.functional.softplus(q) if self.nonnegative else q
 
 
 class DeterministicActor(nn.Module):
