@@ -1,7 +1,7 @@
 """Do the cost critics predict the real cost? (docs/csac.md, "Three runs of the 60-minute budget")
 
 Loads a CSAC *training* checkpoint (``RUN/checkpoint.pt``: it holds the critics), flies its
-stochastic policy (as in training) on the run's env at full density, and compares, over every
+stochastic policy (as in training) on the run's env (SafeNav at full density) and compares, over every
 transition of the episodes that finished:
 
 - ``predicted``: ``1/2 sum_j Q_C,j(s, a)``, the cost critics' value of the action taken (what
@@ -11,7 +11,9 @@ transition of the episodes that finished:
   sample of the same quantity.
 
 Averaged over transitions, equal means an unbiased critic; ``predicted / realised`` well below 1
-means the constraint holds a cost lower than the real one. The same for the reward critics
+means the constraint holds a cost lower than the real one. On a task with a time limit (Hopper's
+1000 steps) the realised sum stops at the cut, so the last ~1/(1 - gamma) steps of a cut episode
+read low. The same for the reward critics
 (``min_j Q_R,j``, realised reward-to-go plus the entropy bonus left out: a rough check only).
 
 Run: ``.venv/bin/python experiments/cost_critic_bias.py runs/NAME/checkpoint.pt [--steps 400]
@@ -30,7 +32,7 @@ from safenav.algos.config import CSACConfig
 from safenav.algos.csac import CSAC
 from safenav.common.checkpoint import load_checkpoint, restore_agent
 from safenav.common.config import RunConfig, from_dict
-from safenav.envs.vector import TorchVecEnv, make_vec_env
+from safenav.envs.vector import TorchVecEnv, is_safenav, make_vec_env
 
 
 @torch.no_grad()
@@ -40,9 +42,12 @@ def measure(path: Path, num_envs: int, steps: int, seed: int) -> dict[str, float
         raise SystemExit(f"{path} is policy-only: the critics are in the run's checkpoint.pt")
     run = from_dict(RunConfig, state["config"]["run"])
     cfg = from_dict(CSACConfig, state["config"]["csac"])
-    env = TorchVecEnv(
-        make_vec_env(run.env, num_envs, "cpu", run.preset, density=run.density.end), "cpu"
-    )
+    if run.normalize_obs:
+        raise SystemExit(f"{path}: trained with --normalize-obs, which this check does not replay")
+    kwargs = dict(run.env_kwargs)
+    if is_safenav(run.env):  # SafeNav at full density; a Gymnasium task as it is
+        kwargs["density"] = run.density.end
+    env = TorchVecEnv(make_vec_env(run.env, num_envs, "cpu", run.preset, **kwargs), "cpu")
     agent = CSAC(env.obs_shapes, env.action_dim, cfg)
     restore_agent(agent, state, path)
     torch.manual_seed(seed)
