@@ -32,7 +32,7 @@ from safenav.algos.config import CSACConfig
 from safenav.algos.csac import CSAC
 from safenav.common.checkpoint import load_checkpoint, restore_agent
 from safenav.common.config import RunConfig, from_dict
-from safenav.envs.vector import TorchVecEnv, is_safenav, make_vec_env
+from safenav.envs.vector import TorchVecEnv, cost_function, is_safenav, make_vec_env
 
 
 @torch.no_grad()
@@ -42,8 +42,15 @@ def measure(path: Path, num_envs: int, steps: int, seed: int) -> dict[str, float
         raise SystemExit(f"{path} is policy-only: the critics are in the run's checkpoint.pt")
     run = from_dict(RunConfig, state["config"]["run"])
     cfg = from_dict(CSACConfig, state["config"]["csac"])
-    if run.normalize_obs:
-        raise SystemExit(f"{path}: trained with --normalize-obs, which this check does not replay")
+    if run.normalize_obs or run.normalize_reward:
+        raise SystemExit(
+            f"{path}: trained with --normalize-obs/-reward, which this check does not replay"
+        )
+    with cost_function(run.cost_fn):  # a run trained with --cost-fn flies with it
+        return _fly(state, run, cfg, path, num_envs, steps, seed)
+
+
+def _fly(state, run, cfg, path: Path, num_envs: int, steps: int, seed: int) -> dict[str, float]:
     kwargs = dict(run.env_kwargs)
     if is_safenav(run.env):  # SafeNav at full density; a Gymnasium task as it is
         kwargs["density"] = run.density.end
@@ -65,13 +72,13 @@ def measure(path: Path, num_envs: int, steps: int, seed: int) -> dict[str, float
         step = env.step(action)
         rows.append((q_c, q_r, step.cost, step.reward, step.terminated | step.truncated))
         obs = step.next_obs
-    gamma = cfg.gamma
+    gamma, gamma_c = cfg.gamma, cfg.cost_discount
     pred_c, pred_r, real_c, real_r = [], [], [], []
     g_c = torch.zeros(num_envs)
     g_r = torch.zeros(num_envs)
     finished = torch.zeros(num_envs, dtype=torch.bool)  # an episode end lies ahead of this step
     for q_c, q_r, cost, reward, done in reversed(rows):
-        g_c = torch.where(done, cost, cost + gamma * g_c)
+        g_c = torch.where(done, cost, cost + gamma_c * g_c)
         g_r = torch.where(done, reward, reward + gamma * g_r)
         finished |= done
         pred_c.append(q_c[finished])
@@ -82,6 +89,7 @@ def measure(path: Path, num_envs: int, steps: int, seed: int) -> dict[str, float
     pr, rr = torch.cat(pred_r), torch.cat(real_r)
     near = rc > 0.5  # within ~70 steps of a collision
     return {"transitions": int(pc.numel()), "predicted_qc": float(pc.mean()), "realised_qc": float(rc.mean()),
+            "fraction_qc_below_zero": float((pc < 0).float().mean()),
             "ratio_qc": float(pc.mean() / rc.mean()) if rc.mean() > 0 else float("nan"),
             "predicted_qc_near_collision": float(pc[near].mean()) if near.any() else float("nan"),
             "realised_qc_near_collision": float(rc[near].mean()) if near.any() else float("nan"),

@@ -221,8 +221,8 @@ def test_softplus_cost_critics_cannot_go_below_zero():
     batch = random_batch()
     x = agent.encoder(batch.obs)
     assert (agent.qc(x, batch.actions) >= 0).all()
-    before = agent.qc(x, batch.actions).detach()
     agent.qc.mlp.layers[-1].bias.data.fill_(0.0)
+    before = agent.qc(x, batch.actions).detach()
     for _ in range(20):
         agent.update(batch, d_q=0.1)
     after = agent.qc(agent.encoder(batch.obs), batch.actions).detach()

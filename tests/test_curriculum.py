@@ -134,11 +134,24 @@ def test_measured_cost_scale_holds_the_episode_cost_at_d():
         scale.observe_episodes([0.0])
         scale.observe_q(float("nan"))
     assert scale.ratio == pytest.approx(0.02, rel=1e-3)
-    # a cost critic below its floor (mean Q_C <= 0) is no measurement either: not d_Q = 0
-    for _ in range(50):
+    # a cost critic sliding below its floor, read at every step as training does: the ratio
+    # follows it down to fallback / BAND, never to 0 (d_Q = 0 made every Q_C a violation)
+    assert 0.14 / MeasuredCostScale.BAND < 0.02
+    ratios = []
+    for k in range(200):
         scale.observe_episodes([0.5])
-        scale.observe_q(-3.0)
-    assert scale.q_mean < 0 and scale.ratio == pytest.approx(0.02, rel=1e-3)
+        scale.observe_q(0.01 - 0.001 * k)
+        ratios.append(scale.ratio)
+    assert scale.q_mean < 0 and min(ratios) == pytest.approx(0.14 / MeasuredCostScale.BAND)
+    state = scale.state_dict()
+    # and a checkpoint whose kept ratio is 0 (written before the band) resumes at the band's edge
+    restored = MeasuredCostScale(fallback=0.14, span_episodes=4, span_updates=4, min_episodes=4)
+    restored.load_state_dict({**state, "last": 0.0})
+    assert restored.ratio == pytest.approx(0.014)
+    for _ in range(50):  # a sane critic again: the measured ratio comes back
+        scale.observe_episodes([0.5])
+        scale.observe_q(0.01)
+    assert scale.ratio == pytest.approx(0.02, rel=1e-3)
     restored = MeasuredCostScale(fallback=0.14, span_episodes=4, span_updates=4, min_episodes=4)
     restored.load_state_dict(scale.state_dict())
     assert restored.state_dict() == scale.state_dict() and restored.ratio == scale.ratio

@@ -75,8 +75,11 @@ class MeasuredCostScale:
     average until ``span`` observations, then a moving one); the defaults, 1000 episodes and 5000
     updates, both span ~150k env steps of a ``paper`` run. Until ``min_episodes`` episodes have
     ended ``fallback`` is used; while the episode cost is ~0 or the mean Q_C is not positive (no
-    ratio to measure), the last ratio.
+    ratio to measure), the last ratio; and never more than a factor ``BAND`` from ``fallback``.
     """
+
+    BAND = 10.0
+    """The measured ratio stays within this factor of ``fallback``."""
 
     def __init__(self, fallback: float, span_episodes: int = 1000, span_updates: int = 5000,
                  min_episodes: int = 100) -> None:  # fmt: skip
@@ -106,13 +109,18 @@ class MeasuredCostScale:
 
     @property
     def ratio(self) -> float:
-        """``rho``: Q_C-scale value per unit of episode cost (the last valid one while unmeasurable)."""
-        # Q_C's mean <= 0 is no ratio either (a cost critic gone below its floor, seen on Hopper):
-        # a ratio of 0 would make d_Q 0 and every Q_C a violation, then a negative Q_C none
+        """``rho``: Q_C-scale value per unit of episode cost (the last valid one while unmeasurable),
+        held within ``[fallback / BAND, fallback * BAND]``."""
         if (self.cost_n >= self.min_episodes and self.q_n > 0 and self.q_mean > 0
                 and self.cost_mean > 1e-3):  # fmt: skip
             self.last = self.q_mean / self.cost_mean
-        return self.last if self.cost_n >= self.min_episodes else self.fallback
+        if self.cost_n < self.min_episodes:
+            return self.fallback
+        # Why a band: a cost critic sliding below its floor (Hopper, docs/gymnasium.md) took the
+        # ratio, hence d_Q, to ~0, and every Q_C then read as a violation; the modelled ratio
+        # (cost spread evenly) is within a factor 6 of every ratio measured (SafeNav 0.03-0.1 vs
+        # 0.062, Hopper 0.036-0.54 vs 0.090)
+        return min(max(self.last, self.fallback / self.BAND), self.fallback * self.BAND)
 
     def d_q(self, d: float) -> float:
         return d * self.ratio
