@@ -142,6 +142,27 @@ def test_resume_continues_the_run(tmp_path):
         main(["train", "--algo", "sac", "--resume", str(run_dir), "--no-progress"])
 
 
+def test_resume_refuses_an_algorithm_option_it_would_ignore(tmp_path, capsys):
+    """A resumed run keeps its config.json: an option with another value is refused (exit 2,
+    nothing written), the same value passes (reproduce resumes with the trial's options)."""
+    run_dir = tmp_path / "resume"
+    base = ["train", "--algo", "csac", "--preset", "easy", "--run-dir", str(run_dir), *FAST]
+    main([*base, "--total-steps", "200"])
+    resume = ["train", "--algo", "csac", "--resume", str(run_dir), "--no-progress",
+              "--total-steps", "300"]  # fmt: skip
+    before = (run_dir / "progress.csv").read_text()
+    for option in (["--csac.cost-critic-output", "softplus"], ["--csac.net.hidden", "8", "8"],
+                   ["--csac.curriculum.no-enabled"]):  # fmt: skip
+        with pytest.raises(SystemExit) as err:
+            main([*resume, *option])
+        assert err.value.code == 2
+        message = capsys.readouterr().err
+        assert option[0].replace("no-", "") in message and "keeps the configuration" in message
+    assert (run_dir / "progress.csv").read_text() == before
+    main([*resume, "--csac.cost-critic-output", "linear"])  # the run's own value
+    assert load_checkpoint(run_dir / "checkpoint.pt")["global_step"] == 300
+
+
 def test_any_gymnasium_box_env_trains(tmp_path):
     run_dir = tmp_path / "pendulum"
     main(

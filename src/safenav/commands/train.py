@@ -251,6 +251,13 @@ def plan(algo: str, run: RunConfig, csac: CSACConfig, ppo: PPOConfig, run_dir: P
             raise SafenavError(
                 f"--resume {run_dir}: config.json is not a {algo} run config ({err})"
             ) from None
+        from safenav.cli import ARGS
+
+        clashes = changed_options(ppo if family == "ppo" else csac, cfg, family, ARGS.get())
+        if clashes:  # the run keeps its config.json: a different value would be ignored
+            raise SafenavError(f"--resume {run_dir}: {'; '.join(clashes)}; a resumed run keeps "
+                               "the configuration in its config.json (start a new run to "
+                               "change it)")  # fmt: skip
         default = RunConfig()
         changes = {k: getattr(run, k) for k in RESUMABLE
                    if getattr(run, k) != getattr(default, k) or given(k)}  # fmt: skip
@@ -274,6 +281,23 @@ def plan(algo: str, run: RunConfig, csac: CSACConfig, ppo: PPOConfig, run_dir: P
     check_cost(algo, run)
     check_training_memory(algo, run, cfg, obs_shapes, action_dim, env_cfg)
     return run, cfg, Path(run_dir), obs_shapes
+
+
+def changed_options(given_cfg, saved_cfg, prefix: str, args) -> list[str]:
+    """``--prefix.option VALUE (the run has SAVED)`` for each algorithm option that ``args`` names
+    with a value other than the resumed run's (nested dataclasses walked)."""
+    out = []
+    for f in dataclasses.fields(given_cfg):
+        mine, theirs = getattr(given_cfg, f.name), getattr(saved_cfg, f.name)
+        flag = f"{prefix}.{f.name}"
+        if dataclasses.is_dataclass(mine):
+            out += changed_options(mine, theirs, flag, args)
+        elif given_flag(flag, args):
+            same = (tuple(mine) == tuple(theirs) if isinstance(mine, (list, tuple))
+                    and isinstance(theirs, (list, tuple)) else mine == theirs)  # fmt: skip
+            if not same:
+                out.append(f"--{flag.replace('_', '-')} {mine} (the run has {theirs})")
+    return out
 
 
 def check_budget(family: str, run: RunConfig, cfg) -> None:
