@@ -13,7 +13,8 @@ transition of the episodes that finished:
 Averaged over transitions, equal means an unbiased critic; ``predicted / realised`` well below 1
 means the constraint holds a cost lower than the real one. On a task with a time limit (Hopper's
 1000 steps) the realised sum stops at the cut, so the last ~1/(1 - gamma) steps of a cut episode
-read low. The same for the reward critics
+read low. Both again over the transitions with cost close ahead (realised > 0.5):
+``*_near_collision`` on SafeNav, ``*_cost_ahead`` on other tasks. The same for the reward critics
 (``min_j Q_R,j``, realised reward-to-go plus the entropy bonus left out: a rough check only).
 
 Run: ``.venv/bin/python experiments/cost_critic_bias.py runs/NAME/checkpoint.pt [--steps 400]
@@ -87,12 +88,15 @@ def _fly(state, run, cfg, path: Path, num_envs: int, steps: int, seed: int) -> d
         real_r.append(g_r[finished])
     pc, rc = torch.cat(pred_c), torch.cat(real_c)
     pr, rr = torch.cat(pred_r), torch.cat(real_r)
-    near = rc > 0.5  # within ~70 steps of a collision
+    # Transitions with cost close ahead (discounted cost-to-go > 0.5): on SafeNav, where each
+    # collision costs 1 and ends the episode, those within ~70 steps of a collision.
+    near = rc > 0.5
+    where = "near_collision" if is_safenav(run.env) else "cost_ahead"
     return {"transitions": int(pc.numel()), "predicted_qc": float(pc.mean()), "realised_qc": float(rc.mean()),
             "fraction_qc_below_zero": float((pc < 0).float().mean()),
             "ratio_qc": float(pc.mean() / rc.mean()) if rc.mean() > 0 else float("nan"),
-            "predicted_qc_near_collision": float(pc[near].mean()) if near.any() else float("nan"),
-            "realised_qc_near_collision": float(rc[near].mean()) if near.any() else float("nan"),
+            f"predicted_qc_{where}": float(pc[near].mean()) if near.any() else float("nan"),
+            f"realised_qc_{where}": float(rc[near].mean()) if near.any() else float("nan"),
             "predicted_qr": float(pr.mean()), "realised_qr": float(rr.mean()),
             "lambda": float(agent.lam) if agent.lagrange is not None else 0.0,
             "global_step": int(state["global_step"])}  # fmt: skip

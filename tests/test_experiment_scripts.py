@@ -59,6 +59,7 @@ def test_cost_critic_bias_compares_prediction_with_the_realised_cost(tiny_run):
     res = bias.measure(tiny_run / "checkpoint.pt", num_envs=4, steps=120, seed=0)
     assert res["transitions"] > 0 and res["global_step"] == 400
     assert math.isfinite(res["predicted_qc"]) and 0.0 <= res["realised_qc"] <= 1.0
+    assert "realised_qc_near_collision" in res and "realised_qc_cost_ahead" not in res
     with pytest.raises(SystemExit, match="policy-only"):
         bias.measure(tiny_run / "best.pt", num_envs=2, steps=5, seed=0)
 

@@ -7,6 +7,7 @@ steps with the recipe alone, CSAC under the cost limit on a velocity task."""
 from __future__ import annotations
 
 import csv
+import importlib.util
 import json
 from importlib import resources
 from pathlib import Path
@@ -439,6 +440,18 @@ def test_bench_safe_on_a_tiny_budget(tmp_path, capsys):
         and trial["config"]["csac"]["learning_starts"] == 100
     )
     assert "| SafetyHopperVelocity-v5 | csac | 300 |" in (out / "table.md").read_text()
+    # the recipe's cost critics are non-negative, and the bias check reads them on a Gymnasium
+    # task (no collisions there: its "cost ahead" fields, not SafeNav's "near collision")
+    assert trial["config"]["csac"]["cost_critic_output"] == "softplus"
+    spec = importlib.util.spec_from_file_location(
+        "cost_critic_bias", Path(__file__).parents[1] / "experiments" / "cost_critic_bias.py"
+    )
+    bias = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bias)
+    res = bias.measure(out / "runs" / "SafetyHopperVelocity-v5-csac-safenav-300-s1" / "checkpoint.pt",
+                       num_envs=2, steps=100, seed=0)  # fmt: skip
+    assert res["transitions"] > 0 and res["fraction_qc_below_zero"] == 0.0
+    assert "predicted_qc_cost_ahead" in res and "predicted_qc_near_collision" not in res
 
 
 def test_bench_refuses_unknown_tasks_and_algorithms(tmp_path, capsys):
