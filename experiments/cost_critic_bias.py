@@ -13,7 +13,8 @@ transition of the episodes that finished:
 Averaged over transitions, equal means an unbiased critic; ``predicted / realised`` well below 1
 means the constraint holds a cost lower than the real one. On a task with a time limit (Hopper's
 1000 steps) the realised sum stops at the cut, so the last ~1/(1 - gamma) steps of a cut episode
-read low. Both again over the transitions with cost close ahead (realised > 0.5):
+read low. Also the mean cost, return and length of the episodes that finished (of this
+stochastic policy; an evaluation flies the deterministic one). Both again over the transitions with cost close ahead (realised > 0.5):
 ``*_near_collision`` on SafeNav, ``*_cost_ahead`` on other tasks. The same for the reward critics
 (``min_j Q_R,j``, realised reward-to-go plus the entropy bonus left out: a rough check only).
 
@@ -73,6 +74,16 @@ def _fly(state, run, cfg, path: Path, num_envs: int, steps: int, seed: int) -> d
         step = env.step(action)
         rows.append((q_c, q_r, step.cost, step.reward, step.terminated | step.truncated))
         obs = step.next_obs
+    # the finished episodes of this stochastic policy (what training sees; evaluations fly the
+    # deterministic one): their mean cost, return and length
+    ep_cost, ep_ret, ep_len = torch.zeros(num_envs), torch.zeros(num_envs), torch.zeros(num_envs)
+    episodes = []
+    for _, _, cost, reward, done in rows:
+        ep_cost, ep_ret, ep_len = ep_cost + cost, ep_ret + reward, ep_len + 1
+        episodes += [
+            (float(ep_cost[i]), float(ep_ret[i]), float(ep_len[i])) for i in done.nonzero()[:, 0]
+        ]
+        ep_cost, ep_ret, ep_len = (torch.where(done, 0.0, v) for v in (ep_cost, ep_ret, ep_len))
     gamma, gamma_c = cfg.gamma, cfg.cost_discount
     pred_c, pred_r, real_c, real_r = [], [], [], []
     g_c = torch.zeros(num_envs)
@@ -98,6 +109,9 @@ def _fly(state, run, cfg, path: Path, num_envs: int, steps: int, seed: int) -> d
             f"predicted_qc_{where}": float(pc[near].mean()) if near.any() else float("nan"),
             f"realised_qc_{where}": float(rc[near].mean()) if near.any() else float("nan"),
             "predicted_qr": float(pr.mean()), "realised_qr": float(rr.mean()),
+            "episodes": len(episodes),
+            **{f"episode_{k}": sum(e[j] for e in episodes) / len(episodes) if episodes else float("nan")
+               for j, k in enumerate(("cost", "return", "length"))},
             "lambda": float(agent.lam) if agent.lagrange is not None else 0.0,
             "global_step": int(state["global_step"])}  # fmt: skip
 

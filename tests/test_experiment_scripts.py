@@ -60,6 +60,7 @@ def test_cost_critic_bias_compares_prediction_with_the_realised_cost(tiny_run):
     assert res["transitions"] > 0 and res["global_step"] == 400
     assert math.isfinite(res["predicted_qc"]) and 0.0 <= res["realised_qc"] <= 1.0
     assert "realised_qc_near_collision" in res and "realised_qc_cost_ahead" not in res
+    assert res["episodes"] > 0 and 0.0 <= res["episode_cost"] <= res["episode_length"] <= 120
     with pytest.raises(SystemExit, match="policy-only"):
         bias.measure(tiny_run / "best.pt", num_envs=2, steps=5, seed=0)
 

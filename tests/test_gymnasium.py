@@ -452,6 +452,7 @@ def test_bench_safe_on_a_tiny_budget(tmp_path, capsys):
                        num_envs=2, steps=100, seed=0)  # fmt: skip
     assert res["transitions"] > 0 and res["fraction_qc_below_zero"] == 0.0
     assert "predicted_qc_cost_ahead" in res and "predicted_qc_near_collision" not in res
+    assert res["episodes"] > 0 and 0.0 <= res["episode_cost"] <= res["episode_length"] <= 100
 
 
 def test_bench_refuses_unknown_tasks_and_algorithms(tmp_path, capsys):
