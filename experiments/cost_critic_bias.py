@@ -74,16 +74,7 @@ def _fly(state, run, cfg, path: Path, num_envs: int, steps: int, seed: int) -> d
         step = env.step(action)
         rows.append((q_c, q_r, step.cost, step.reward, step.terminated | step.truncated))
         obs = step.next_obs
-    # the finished episodes of this stochastic policy (what training sees; evaluations fly the
-    # deterministic one): their mean cost, return and length
-    ep_cost, ep_ret, ep_len = torch.zeros(num_envs), torch.zeros(num_envs), torch.zeros(num_envs)
-    episodes = []
-    for _, _, cost, reward, done in rows:
-        ep_cost, ep_ret, ep_len = ep_cost + cost, ep_ret + reward, ep_len + 1
-        episodes += [
-            (float(ep_cost[i]), float(ep_ret[i]), float(ep_len[i])) for i in done.nonzero()[:, 0]
-        ]
-        ep_cost, ep_ret, ep_len = (torch.where(done, 0.0, v) for v in (ep_cost, ep_ret, ep_len))
+    episodes = finished_episodes([(cost, reward, done) for _, _, cost, reward, done in rows])
     gamma, gamma_c = cfg.gamma, cfg.cost_discount
     pred_c, pred_r, real_c, real_r = [], [], [], []
     g_c = torch.zeros(num_envs)
@@ -114,6 +105,23 @@ def _fly(state, run, cfg, path: Path, num_envs: int, steps: int, seed: int) -> d
                for j, k in enumerate(("cost", "return", "length"))},
             "lambda": float(agent.lam) if agent.lagrange is not None else 0.0,
             "global_step": int(state["global_step"])}  # fmt: skip
+
+
+def finished_episodes(steps: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]) -> list[tuple]:
+    """``(cost, return, length)`` of every episode that ends within ``steps`` (per vector step:
+    cost, reward, done, each ``(num_envs,)``; the envs start at a reset and reset in the step
+    that ends an episode). Episodes still running at the end are left out, so long ones are
+    under-represented in a short window."""
+    n = steps[0][0].shape[0] if steps else 0
+    ep_cost, ep_ret, ep_len = torch.zeros(n), torch.zeros(n), torch.zeros(n)
+    episodes = []
+    for cost, reward, done in steps:
+        ep_cost, ep_ret, ep_len = ep_cost + cost, ep_ret + reward, ep_len + 1
+        episodes += [
+            (float(ep_cost[i]), float(ep_ret[i]), float(ep_len[i])) for i in done.nonzero()[:, 0]
+        ]
+        ep_cost, ep_ret, ep_len = (torch.where(done, 0.0, v) for v in (ep_cost, ep_ret, ep_len))
+    return episodes
 
 
 def main() -> None:

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from safenav.cli import main
 
@@ -63,6 +64,22 @@ def test_cost_critic_bias_compares_prediction_with_the_realised_cost(tiny_run):
     assert res["episodes"] > 0 and 0.0 <= res["episode_cost"] <= res["episode_length"] <= 120
     with pytest.raises(SystemExit, match="policy-only"):
         bias.measure(tiny_run / "best.pt", num_envs=2, steps=5, seed=0)
+
+
+def test_cost_critic_bias_sums_each_finished_episode_and_leaves_out_running_ones():
+    t = torch.tensor
+    # env 0: an episode of 2 steps (costs 1, 0), then one of 3 (1, 1, 1); env 1: 4 steps (cost
+    # 0, 0, 1, 0), then one still running at the end (left out)
+    steps = [
+        (t([1.0, 0.0]), t([1.0, 2.0]), t([False, False])),
+        (t([0.0, 0.0]), t([1.0, 2.0]), t([True, False])),
+        (t([1.0, 1.0]), t([3.0, 2.0]), t([False, False])),
+        (t([1.0, 0.0]), t([3.0, 2.0]), t([False, True])),
+        (t([1.0, 5.0]), t([3.0, 9.0]), t([True, False])),
+    ]
+    episodes = script("cost_critic_bias").finished_episodes(steps)
+    assert sorted(episodes) == [(1.0, 2.0, 2.0), (1.0, 8.0, 4.0), (3.0, 9.0, 3.0)]
+    assert script("cost_critic_bias").finished_episodes([]) == []
 
 
 def test_timeout_paths_splits_the_eval_episodes_by_outcome(tiny_run, tmp_path):
