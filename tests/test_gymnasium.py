@@ -362,6 +362,29 @@ def test_bench_gym_on_a_tiny_budget_writes_its_files_and_resumes(tmp_path, capsy
     assert json.loads((out / "summary.json").read_text())["rows"][0]["sb3"]["seeds"] == [1]
 
 
+def test_bench_table_says_when_the_seeds_of_a_row_ran_different_configurations():
+    from safenav.bench.gym import markdown_table, summarize
+
+    def result(seed: int, critic: str | None, threads: int = 1) -> dict:
+        csac = {"lambda_lr": 1e-3, **({"cost_critic_output": critic} if critic else {})}
+        return {"trial": {"env": "SafetyHopperVelocity-v5", "algo": "csac", "impl": "safenav",
+                          "seed": seed, "steps": 400}, "final": {"return": 100.0, "cost": 5.0},
+                "wall_clock_s": 10.0, "date": "d1",
+                "config": {"algo": "csac", "run": {"seed": seed, "torch_threads": threads},
+                           "csac": csac, "recipe": {"name": "mujoco-sac", "header": f"v{seed}"}}}  # fmt: skip
+
+    # seeds, threads and the recipe's header text may differ; a key a trial lacks is its default
+    same = summarize("safe", [result(1, None, 1), result(2, "linear", 2)], 25.0)
+    assert "config_differs" not in same[0]["safenav"]
+    assert "different configurations" not in markdown_table("safe", same, 25.0)
+    mixed = summarize("safe", [result(1, None), result(2, "softplus"), result(3, "softplus")], 25.0)
+    assert mixed[0]["safenav"]["config_differs"] == ["csac.cost_critic_output"]
+    assert (
+        "SafetyHopperVelocity-v5 csac (safenav): its seeds ran with different configurations** "
+        "(csac.cost_critic_output)"
+    ) in markdown_table("safe", mixed, 25.0)
+
+
 def test_bench_table_compares_wall_clocks_only_on_one_machine_and_day():
     from safenav.bench.gym import markdown_table, summarize
 

@@ -263,6 +263,45 @@ def _count(n: int) -> str:
     )
 
 
+# what may differ between the seeds of one row: run settings that are not hyperparameters, and
+# the recipe's text (its header is rewritten as results come in; its name is compared)
+PER_TRIAL_KEYS = ("run.seed", "run.torch_threads", "recipe.header", "recipe.source")
+
+
+def _defaults() -> dict[str, Any]:
+    """Today's default of every config key: a trial written before a key existed ran with it."""
+    from dataclasses import asdict
+
+    from safenav.algos.config import CSACConfig
+    from safenav.algos.ppo_config import PPOConfig
+    from safenav.common.config import RunConfig
+
+    return _flat(
+        {"run": asdict(RunConfig()), "csac": asdict(CSACConfig()), "ppo": asdict(PPOConfig())}
+    )
+
+
+def _flat(config: Any, prefix: str = "") -> dict[str, Any]:
+    if not isinstance(config, dict):
+        return {prefix: config}
+    out: dict[str, Any] = {}
+    for k, v in config.items():
+        out.update(_flat(v, f"{prefix}.{k}" if prefix else k))
+    return out
+
+
+def config_differences(results: list[dict[str, Any]]) -> list[str]:
+    """The config keys (dotted) on which the trials of one row differ, seed aside: a row that
+    mixes configurations (an interrupted trial resumed after its recipe changed, trial files of
+    two commands) says so instead of averaging them silently. Trials without a config (SB3's)
+    are left out; a key a trial lacks (written before the key existed) reads as its default."""
+    flats = [_flat(r["config"]) for r in results if r.get("config")]
+    keys = set().union(*flats) - set(PER_TRIAL_KEYS) if flats else set()
+    default = _defaults() if keys else {}
+    return sorted(k for k in keys
+                  if len({repr(f.get(k, default.get(k, "<missing>"))) for f in flats}) > 1)  # fmt: skip
+
+
 def summarize(suite: str, results: list[dict[str, Any]], cost_limit: float) -> list[dict[str, Any]]:
     """One row per (task, algo, budget): mean ± std over seeds, safenav beside SB3 and the
     published reference."""
@@ -284,6 +323,8 @@ def summarize(suite: str, results: list[dict[str, Any]], cost_limit: float) -> l
             wall, _ = _mean_std([x["wall_clock_s"] for x in rs])
             row[impl] = {"return": ret, "return_std": ret_std, "cost": cost, "cost_std": cost_std,
                          "wall_clock_s": wall, "seeds": sorted(x["trial"]["seed"] for x in rs)}  # fmt: skip
+            if differ := config_differences(rs):
+                row[impl]["config_differs"] = differ
         if len(impls) > 1:  # wall clocks compare only on one machine on one day
             hosts = {(json.dumps(x.get("machine"), sort_keys=True), x.get("date"))
                      for rs in impls.values() for x in rs}  # fmt: skip
@@ -318,7 +359,7 @@ def markdown_table(suite: str, rows: list[dict[str, Any]], cost_limit: float) ->
                 wall += "" if r.get("same_machine") else " (other machine or day)"
             lines.append(f"| {r['env']} | {r['algo']} | {_count(r['steps'])} | {pm(s, 'return')} | "
                          f"{_ref_text(ref, r['steps'])} | {ok} | {pm(b, 'return')} | {wall} |")  # fmt: skip
-        return "\n".join(lines) + "\n"
+        return "\n".join(lines + _mixed_notes(rows)) + "\n"
     lines = [f"| task | algo | steps | return | episode cost | cost <= {cost_limit:g} | OmniSafe "
              "(published): return / cost | wall clock |", "|---|---|---:|---:|---:|:---:|---|---:|"]  # fmt: skip
     for r in rows:
@@ -332,7 +373,21 @@ def markdown_table(suite: str, rows: list[dict[str, Any]], cost_limit: float) ->
         wall = f"{s['wall_clock_s']:.0f} s" if s else "-"
         lines.append(f"| {r['env']} | {r['algo']} | {_count(r['steps'])} | {pm(s, 'return')} | "
                      f"{pm(s, 'cost')} | {ok} | {refs} | {wall} |")  # fmt: skip
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + _mixed_notes(rows)) + "\n"
+
+
+def _mixed_notes(rows: list[dict[str, Any]]) -> list[str]:
+    """A line under the table for each row whose seeds ran with different configurations."""
+    notes = []
+    for r in rows:
+        for impl in ("safenav", "sb3"):
+            if differ := (r.get(impl) or {}).get("config_differs"):
+                shown = ", ".join(differ[:6]) + (
+                    f" and {len(differ) - 6} more" if len(differ) > 6 else ""
+                )
+                notes.append(f"\n**{r['env']} {r['algo']} ({impl}): its seeds ran with different "
+                             f"configurations** ({shown}); the row averages them.")  # fmt: skip
+    return notes
 
 
 def plot_curves(suite: str, results: list[dict[str, Any]], path: Path, cost_limit: float) -> None:
@@ -391,6 +446,8 @@ def report(suite: str, trials: list[Trial], out: Path, cost_limit: float) -> lis
         raise SafenavRuntimeError(f"no finished trial of the {suite} suite in {out / 'trials'}")
     rows = summarize(suite, results, cost_limit)
     table = markdown_table(suite, rows, cost_limit)
+    for note in _mixed_notes(rows):
+        say(note.strip())
     write_text_atomic(out / "table.md", table)
     write_json(out / "summary.json", {"suite": suite, "cost_limit": cost_limit, "rows": rows,
                                       "trials": len(results), "selected": len(trials)})  # fmt: skip
