@@ -70,6 +70,26 @@ if "TinyBox-v0" not in gym.registry:
     gym.register("TinyBox-v0", entry_point=Tiny)
 
 
+class TinyFilmed(Tiny):
+    """Tiny with images (a grey frame, brighter with the step) and a cost in every even step."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(self, render_mode=None, width=16, height=16):
+        self.render_mode, self.size = render_mode, (height, width)
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = super().step(action)
+        return obs, reward, terminated, truncated, {"cost": float(self.t % 2 == 0)}
+
+    def render(self):
+        return np.full((*self.size, 3), 10 * self.t, np.uint8)
+
+
+if "TinyFilmed-v0" not in gym.registry:
+    gym.register("TinyFilmed-v0", entry_point=TinyFilmed)
+
+
 run = run_cli
 
 
@@ -179,6 +199,42 @@ def test_each_recipe_is_chosen_from_the_env_and_trains(algo, env, recipe, extra,
     summary = out.splitlines()[-2]
     assert "success" not in summary and "nan" not in summary, summary
     assert summary.startswith(("  last ", "  no training episode ended in")), summary
+
+
+def test_render_films_a_gymnasium_policy_with_its_return_cost_and_costly_steps(tmp_path, capsys):
+    from PIL import Image
+
+    run_dir, gif = tmp_path / "run", tmp_path / "episode.gif"
+    code, _, err = run(capsys, ["train", "--algo", "sac", "--env", "TinyFilmed-v0", "--total-steps",
+                                "150", "--run-dir", str(run_dir), *QUIET, "--csac.learning-starts",
+                                "100", "--csac.batch-size", "32"])  # fmt: skip
+    assert code == 0, err
+    code, out, err = run(capsys, ["render", str(run_dir), "--out", str(gif), "--fps", "5",
+                                  "--episode", "1"])  # fmt: skip
+    assert code == 0, err
+    assert "'env': 'TinyFilmed-v0', 'episode': 1," in out and "'cost': 10.0, 'length': 20," in out
+    # render_fps 10 at --fps 5: every 2nd step, 10 frames, then the last held for a second
+    assert "'frames': 10, 'steps_per_frame': 2" in out
+    frames, durations = [], []
+    with Image.open(gif) as im:
+        for i in range(im.n_frames):
+            im.seek(i)
+            frames.append(np.asarray(im.convert("RGB")))
+            durations.append(im.info["duration"])
+    # Pillow merges the held copies into the last frame: 200 ms each, the last 6 x 200 ms
+    assert len(frames) == 10 and durations[0] == 200 and durations[-1] == 1200
+    # each filmed step (2, 4, ...) costs here: red border; the policy's return is written on it
+    assert all(f[0, 0, 0] > 200 and f[0, 0, 1] < 60 for f in frames)
+    assert frames[0].shape[:2] == (240, 240)
+    code, _, err = run(capsys, ["render", str(run_dir), "--out", str(gif), "--shield"])
+    assert code != 0 and "--shield: SafeNav options;" in err and "policy for TinyFilmed-v0" in err
+    # a task without images is refused in one line
+    code, _, err = run(capsys, ["train", "--algo", "sac", "--env", "TinyBox-v0", "--total-steps",
+                                "150", "--run-dir", str(tmp_path / "blind"), *QUIET,
+                                "--csac.learning-starts", "100", "--csac.batch-size", "32"])  # fmt: skip
+    assert code == 0, err
+    code, _, err = run(capsys, ["render", str(tmp_path / "blind"), "--out", str(gif)])
+    assert code != 0 and "TinyBox-v0 does not render to images" in err
 
 
 # ------------------------------------------------------------------------- no silent nonsense

@@ -30,6 +30,11 @@ def render(
 ) -> None:
     """Render one episode (top-down: pillars, moving obstacles, lidar beams, trail, goal) to a GIF.
 
+    A checkpoint trained on another Gymnasium task flies episode ``episode`` after
+    ``reset(seed=env_seed)`` of that task, in its own rendering, with the running return and cost
+    on each frame and a red frame around each step that costs (``--fps 25`` or so plays a MuJoCo
+    task near real time); the SafeNav-only options do not apply there.
+
     Flies episode ``episode`` of the fixed test scenario (env seed ``env_seed``, full density)
     with the checkpoint's deterministic policy, or a scripted potential-field controller
     (``--policy scripted``, the default without a checkpoint) or uniform random actions.
@@ -41,7 +46,7 @@ def render(
         out: The GIF to write (*.gif; its directory must exist).
         policy: What flies: the checkpoint, or a baseline without one.
         preset: Env preset (easy, medium, paper); default: the checkpoint's, else paper.
-        env_seed: Env seed of the test scenario's map.
+        env_seed: Env seed of the test scenario's map (a Gymnasium task: the reset seed).
         episode: Which episode of the fixed scenario (start and goal), from 0.
         fps: Frames per second of the GIF (1-100).
         record: Also log the episode here (*.mcap: ROS 2 messages, for Foxglove / ros2 bag).
@@ -79,6 +84,11 @@ def render(
                                  shield_brake)  # fmt: skip
     if checkpoint is None and policy == "checkpoint":
         policy = "scripted"
+    safenav_only = {"--preset": preset is not None, "--record": record is not None,
+                    "--shield": shield}  # fmt: skip
+    if policy == "checkpoint" and _render_gymnasium(checkpoint, out, env_seed, episode, fps,
+                                                    [k for k, v in safenav_only.items() if v]):  # fmt: skip
+        return
     if policy == "checkpoint":  # a policy trained behind the shield flies behind it
         from safenav.commands.eval import own_shield_settings
         from safenav.experiments.flight import resolve_policy
@@ -92,3 +102,27 @@ def render(
                            shield_mover_margin=shield_mover_margin,
                            shield_brake=shield_brake)  # fmt: skip
     print(f"wrote {out}{f' and {record}' if record is not None else ''}: {stats}")
+
+
+def _render_gymnasium(checkpoint: Path, out: Path, seed: int, episode: int, fps: int,
+                      safenav_options: list[str]) -> bool:  # fmt: skip
+    """Render a checkpoint of a non-SafeNav task (and say so); False for a SafeNav one."""
+    from safenav.algos.policy import load_policy
+    from safenav.common.checkpoint import load_checkpoint
+    from safenav.envs.vector import is_safenav
+    from safenav.errors import SafenavError
+    from safenav.experiments.gym_render import render_gym_episode
+
+    loaded = load_policy(checkpoint)
+    env_id = str(loaded.meta.get("env_id", ""))
+    if not env_id or is_safenav(env_id):
+        return False
+    if safenav_options:
+        raise SafenavError(f"{', '.join(safenav_options)}: SafeNav options; {checkpoint} is a "
+                           f"policy for {env_id}")  # fmt: skip
+    path = checkpoint / "checkpoint.pt" if checkpoint.is_dir() else checkpoint
+    run = load_checkpoint(path).get("config", {}).get("run", {})  # policy-only files have none
+    stats = render_gym_episode(out, loaded, seed=seed, episode=episode, fps=fps,
+                               cost_fn=run.get("cost_fn"))  # fmt: skip
+    print(f"wrote {out}: {stats}")
+    return True

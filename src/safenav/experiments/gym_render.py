@@ -1,0 +1,104 @@
+"""One episode of a policy trained on a Gymnasium task, as a GIF (``safenav render`` on a
+non-SafeNav checkpoint): the task's own ``rgb_array`` frames, the running return and cost written
+on each, and a red frame around every step that costs (Safety-Gymnasium's velocity tasks: a step
+over the speed threshold)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from safenav.errors import SafenavError
+
+BORDER = 6  # pixels of the red frame around a costly step
+
+
+def _headless_gl() -> None:
+    """MuJoCo renders off-screen through EGL where there is no display (set before it loads)."""
+    if not os.environ.get("DISPLAY"):
+        os.environ.setdefault("MUJOCO_GL", "egl")
+
+
+def _annotate(frame: np.ndarray, text: str, costly: bool) -> np.ndarray:
+    from PIL import Image, ImageDraw
+
+    if costly:
+        frame = frame.copy()
+        frame[:BORDER], frame[-BORDER:] = (220, 30, 30), (220, 30, 30)
+        frame[:, :BORDER], frame[:, -BORDER:] = (220, 30, 30), (220, 30, 30)
+    img = Image.fromarray(frame)
+    draw = ImageDraw.Draw(img)
+    draw.rectangle((BORDER, BORDER, BORDER + 7 * len(text) + 6, BORDER + 16), fill=(255, 255, 255))
+    draw.text((BORDER + 3, BORDER + 2), text, fill=(0, 0, 0))
+    return np.asarray(img)
+
+
+@torch.no_grad()
+def render_gym_episode(out: Path, policy: Any, seed: int = 1, episode: int = 0, fps: int = 25,
+                       cost_fn: str | None = None, size: int = 240,
+                       max_steps: int = 100_000) -> dict[str, Any]:  # fmt: skip
+    """Fly episode ``episode`` (from 0) after ``reset(seed=seed)`` of ``policy.meta["env_id"]``
+    (with the run's ``--cost-fn`` if it had one) with the deterministic ``policy`` (a
+    :class:`safenav.algos.policy.Policy`) and write ``out``
+    at ``fps``, one frame per ``round(render_fps / fps)`` env steps (real time where the task
+    declares its ``render_fps``); returns the episode's return, cost and length."""
+    import gymnasium as gym
+
+    import safenav  # noqa: F401  (registers the velocity tasks)
+    from safenav.common.costs import CostFn
+    from safenav.envs.render import write_gif
+
+    env_id = str(policy.meta.get("env_id", ""))
+    _headless_gl()
+    try:
+        try:
+            env = gym.make(env_id, render_mode="rgb_array", width=size, height=size)
+        except TypeError:  # a task whose renderer takes no size
+            env = gym.make(env_id, render_mode="rgb_array")
+    except (TypeError, gym.error.Error) as err:
+        raise SafenavError(f"{env_id} does not render to images (render_mode='rgb_array'): "
+                           f"{err}") from None  # fmt: skip
+    if cost_fn is not None:
+        env = CostFn(env, cost_fn)
+    low = np.asarray(policy.meta["action_low"], dtype=np.float64)
+    high = np.asarray(policy.meta["action_high"], dtype=np.float64)
+    stride = max(1, round(env.metadata.get("render_fps", fps) / fps))
+    obs, _ = env.reset(seed=seed)
+    frames: list[np.ndarray] = []
+    try:
+        for k in range(episode + 1):
+            ret, cost, steps, done = 0.0, 0.0, 0, False
+            filmed = k == episode
+            while not done and steps < max_steps:
+                action = policy(np.asarray(obs, dtype=np.float32)).cpu().numpy().astype(np.float64)
+                obs, reward, terminated, truncated, info = env.step(
+                    low + (np.clip(action, -1.0, 1.0) + 1.0) * 0.5 * (high - low)
+                )
+                c = float(info.get("cost", 0.0))
+                ret, cost, steps, done = (
+                    ret + float(reward),
+                    cost + c,
+                    steps + 1,
+                    terminated or truncated,
+                )
+                if filmed and (steps % stride == 0 or done):
+                    text = f"step {steps}  return {ret:.0f}  cost {cost:g}"
+                    frames.append(_annotate(np.asarray(env.render()), text, c > 0))
+            if not done:
+                raise SafenavError(f"episode {k} of {env_id} did not end in {max_steps} steps")
+            if not filmed:
+                obs, _ = env.reset()
+    finally:
+        env.close()
+    frames += [frames[-1]] * fps  # hold the last frame a second: the outcome stays visible
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    write_gif(out, frames, fps)
+    return {"env": env_id, "episode": episode, "return": round(ret, 2), "cost": cost,
+            "length": steps, "frames": len(frames) - fps, "steps_per_frame": stride}  # fmt: skip
+
+
+__all__ = ["render_gym_episode"]
