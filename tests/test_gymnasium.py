@@ -201,7 +201,9 @@ def test_each_recipe_is_chosen_from_the_env_and_trains(algo, env, recipe, extra,
     assert summary.startswith(("  last ", "  no training episode ended in")), summary
 
 
-def test_render_films_a_gymnasium_policy_with_its_return_cost_and_costly_steps(tmp_path, capsys):
+def test_render_films_a_gymnasium_policy_with_its_return_cost_and_costly_steps(
+    tmp_path, capsys, monkeypatch
+):
     from PIL import Image
 
     run_dir, gif = tmp_path / "run", tmp_path / "episode.gif"
@@ -226,6 +228,18 @@ def test_render_films_a_gymnasium_policy_with_its_return_cost_and_costly_steps(t
     # each filmed step (2, 4, ...) costs here: red border; the policy's return is written on it
     assert all(f[0, 0, 0] > 200 and f[0, 0, 1] < 60 for f in frames)
     assert frames[0].shape[:2] == (240, 240)
+    # a run trained with --cost-fn is filmed with its cost function
+    (tmp_path / "thirds.py").write_text(
+        "def every_third(obs, action, next_obs, info):\n    return float(next_obs[0] * 20 % 3 == 0)\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    code, _, err = run(capsys, ["train", "--algo", "csac", "--env", "TinyFilmed-v0", "--total-steps",
+                                "150", "--cost-fn", "thirds:every_third", "--run-dir",
+                                str(tmp_path / "thirds"), *QUIET, "--csac.learning-starts", "100",
+                                "--csac.batch-size", "32"])  # fmt: skip
+    assert code == 0, err
+    code, out, err = run(capsys, ["render", str(tmp_path / "thirds"), "--out", str(gif)])
+    assert code == 0 and "'cost': 6.0, 'length': 20," in out, err
     code, _, err = run(capsys, ["render", str(run_dir), "--out", str(gif), "--shield"])
     assert code != 0 and "--shield: SafeNav options;" in err and "policy for TinyFilmed-v0" in err
     # a task without images is refused in one line
