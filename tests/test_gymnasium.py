@@ -453,6 +453,12 @@ def test_bench_table_says_when_the_seeds_of_a_row_ran_different_configurations()
         "SafetyHopperVelocity-v5 csac (safenav): its seeds ran with different configurations** "
         "(csac.cost_critic_output)"
     ) in markdown_table("safe", mixed, 25.0)
+    # the limit column: the mean's verdict and how many seeds kept it (a mean can hide a seed)
+    over = result(3, "softplus")
+    over["final"]["cost"] = 40.0
+    rows = summarize("safe", [result(1, "softplus"), result(2, "softplus"), over], 25.0)
+    assert rows[0]["under_limit"] and rows[0]["seeds_under_limit"] == 2
+    assert "| 17 ± 20 (n=3) | yes (2/3 seeds) |" in markdown_table("safe", rows, 25.0)
 
 
 def test_bench_table_compares_wall_clocks_only_on_one_machine_and_day():

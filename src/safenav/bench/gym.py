@@ -332,7 +332,10 @@ def summarize(suite: str, results: list[dict[str, Any]], cost_limit: float) -> l
         if "safenav" in row and ref is not None and suite == "gym":
             row["within_10pct"] = within(row["safenav"]["return"], ref.value)
         if "safenav" in row and suite == "safe":
-            row["under_limit"] = row["safenav"]["cost"] <= cost_limit
+            row["under_limit"] = row["safenav"]["cost"] <= cost_limit  # the mean over seeds
+            row["seeds_under_limit"] = sum(
+                x["final"]["cost"] <= cost_limit for x in impls["safenav"]
+            )
         rows.append(row)
     order = list(SUITES[suite])
     rows.sort(key=lambda x: (order.index(x["env"]), x["algo"], x["steps"]))
@@ -360,12 +363,14 @@ def markdown_table(suite: str, rows: list[dict[str, Any]], cost_limit: float) ->
             lines.append(f"| {r['env']} | {r['algo']} | {_count(r['steps'])} | {pm(s, 'return')} | "
                          f"{_ref_text(ref, r['steps'])} | {ok} | {pm(b, 'return')} | {wall} |")  # fmt: skip
         return "\n".join(lines + _mixed_notes(rows)) + "\n"
-    lines = [f"| task | algo | steps | return | episode cost | cost <= {cost_limit:g} | OmniSafe "
+    lines = [f"| task | algo | steps | return | episode cost | mean cost <= {cost_limit:g} | OmniSafe "
              "(published): return / cost | wall clock |", "|---|---|---:|---:|---:|:---:|---|---:|"]  # fmt: skip
     for r in rows:
         s = r.get("safenav")
         ref = Reference(**r["reference"]) if r["reference"] else None
         ok = {True: "yes", False: "no"}.get(r.get("under_limit"), "-")
+        if s is not None and "seeds_under_limit" in r:  # the mean can hide a seed over it
+            ok += f" ({r['seeds_under_limit']}/{len(s['seeds'])} seeds)"
         refs = "-"
         if ref is not None:
             at = "" if ref.steps == r["steps"] else f" at {_count(ref.steps)}"
