@@ -13,9 +13,10 @@ transition of the episodes that finished:
 Averaged over transitions, equal means an unbiased critic; ``predicted / realised`` well below 1
 means the constraint holds a cost lower than the real one. On a task with a time limit (Hopper's
 1000 steps) the realised sum stops at the cut, so the last ~1/(1 - gamma) steps of a cut episode
-read low. Also the mean cost, return and length of the episodes that finished (of this
-stochastic policy; an evaluation flies the deterministic one). Both again over the transitions with cost close ahead (realised > 0.5):
-``*_near_collision`` on SafeNav, ``*_cost_ahead`` on other tasks. The same for the reward critics
+read low. Both again over the transitions with cost close ahead (realised > 0.5):
+``*_near_collision`` on SafeNav, ``*_cost_ahead`` on other tasks. Also the mean cost, return and
+length of the episodes that finished (of this stochastic policy; an evaluation flies the
+deterministic one). The same for the reward critics
 (``min_j Q_R,j``, realised reward-to-go plus the entropy bonus left out: a rough check only).
 
 Run: ``.venv/bin/python experiments/cost_critic_bias.py runs/NAME/checkpoint.pt [--steps 400]

@@ -107,21 +107,21 @@ def render(
 def _render_gymnasium(checkpoint: Path, out: Path, seed: int, episode: int, fps: int,
                       safenav_options: list[str]) -> bool:  # fmt: skip
     """Render a checkpoint of a non-SafeNav task (and say so); False for a SafeNav one."""
-    from safenav.algos.policy import load_policy
+    from safenav.algos.policy import policy_from_state
     from safenav.common.checkpoint import load_checkpoint
     from safenav.envs.vector import is_safenav
     from safenav.errors import SafenavError
     from safenav.experiments.gym_render import render_gym_episode
 
-    loaded = load_policy(checkpoint)
+    state = load_checkpoint(checkpoint)  # read once: a SAC checkpoint holds its replay buffer
+    loaded = policy_from_state(state, checkpoint)
     env_id = str(loaded.meta.get("env_id", ""))
     if not env_id or is_safenav(env_id):
         return False
     if safenav_options:
         raise SafenavError(f"{', '.join(safenav_options)}: SafeNav options; {checkpoint} is a "
                            f"policy for {env_id}")  # fmt: skip
-    path = checkpoint / "checkpoint.pt" if checkpoint.is_dir() else checkpoint
-    run = load_checkpoint(path).get("config", {}).get("run", {})  # policy-only files have none
+    run = state.get("config", {}).get("run", {})  # policy-only files have none
     stats = render_gym_episode(out, loaded, seed=seed, episode=episode, fps=fps,
                                cost_fn=run.get("cost_fn"))  # fmt: skip
     print(f"wrote {out}: {stats}")

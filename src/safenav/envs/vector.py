@@ -240,6 +240,11 @@ def _info_success(info: dict, ids: list[int]) -> np.ndarray:
     return success
 
 
+def to_action_box(action: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
+    """A policy's ``[-1, 1]^A`` action (clamped) -> the box ``[low, high]``."""
+    return low + (action.clamp(-1, 1) + 1.0) * 0.5 * (high - low)
+
+
 class TorchVecEnv:
     """The tensor view of a vector env described in the module docstring."""
 
@@ -286,7 +291,7 @@ class TorchVecEnv:
         """``[-1, 1]^A`` -> the env's action box."""
         if self._unit:
             return action
-        return self._low + (action.clamp(-1, 1) + 1.0) * 0.5 * (self._high - self._low)
+        return to_action_box(action, self._low, self._high)
 
     def _to_env(self, action: torch.Tensor):
         a = self.scale_action(action)

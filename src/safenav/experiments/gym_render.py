@@ -43,14 +43,14 @@ def render_gym_episode(out: Path, policy: Any, seed: int = 1, episode: int = 0, 
                        max_steps: int = 100_000) -> dict[str, Any]:  # fmt: skip
     """Fly episode ``episode`` (from 0) after ``reset(seed=seed)`` of ``policy.meta["env_id"]``
     (with the run's ``--cost-fn`` if it had one) with the deterministic ``policy`` (a
-    :class:`safenav.algos.policy.Policy`) and write ``out``
-    at ``fps``, one frame per ``round(render_fps / fps)`` env steps (real time where the task
+    :class:`safenav.algos.policy.Policy`) and write ``out`` at ``fps``, one frame per ``round(render_fps / fps)`` env steps (real time where the task
     declares its ``render_fps``); returns the episode's return, cost and length."""
     import gymnasium as gym
 
     import safenav  # noqa: F401  (registers the velocity tasks)
     from safenav.common.costs import CostFn
     from safenav.envs.render import write_gif
+    from safenav.envs.vector import to_action_box
 
     env_id = str(policy.meta.get("env_id", ""))
     _headless_gl()
@@ -64,8 +64,8 @@ def render_gym_episode(out: Path, policy: Any, seed: int = 1, episode: int = 0, 
                            f"{err}") from None  # fmt: skip
     if cost_fn is not None:
         env = CostFn(env, cost_fn)
-    low = np.asarray(policy.meta["action_low"], dtype=np.float64)
-    high = np.asarray(policy.meta["action_high"], dtype=np.float64)
+    low = torch.as_tensor(policy.meta["action_low"], dtype=torch.float32)
+    high = torch.as_tensor(policy.meta["action_high"], dtype=torch.float32)
     stride = max(1, round(env.metadata.get("render_fps", fps) / fps))
     obs, _ = env.reset(seed=seed)
     frames: list[np.ndarray] = []
@@ -74,17 +74,13 @@ def render_gym_episode(out: Path, policy: Any, seed: int = 1, episode: int = 0, 
             ret, cost, steps, done = 0.0, 0.0, 0, False
             filmed = k == episode
             while not done and steps < max_steps:
-                action = policy(np.asarray(obs, dtype=np.float32)).cpu().numpy().astype(np.float64)
+                action = to_action_box(policy(np.asarray(obs, dtype=np.float32)).cpu(), low, high)
                 obs, reward, terminated, truncated, info = env.step(
-                    low + (np.clip(action, -1.0, 1.0) + 1.0) * 0.5 * (high - low)
+                    action.numpy().astype(np.float64)
                 )
                 c = float(info.get("cost", 0.0))
-                ret, cost, steps, done = (
-                    ret + float(reward),
-                    cost + c,
-                    steps + 1,
-                    terminated or truncated,
-                )
+                ret, cost, steps = ret + float(reward), cost + c, steps + 1
+                done = terminated or truncated
                 if filmed and (steps % stride == 0 or done):
                     text = f"step {steps}  return {ret:.0f}  cost {cost:g}"
                     frames.append(_annotate(np.asarray(env.render()), text, c > 0))
