@@ -595,3 +595,23 @@ def test_readme_documents_the_exit_codes():
     for code, word in (("0", "success"), ("1", "runtime"), ("2", "usage"), ("3", "aborted"),
                        ("4", "collided"), ("130", "Ctrl-C"), ("143", "SIGTERM")):  # fmt: skip
         assert re.search(rf"^\| {code} \|.*{word}", section, re.M | re.I), code
+
+
+def test_render_reads_a_safenav_checkpoint_once(capsys, tiny_run, tmp_path, monkeypatch):
+    """A training checkpoint holds the replay buffer: ``render`` read it three times (the
+    Gymnasium check, the shield settings, the flight)."""
+    import safenav.algos.policy as policy_module
+    import safenav.common.checkpoint as checkpoint_module
+
+    reads = []
+
+    def counting(path, *a, real=checkpoint_module.load_checkpoint, **k):
+        reads.append(path)
+        return real(path, *a, **k)
+
+    monkeypatch.setattr(checkpoint_module, "load_checkpoint", counting)
+    monkeypatch.setattr(policy_module, "load_checkpoint", counting)
+    gif = tmp_path / "flight.gif"
+    code, out, err = run(capsys, ["render", str(tiny_run), "--preset", "easy", "--out", str(gif)])
+    assert code == 0 and gif.stat().st_size > 0 and "wrote" in out, err
+    assert len(reads) == 1, reads

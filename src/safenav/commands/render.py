@@ -86,27 +86,30 @@ def render(
         policy = "scripted"
     safenav_only = {"--preset": preset is not None, "--record": record is not None,
                     "--shield": shield}  # fmt: skip
-    if policy == "checkpoint" and _render_gymnasium(checkpoint, out, env_seed, episode, fps,
-                                                    [k for k, v in safenav_only.items() if v]):  # fmt: skip
-        return
-    if policy == "checkpoint":  # a policy trained behind the shield flies behind it
+    loaded = None
+    if policy == "checkpoint":
+        loaded = _load_or_render_gymnasium(checkpoint, out, env_seed, episode, fps,
+                                           [k for k, v in safenav_only.items() if v])  # fmt: skip
+        if loaded is None:
+            return
         from safenav.commands.eval import own_shield_settings
-        from safenav.experiments.flight import resolve_policy
 
-        fn, _ = resolve_policy(checkpoint, policy)
+        # a policy trained behind the shield flies behind it
         memory, shield_map, shield_mover_margin, shield_brake = own_shield_settings(
-            fn, checkpoint, memory, shield_map, shield_mover_margin, shield_brake)  # fmt: skip
+            loaded, checkpoint, memory, shield_map, shield_mover_margin, shield_brake)  # fmt: skip
     stats = render_episode(out, checkpoint=checkpoint, policy=policy, preset=preset,
                            env_seed=env_seed, episode=episode, fps=fps, record=record,
                            shield_memory=memory, shield_map=shield_map,
                            shield_mover_margin=shield_mover_margin,
-                           shield_brake=shield_brake)  # fmt: skip
+                           shield_brake=shield_brake, loaded=loaded)  # fmt: skip
     print(f"wrote {out}{f' and {record}' if record is not None else ''}: {stats}")
 
 
-def _render_gymnasium(checkpoint: Path, out: Path, seed: int, episode: int, fps: int,
-                      safenav_options: list[str]) -> bool:  # fmt: skip
-    """Render a checkpoint of a non-SafeNav task (and say so); False for a SafeNav one."""
+def _load_or_render_gymnasium(checkpoint: Path, out: Path, seed: int, episode: int, fps: int,
+                              safenav_options: list[str]):  # fmt: skip
+    """The checkpoint's policy when it flies SafeNav; a checkpoint of another task is rendered
+    here (and said so), and None returned. The file is read once: a SAC checkpoint holds its
+    replay buffer."""
     from safenav.algos.policy import policy_from_state
     from safenav.common.checkpoint import load_checkpoint
     from safenav.envs.vector import is_safenav
@@ -117,7 +120,7 @@ def _render_gymnasium(checkpoint: Path, out: Path, seed: int, episode: int, fps:
     loaded = policy_from_state(state, checkpoint)
     env_id = str(loaded.meta.get("env_id", ""))
     if not env_id or is_safenav(env_id):
-        return False
+        return loaded
     if safenav_options:
         raise SafenavError(f"{', '.join(safenav_options)}: SafeNav options; {checkpoint} is a "
                            f"policy for {env_id}")  # fmt: skip
@@ -125,4 +128,4 @@ def _render_gymnasium(checkpoint: Path, out: Path, seed: int, episode: int, fps:
     stats = render_gym_episode(out, loaded, seed=seed, episode=episode, fps=fps,
                                cost_fn=run.get("cost_fn"))  # fmt: skip
     print(f"wrote {out}: {stats}")
-    return True
+    return None

@@ -17,16 +17,19 @@ from safenav.experiments.evaluate import fixed_test_scenario
 POLICIES = ("checkpoint", "scripted", "straight", "border", "random")
 
 
-def resolve_policy(checkpoint: Path | None, policy: str, device: str = "cpu"):
+def resolve_policy(checkpoint: Path | None, policy: str, device: str = "cpu", loaded=None):
     """``(policy_fn, env_config)`` for a checkpoint (its env config) or a baseline: ``scripted``
     (potential field), ``straight`` (straight at the goal), ``border`` (around the field along
-    the border: the loophole probe), ``random``."""
+    the border: the loophole probe), ``random``. ``loaded``: the checkpoint's
+    :class:`~safenav.algos.policy.Policy` when the caller has read it already (a SAC checkpoint
+    holds its replay buffer: read it once)."""
     if policy == "checkpoint":
-        if checkpoint is None:
+        if loaded is None and checkpoint is None:
             raise SafenavError("no checkpoint given: pass CHECKPOINT or --policy scripted")
-        from safenav.algos.policy import load_policy
+        if loaded is None:
+            from safenav.algos.policy import load_policy
 
-        loaded = load_policy(checkpoint, device=device)
+            loaded = load_policy(checkpoint, device=device)
         return loaded, loaded.env_config()
     if policy == "scripted":
         return potential_field, None
@@ -67,11 +70,13 @@ def render_episode(
     shield_map: bool = False,
     shield_mover_margin: float = 0.0,
     shield_brake: bool = False,
+    loaded=None,
 ) -> dict:
     """Fly episode ``episode`` of the fixed scenario and write ``out`` (GIF), and ``record``
-    (MCAP, stamped with the simulation time) when given; returns its stats."""
+    (MCAP, stamped with the simulation time) when given; returns its stats. ``loaded``: the
+    checkpoint's policy, when already read."""
     frames, stats = fly_frames(checkpoint, policy, preset, env_seed, episode, record, shield_memory,
-                               shield_map, shield_mover_margin, shield_brake)  # fmt: skip
+                               shield_map, shield_mover_margin, shield_brake, loaded)  # fmt: skip
     Path(out).parent.mkdir(parents=True, exist_ok=True)
     # Hold the last frame for a second so the outcome is visible.
     frames += [frames[-1]] * fps
@@ -91,14 +96,15 @@ def fly_frames(
     shield_map: bool = False,
     shield_mover_margin: float = 0.0,
     shield_brake: bool = False,
+    loaded=None,
 ) -> tuple[list, dict]:
     """The rendered frames (top-down RGB arrays, the last with the outcome) and the stats of
     episode ``episode`` of the fixed scenario of map ``env_seed``, flown by the policy, behind
     the safety shield when ``shield_memory`` is 1 (the memoryless shield) or more (a
     :class:`~safenav.deploy.shield.MemoryShield` of that many range images), with the map scan
     when ``shield_map``, ``shield_mover_margin`` metres more clearance from moving obstacles, the
-    braking cap when ``shield_brake``."""
-    fn, cfg = resolve_policy(checkpoint, policy)
+    braking cap when ``shield_brake``; ``loaded``: the checkpoint's policy, when already read."""
+    fn, cfg = resolve_policy(checkpoint, policy, loaded=loaded)
     cfg, starts, goals = fixed_test_scenario(scenario_config(cfg, preset), env_seed, episode + 1)
     env = SafeNavVectorEnv(1, config=cfg, output="torch", autoreset_mode="Disabled",
                            render_mode="rgb_array")  # fmt: skip
