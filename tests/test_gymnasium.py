@@ -90,6 +90,42 @@ if "TinyFilmed-v0" not in gym.registry:
     gym.register("TinyFilmed-v0", entry_point=TinyFilmed)
 
 
+class TinyHuman(TinyFilmed):
+    """Takes ``render_mode`` but renders to a window only (render() gives nothing)."""
+
+    metadata = {"render_modes": ["human"], "render_fps": 10}
+
+    def render(self):
+        return None
+
+
+class TinyDictFilmed(TinyFilmed):
+    """TinyFilmed with a dict observation of two Boxes."""
+
+    observation_space = gym.spaces.Dict(
+        {
+            "time": gym.spaces.Box(0.0, 1.0, (1,), np.float32),
+            "last": gym.spaces.Box(-1.0, 1.0, (1,), np.float32),
+        }  # fmt: skip
+    )
+
+    def _split(self, obs):
+        return {"time": obs[:1], "last": obs[1:]}
+
+    def reset(self, *, seed=None, options=None):
+        obs, info = super().reset(seed=seed, options=options)
+        return self._split(obs), info
+
+    def step(self, action):
+        obs, *rest = super().step(action)
+        return self._split(obs), *rest
+
+
+for _name, _entry in (("TinyHuman-v0", TinyHuman), ("TinyDictFilmed-v0", TinyDictFilmed)):
+    if _name not in gym.registry:
+        gym.register(_name, entry_point=_entry)
+
+
 run = run_cli
 
 
@@ -240,6 +276,18 @@ def test_render_films_a_gymnasium_policy_with_its_return_cost_and_costly_steps(
     assert code == 0, err
     code, out, err = run(capsys, ["render", str(tmp_path / "thirds"), "--out", str(gif)])
     assert code == 0 and "'cost': 6.0, 'length': 20," in out, err
+    # a frame every 2nd step, a cost every 3rd: a frame is red when a step since the last one cost
+    code, out, err = run(
+        capsys, ["render", str(tmp_path / "thirds"), "--out", str(gif), "--fps", "5"]
+    )
+    assert code == 0, err
+    with Image.open(gif) as im:
+        red = []
+        for i in range(im.n_frames):
+            im.seek(i)
+            red.append(bool(np.asarray(im.convert("RGB"))[0, 0, 0] > 200))
+    # frames at steps 2, 4, ..., 20; costs at 3, 6, ..., 18
+    assert red == [False, True, True, False, True, True, False, True, True, False], red
     code, _, err = run(capsys, ["render", str(run_dir), "--out", str(gif), "--shield"])
     assert code != 0 and "--shield: SafeNav options;" in err and "policy for TinyFilmed-v0" in err
     # a task without images is refused in one line
@@ -249,6 +297,21 @@ def test_render_films_a_gymnasium_policy_with_its_return_cost_and_costly_steps(
     assert code == 0, err
     code, _, err = run(capsys, ["render", str(tmp_path / "blind"), "--out", str(gif)])
     assert code != 0 and "TinyBox-v0 does not render to images" in err
+    # one that takes render_mode but lists no image mode (Gymnasium only warns): refused too
+    code, _, err = run(capsys, ["train", "--algo", "sac", "--env", "TinyHuman-v0", "--total-steps",
+                                "150", "--run-dir", str(tmp_path / "human"), *QUIET,
+                                "--csac.learning-starts", "100", "--csac.batch-size", "32"])  # fmt: skip
+    assert code == 0, err
+    code, _, err = run(capsys, ["render", str(tmp_path / "human"), "--out", str(gif)])
+    assert code != 0 and "TinyHuman-v0 does not render to images" in err
+    assert len(err.strip().splitlines()) == 1, err
+    # a dict observation is filmed too
+    code, _, err = run(capsys, ["train", "--algo", "sac", "--env", "TinyDictFilmed-v0",
+                                "--total-steps", "150", "--run-dir", str(tmp_path / "dict"), *QUIET,
+                                "--csac.learning-starts", "100", "--csac.batch-size", "32"])  # fmt: skip
+    assert code == 0, err
+    code, out, err = run(capsys, ["render", str(tmp_path / "dict"), "--out", str(gif)])
+    assert code == 0 and "'env': 'TinyDictFilmed-v0'" in out and "'length': 20," in out, err
 
 
 # ------------------------------------------------------------------------- no silent nonsense
@@ -444,7 +507,10 @@ def test_bench_table_says_when_the_seeds_of_a_row_ran_different_configurations()
                            "csac": csac, "recipe": {"name": "mujoco-sac", "header": f"v{seed}"}}}  # fmt: skip
 
     # seeds, threads and the recipe's header text may differ; a key a trial lacks is its default
-    same = summarize("safe", [result(1, None, 1), result(2, "linear", 2)], 25.0)
+    # (a tuple default equals the list a trial file holds)
+    listed = result(1, None, 1)
+    listed["config"]["csac"]["net"] = {"hidden": [256, 256], "flatten_hidden": []}
+    same = summarize("safe", [listed, result(2, "linear", 2)], 25.0)
     assert "config_differs" not in same[0]["safenav"]
     assert "different configurations" not in markdown_table("safe", same, 25.0)
     mixed = summarize("safe", [result(1, None), result(2, "softplus"), result(3, "softplus")], 25.0)
@@ -599,3 +665,18 @@ def test_csac_keeps_the_cost_limit_on_a_velocity_task(tmp_path, capsys):
     cost = np.mean([float(r["eval/cost"]) for r in evals[-3:]])
     ret = np.mean([float(r["eval/return"]) for r in evals[-3:]])
     assert cost <= 25.0 and ret > 0, f"episode cost {cost:.1f}, return {ret:.0f}"
+
+
+def test_to_action_box_maps_onto_any_finite_box():
+    import torch
+
+    from safenav.envs.vector import to_action_box
+
+    low = torch.tensor([-2.0, 0.0, -3.4e38])
+    high = torch.tensor([1.0, 5.0, 3.4e38])  # float32's edge: high - low overflows
+    a = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0], [0.0, 0.0, 0.0], [3.0, -7.0, 0.5]])
+    box = to_action_box(a, low, high)
+    assert torch.isfinite(box).all()
+    assert box[0].tolist() == low.tolist() and box[1].tolist() == high.tolist()
+    assert box[2, :2].tolist() == [-0.5, 2.5] and box[2, 2] == 0.0
+    assert box[3, :2].tolist() == [1.0, 0.0]  # clamped to the box

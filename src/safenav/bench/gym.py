@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import json
 import math
 import os
 import platform
@@ -143,7 +144,6 @@ def steps_done(trial: Trial, out: Path) -> int:
 
 def collect(trial: Trial, out: Path, wall_s: float) -> dict[str, Any]:
     """The trial file's content from a finished child's outputs."""
-    import json
 
     from safenav.common.machine import machine_description
 
@@ -226,7 +226,6 @@ def run_trials(trials: list[Trial], out: Path, cost_limit: float, jobs: int = 1,
 def load_results(suite: str, out: Path) -> list[dict[str, Any]]:
     """Every finished trial of ``suite`` in ``OUT/trials``, whichever run wrote it: the table is
     the suite's, so running one task again does not drop the others' rows."""
-    import json
 
     found = []
     for path in sorted((out / "trials").glob("*.json")):
@@ -276,9 +275,12 @@ def _defaults() -> dict[str, Any]:
     from safenav.algos.ppo_config import PPOConfig
     from safenav.common.config import RunConfig
 
-    return _flat(
-        {"run": asdict(RunConfig()), "csac": asdict(CSACConfig()), "ppo": asdict(PPOConfig())}
-    )
+    defaults = {
+        "run": asdict(RunConfig()),
+        "csac": asdict(CSACConfig()),
+        "ppo": asdict(PPOConfig()),
+    }
+    return _flat(json.loads(json.dumps(defaults)))  # as a trial file holds them: tuples -> lists
 
 
 def _flat(config: Any, prefix: str = "") -> dict[str, Any]:
@@ -305,7 +307,6 @@ def config_differences(results: list[dict[str, Any]]) -> list[str]:
 def summarize(suite: str, results: list[dict[str, Any]], cost_limit: float) -> list[dict[str, Any]]:
     """One row per (task, algo, budget): mean ± std over seeds, safenav beside SB3 and the
     published reference."""
-    import json
 
     groups: dict[tuple[str, str, int], dict[str, list[dict]]] = {}
     for r in results:

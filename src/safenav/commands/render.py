@@ -124,7 +124,7 @@ def _load_or_render_gymnasium(checkpoint: Path, out: Path, seed: int, episode: i
     if safenav_options:
         raise SafenavError(f"{', '.join(safenav_options)}: SafeNav options; {checkpoint} is a "
                            f"policy for {env_id}")  # fmt: skip
-    run = state.get("config", {}).get("run", {})  # policy-only files have none
+    run = state.get("config", {}).get("run", {})  # the run's --cost-fn, if it had one
     stats = render_gym_episode(out, loaded, seed=seed, episode=episode, fps=fps,
                                cost_fn=run.get("cost_fn"))  # fmt: skip
     print(f"wrote {out}: {stats}")

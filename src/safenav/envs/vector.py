@@ -241,8 +241,11 @@ def _info_success(info: dict, ids: list[int]) -> np.ndarray:
 
 
 def to_action_box(action: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
-    """A policy's ``[-1, 1]^A`` action (clamped) -> the box ``[low, high]``."""
-    return low + (action.clamp(-1, 1) + 1.0) * 0.5 * (high - low)
+    """A policy's ``[-1, 1]^A`` action (clamped) -> the box ``[low, high]``. Written as a blend
+    of the two bounds: ``high - low`` overflows for bounds near the float32 limit, which some
+    tasks use for "unbounded"."""
+    t = (action.clamp(-1, 1) + 1.0) * 0.5
+    return low * (1.0 - t) + high * t
 
 
 class TorchVecEnv:

@@ -1,7 +1,7 @@
 """One episode of a policy trained on a Gymnasium task, as a GIF (``safenav render`` on a
 non-SafeNav checkpoint): the task's own ``rgb_array`` frames, the running return and cost written
-on each, and a red frame around every step that costs (Safety-Gymnasium's velocity tasks: a step
-over the speed threshold)."""
+on each, and a red frame around every frame whose steps (since the previous frame) include one
+that costs (Safety-Gymnasium's velocity tasks: a step over the speed threshold)."""
 
 from __future__ import annotations
 
@@ -37,6 +37,14 @@ def _annotate(frame: np.ndarray, text: str, costly: bool) -> np.ndarray:
     return np.asarray(img)
 
 
+def _frame(env: Any, env_id: str) -> np.ndarray:
+    frame = env.render()
+    if not isinstance(frame, np.ndarray) or frame.ndim != 3 or frame.shape[2] != 3:
+        raise SafenavError(f"{env_id}: render() gave "
+                           f"{getattr(frame, 'shape', type(frame).__name__)}, not an RGB image")  # fmt: skip
+    return frame.astype(np.uint8, copy=False)
+
+
 @torch.no_grad()
 def render_gym_episode(out: Path, policy: Any, seed: int = 1, episode: int = 0, fps: int = 25,
                        cost_fn: str | None = None, size: int = 240,
@@ -62,6 +70,10 @@ def render_gym_episode(out: Path, policy: Any, seed: int = 1, episode: int = 0, 
     except (TypeError, gym.error.Error) as err:
         raise SafenavError(f"{env_id} does not render to images (render_mode='rgb_array'): "
                            f"{err}") from None  # fmt: skip
+    if "rgb_array" not in env.metadata.get("render_modes", []):  # Gymnasium only warns
+        env.close()
+        raise SafenavError(f"{env_id} does not render to images: its render modes are "
+                           f"{env.metadata.get('render_modes', [])}, not 'rgb_array'")  # fmt: skip
     if cost_fn is not None:
         env = CostFn(env, cost_fn)
     low = torch.as_tensor(policy.meta["action_low"], dtype=torch.float32)
@@ -72,18 +84,19 @@ def render_gym_episode(out: Path, policy: Any, seed: int = 1, episode: int = 0, 
     try:
         for k in range(episode + 1):
             ret, cost, steps, done = 0.0, 0.0, 0, False
-            filmed = k == episode
+            filmed, costly = k == episode, False  # costly: a step since the last frame cost
             while not done and steps < max_steps:
-                action = to_action_box(policy(np.asarray(obs, dtype=np.float32)).cpu(), low, high)
+                action = to_action_box(policy(obs).cpu(), low, high)  # a dict of Boxes too
                 obs, reward, terminated, truncated, info = env.step(
                     action.numpy().astype(np.float64)
                 )
                 c = float(info.get("cost", 0.0))
                 ret, cost, steps = ret + float(reward), cost + c, steps + 1
-                done = terminated or truncated
+                done, costly = terminated or truncated, costly or c > 0
                 if filmed and (steps % stride == 0 or done):
                     text = f"step {steps}  return {ret:.0f}  cost {cost:g}"
-                    frames.append(_annotate(np.asarray(env.render()), text, c > 0))
+                    frames.append(_annotate(_frame(env, env_id), text, costly))
+                    costly = False
             if not done:
                 raise SafenavError(f"episode {k} of {env_id} did not end in {max_steps} steps")
             if not filmed:
