@@ -290,28 +290,20 @@ def test_render_films_a_gymnasium_policy_with_its_return_cost_and_costly_steps(
     assert red == [False, True, True, False, True, True, False, True, True, False], red
     code, _, err = run(capsys, ["render", str(run_dir), "--out", str(gif), "--shield"])
     assert code != 0 and "--shield: SafeNav options;" in err and "policy for TinyFilmed-v0" in err
-    # a task without images is refused in one line
-    code, _, err = run(capsys, ["train", "--algo", "sac", "--env", "TinyBox-v0", "--total-steps",
-                                "150", "--run-dir", str(tmp_path / "blind"), *QUIET,
-                                "--csac.learning-starts", "100", "--csac.batch-size", "32"])  # fmt: skip
-    assert code == 0, err
-    code, _, err = run(capsys, ["render", str(tmp_path / "blind"), "--out", str(gif)])
-    assert code != 0 and "TinyBox-v0 does not render to images" in err
-    # one that takes render_mode but lists no image mode (Gymnasium only warns): refused too
-    code, _, err = run(capsys, ["train", "--algo", "sac", "--env", "TinyHuman-v0", "--total-steps",
-                                "150", "--run-dir", str(tmp_path / "human"), *QUIET,
-                                "--csac.learning-starts", "100", "--csac.batch-size", "32"])  # fmt: skip
-    assert code == 0, err
-    code, _, err = run(capsys, ["render", str(tmp_path / "human"), "--out", str(gif)])
-    assert code != 0 and "TinyHuman-v0 does not render to images" in err
-    assert len(err.strip().splitlines()) == 1, err
-    # a dict observation is filmed too
-    code, _, err = run(capsys, ["train", "--algo", "sac", "--env", "TinyDictFilmed-v0",
-                                "--total-steps", "150", "--run-dir", str(tmp_path / "dict"), *QUIET,
-                                "--csac.learning-starts", "100", "--csac.batch-size", "32"])  # fmt: skip
-    assert code == 0, err
-    code, out, err = run(capsys, ["render", str(tmp_path / "dict"), "--out", str(gif)])
-    assert code == 0 and "'env': 'TinyDictFilmed-v0'" in out and "'length': 20," in out, err
+    # a task without images is refused in one line; so is one that takes render_mode but lists
+    # no image mode (Gymnasium only warns); a dict observation is filmed
+    for env, name in (("TinyBox-v0", "blind"), ("TinyHuman-v0", "human"),
+                      ("TinyDictFilmed-v0", "dict")):  # fmt: skip
+        code, _, err = run(capsys, ["train", "--algo", "sac", "--env", env, "--total-steps", "150",
+                                    "--run-dir", str(tmp_path / name), *QUIET,
+                                    "--csac.learning-starts", "100", "--csac.batch-size", "32"])  # fmt: skip
+        assert code == 0, err
+        code, out, err = run(capsys, ["render", str(tmp_path / name), "--out", str(gif)])
+        if name == "dict":
+            assert code == 0 and f"'env': '{env}'" in out and "'length': 20," in out, err
+        else:
+            assert code != 0 and f"{env} does not render to images" in err, err
+            assert len(err.strip().splitlines()) == 1, err
 
 
 # ------------------------------------------------------------------------- no silent nonsense
