@@ -672,3 +672,20 @@ def test_to_action_box_maps_onto_any_finite_box():
     assert box[0].tolist() == low.tolist() and box[1].tolist() == high.tolist()
     assert box[2, :2].tolist() == [-0.5, 2.5] and box[2, 2] == 0.0
     assert box[3, :2].tolist() == [1.0, 0.0]  # clamped to the box
+
+
+@MUJOCO
+def test_render_follows_a_mujoco_body_with_the_track_camera():
+    """Gymnasium's free camera ignores its trackbodyid: a hopper that hops left the picture."""
+    import mujoco
+
+    from safenav.experiments.gym_render import _follow_the_body
+
+    env = gym.make("SafetyHopperVelocity-v5", render_mode="rgb_array", width=64, height=64)
+    renderer = env.unwrapped.mujoco_renderer
+    assert renderer.camera_id == -1  # free: what Gymnasium films with
+    _follow_the_body(env)
+    track = mujoco.mj_name2id(renderer.model, mujoco.mjtObj.mjOBJ_CAMERA, "track")
+    assert track != -1 and renderer.camera_id == track
+    env.close()
+    _follow_the_body(gym.make("TinyFilmed-v0", render_mode="rgb_array"))  # no MuJoCo: nothing

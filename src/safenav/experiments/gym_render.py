@@ -23,6 +23,20 @@ def _headless_gl() -> None:
         os.environ.setdefault("MUJOCO_GL", "egl")
 
 
+def _follow_the_body(env: Any) -> None:
+    """Film a MuJoCo task with its model's ``track`` camera, which follows the body: Gymnasium
+    renders with a free camera whose ``trackbodyid`` takes no effect, so a hopper that moves
+    leaves the picture."""
+    renderer = getattr(env.unwrapped, "mujoco_renderer", None)
+    if renderer is None:
+        return
+    import mujoco
+
+    track = mujoco.mj_name2id(renderer.model, mujoco.mjtObj.mjOBJ_CAMERA, "track")
+    if track != -1:
+        renderer.camera_id = track
+
+
 def _annotate(frame: np.ndarray, text: str, costly: bool) -> np.ndarray:
     from PIL import Image, ImageDraw
 
@@ -74,6 +88,7 @@ def render_gym_episode(out: Path, policy: Any, seed: int = 1, episode: int = 0, 
         env.close()
         raise SafenavError(f"{env_id} does not render to images: its render modes are "
                            f"{env.metadata.get('render_modes', [])}, not 'rgb_array'")  # fmt: skip
+    _follow_the_body(env)
     if cost_fn is not None:
         env = CostFn(env, cost_fn)
     low = torch.as_tensor(policy.meta["action_low"], dtype=torch.float32)
