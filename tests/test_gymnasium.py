@@ -624,6 +624,40 @@ def test_bench_refuses_unknown_tasks_and_algorithms(tmp_path, capsys):
     assert not (tmp_path / "x").exists()
 
 
+def test_to_action_box_maps_onto_any_finite_box():
+    import torch
+
+    from safenav.envs.vector import to_action_box
+
+    low = torch.tensor([-2.0, 0.0, -3.4e38])
+    high = torch.tensor([1.0, 5.0, 3.4e38])  # float32's edge: high - low overflows
+    a = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0], [0.0, 0.0, 0.0], [3.0, -7.0, 0.5]])
+    box = to_action_box(a, low, high)
+    assert torch.isfinite(box).all()
+    assert box[0].tolist() == low.tolist() and box[1].tolist() == high.tolist()
+    assert box[2, :2].tolist() == [-0.5, 2.5] and box[2, 2] == 0.0
+    assert box[3, :2].tolist() == [1.0, 0.0]  # clamped to the box
+
+
+@MUJOCO
+def test_render_follows_a_mujoco_body_with_the_track_camera():
+    """Gymnasium's free camera ignores its trackbodyid: a hopper that hops left the picture."""
+    import mujoco
+
+    from safenav.experiments.gym_render import _follow_the_body
+
+    env = gym.make("SafetyHopperVelocity-v5", render_mode="rgb_array", width=64, height=64)
+    renderer = env.unwrapped.mujoco_renderer
+    assert renderer.camera_id == -1  # free: what Gymnasium films with
+    _follow_the_body(env)
+    track = mujoco.mj_name2id(renderer.model, mujoco.mjtObj.mjOBJ_CAMERA, "track")
+    assert track != -1 and renderer.camera_id == track
+    env.close()
+    tiny = gym.make("TinyFilmed-v0", render_mode="rgb_array")
+    _follow_the_body(tiny)  # no MuJoCo: nothing
+    tiny.close()
+
+
 # ------------------------------------------------------------------------------ learning (slow)
 
 
@@ -657,35 +691,3 @@ def test_csac_keeps_the_cost_limit_on_a_velocity_task(tmp_path, capsys):
     cost = np.mean([float(r["eval/cost"]) for r in evals[-3:]])
     ret = np.mean([float(r["eval/return"]) for r in evals[-3:]])
     assert cost <= 25.0 and ret > 0, f"episode cost {cost:.1f}, return {ret:.0f}"
-
-
-def test_to_action_box_maps_onto_any_finite_box():
-    import torch
-
-    from safenav.envs.vector import to_action_box
-
-    low = torch.tensor([-2.0, 0.0, -3.4e38])
-    high = torch.tensor([1.0, 5.0, 3.4e38])  # float32's edge: high - low overflows
-    a = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0], [0.0, 0.0, 0.0], [3.0, -7.0, 0.5]])
-    box = to_action_box(a, low, high)
-    assert torch.isfinite(box).all()
-    assert box[0].tolist() == low.tolist() and box[1].tolist() == high.tolist()
-    assert box[2, :2].tolist() == [-0.5, 2.5] and box[2, 2] == 0.0
-    assert box[3, :2].tolist() == [1.0, 0.0]  # clamped to the box
-
-
-@MUJOCO
-def test_render_follows_a_mujoco_body_with_the_track_camera():
-    """Gymnasium's free camera ignores its trackbodyid: a hopper that hops left the picture."""
-    import mujoco
-
-    from safenav.experiments.gym_render import _follow_the_body
-
-    env = gym.make("SafetyHopperVelocity-v5", render_mode="rgb_array", width=64, height=64)
-    renderer = env.unwrapped.mujoco_renderer
-    assert renderer.camera_id == -1  # free: what Gymnasium films with
-    _follow_the_body(env)
-    track = mujoco.mj_name2id(renderer.model, mujoco.mjtObj.mjOBJ_CAMERA, "track")
-    assert track != -1 and renderer.camera_id == track
-    env.close()
-    _follow_the_body(gym.make("TinyFilmed-v0", render_mode="rgb_array"))  # no MuJoCo: nothing

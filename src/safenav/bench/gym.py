@@ -144,7 +144,6 @@ def steps_done(trial: Trial, out: Path) -> int:
 
 def collect(trial: Trial, out: Path, wall_s: float) -> dict[str, Any]:
     """The trial file's content from a finished child's outputs."""
-
     from safenav.common.machine import machine_description
 
     run_dir = out / "runs" / trial.name
@@ -226,7 +225,6 @@ def run_trials(trials: list[Trial], out: Path, cost_limit: float, jobs: int = 1,
 def load_results(suite: str, out: Path) -> list[dict[str, Any]]:
     """Every finished trial of ``suite`` in ``OUT/trials``, whichever run wrote it: the table is
     the suite's, so running one task again does not drop the others' rows."""
-
     found = []
     for path in sorted((out / "trials").glob("*.json")):
         result = json.loads(path.read_text())
@@ -307,7 +305,6 @@ def config_differences(results: list[dict[str, Any]]) -> list[str]:
 def summarize(suite: str, results: list[dict[str, Any]], cost_limit: float) -> list[dict[str, Any]]:
     """One row per (task, algo, budget): mean ± std over seeds, safenav beside SB3 and the
     published reference."""
-
     groups: dict[tuple[str, str, int], dict[str, list[dict]]] = {}
     for r in results:
         t = r["trial"]

@@ -24,9 +24,9 @@ def resolve_policy(checkpoint: Path | None, policy: str, device: str = "cpu", lo
     :class:`~safenav.algos.policy.Policy` when the caller has read it already (a SAC checkpoint
     holds its replay buffer: read it once)."""
     if policy == "checkpoint":
-        if loaded is None and checkpoint is None:
-            raise SafenavError("no checkpoint given: pass CHECKPOINT or --policy scripted")
         if loaded is None:
+            if checkpoint is None:
+                raise SafenavError("no checkpoint given: pass CHECKPOINT or --policy scripted")
             from safenav.algos.policy import load_policy
 
             loaded = load_policy(checkpoint, device=device)

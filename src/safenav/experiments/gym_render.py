@@ -65,8 +65,9 @@ def render_gym_episode(out: Path, policy: Any, seed: int = 1, episode: int = 0, 
                        max_steps: int = 100_000) -> dict[str, Any]:  # fmt: skip
     """Fly episode ``episode`` (from 0) after ``reset(seed=seed)`` of ``policy.meta["env_id"]``
     (with the run's ``--cost-fn`` if it had one) with the deterministic ``policy`` (a
-    :class:`safenav.algos.policy.Policy`) and write ``out`` at ``fps``, one frame per ``round(render_fps / fps)`` env steps (real time where the task
-    declares its ``render_fps``); returns the episode's return, cost and length."""
+    :class:`safenav.algos.policy.Policy`) and write ``out`` at ``fps``, one frame per
+    ``round(render_fps / fps)`` env steps (real time where the task declares its
+    ``render_fps``); returns the episode's return, cost and length."""
     import gymnasium as gym
 
     import safenav  # noqa: F401  (registers the velocity tasks)
