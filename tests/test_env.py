@@ -156,6 +156,31 @@ def test_pillar_collision_geometry(start, collides):
 
 
 @pytest.mark.parametrize(
+    ("start", "body", "navrl"),
+    [
+        ((0.0, -0.69, 1.0), True, True),  # the side: the level beam reads 0.29 < 0.3
+        ((0.0, -0.71, 1.0), False, False),  # the side at 0.31
+        ((0.0, 0.0, 2.25), True, False),  # over the top by 0.25: the -10 deg beam hits the
+        # top plane 1.4 m out, past the pillar's edge (0.4 m), so no beam reads < 0.3
+        ((0.0, 0.0, 2.35), False, False),
+    ],
+)
+def test_navrl_collision_rule_counts_only_what_a_beam_reads(start, body, navrl):
+    """``collision_rule="navrl"`` is NavRL's ``max(lidar_scan) > lidar_range - 0.3``: a graze of
+    a pillar top that no beam sees is no collision, a side within 0.3 m still is."""
+    for rule, collides in (("body", body), ("navrl", navrl)):
+        env = hand_env(pillars=[(0.0, 0.0, 0.8, 2.0)], collision_rule=rule)
+        place(env, start)
+        _, _, _, _, info = hover_step(env)
+        assert bool(info["collision"][0]) is collides, rule
+
+
+def test_collision_rule_is_checked():
+    with pytest.raises(ValueError, match="collision_rule"):
+        make_config("easy", collision_rule="lidar")
+
+
+@pytest.mark.parametrize(
     ("start", "collides"),
     [
         ((0.0, -0.75, 1.0), True),  # standing cylinder of width 1.0: surface at 0.5, gap 0.25

@@ -340,7 +340,8 @@ if "--select" in args:  # what train --select leaves: the validation choice and 
     (run / "selection.json").write_text(json.dumps({{"selection": "validation"}}))
     (run / "final.json").write_text(json.dumps({{"heldout": {{"seeds": [2, 3, 4, 5, 6],
         "episodes_per_seed": 10, "success_rate": success - 0.1, "collision_rate": 0.1,
-        "timeout_rate": 0.9 - success}}}}))
+        "timeout_rate": 0.9 - success}}, "test_navrl_rule": {{"episodes": 10,
+        "success_rate": success, "collision_rate": 0.05, "timeout_rate": 0.95 - success}}}}))
 (run.parent / "calls.txt").open("a").write(" ".join(args) + "\\n")
 """
 
@@ -393,6 +394,11 @@ def test_trial_fresh_then_skipped_then_resumed_for_more_steps(tmp_path, fake_pyt
     # the policy chosen on validation was the one evaluated; its held-out report is in the record
     assert "--select" in last_train and rec["selection"] == "validation"
     assert rec["heldout"]["success_rate"] == pytest.approx(0.7)
+    # and the test episodes under NavRL's collision rule, in results.json and results.md
+    assert rec["test_navrl_rule"]["success_rate"] == pytest.approx(0.8)
+    results = agg.aggregate([rec])
+    assert results["algos"]["csac"]["test_navrl_rule"]["success_rate"]["mean"] == pytest.approx(0.8)
+    assert "## Under the paper's collision rule" in agg.render_markdown(results)
     # each finished trial leaves OUT/trials/<label>-s<seed>.json, small enough to commit
     kept = json.loads(longer.record_path.read_text())
     assert longer.record_path == tmp_path / "trials" / "csac-s0.json"

@@ -60,6 +60,13 @@ def test_training_and_selection_never_fly_the_test_or_heldout_maps(tmp_path, wor
     assert [h["env_seed"] for h in report["heldout"]["per_seed"]] == [2, 3]
     for key in ("success_rate", "collision_rate", "timeout_rate"):
         assert 0.0 <= report["heldout"][key] <= 1.0
+    # the test episodes once more under NavRL's rule: never more collisions than the body's
+    navrl = report["test_navrl_rule"]
+    assert navrl["env_seed"] == TEST_SEED and navrl["episodes"] == 4
+    body_hits = report["test"]["per_episode"]["collision"]
+    assert all(
+        b or not n for b, n in zip(body_hits, navrl["per_episode"]["collision"], strict=True)
+    )
 
 
 def test_ranking_scores_spare_the_single_flights():

@@ -23,6 +23,7 @@ def eval_(
     json_out: Annotated[Path | None, tyro.conf.arg(name="json")] = None,
     policy: Literal["checkpoint", "scripted", "straight", "border", "random"] = "checkpoint",
     preset: str | None = None,
+    collision_rule: Literal["body", "navrl"] = "body",
     device: str = "cpu",
 ) -> None:
     """Evaluate a policy on the fixed test scenario (map of env seed 1, full density, 200 fixed
@@ -51,6 +52,10 @@ def eval_(
         json_out: Also write the metrics here as JSON (no value: null); the directory must exist.
         policy: What flies: the checkpoint, or a baseline without one.
         preset: Env preset (easy, medium, paper); default: the checkpoint's, else paper.
+        collision_rule: What counts as a static collision: body (the UAV's 0.3 m sphere touches
+            a pillar, the default) or navrl (NavRL's rule: a range-image beam reads < 0.3 m, so
+            a graze of a pillar top no beam sees flies on; for figures comparable with
+            NavRL-based papers).
         device: Torch device of the env and the policy (cpu or cuda).
     """
     from rich.console import Console
@@ -64,7 +69,7 @@ def eval_(
     memory = check_shield_memory(shield, shield_memory, shield_map, shield_mover_margin,
                                  shield_brake)  # fmt: skip
     fn, cfg = resolve_policy(checkpoint, policy, device)
-    cfg = scenario_config(cfg, preset)
+    cfg = scenario_config(cfg, preset).replace(collision_rule=collision_rule)
     if policy == "checkpoint":
         from safenav.algos.policy import check_fits_safenav
 
@@ -92,6 +97,7 @@ def eval_(
         result["shield_mover_margin"] = shield_mover_margin
         result["shield_brake"] = shield_brake
     result["env"] = ENV_ID
+    result["collision_rule"] = collision_rule
     if policy == "checkpoint":
         result["trained_on"] = str(fn.meta.get("env_id", ""))
     from safenav.experiments.selection import HELDOUT_SEEDS, TEST_SEED, VALIDATION_SEEDS
@@ -99,7 +105,8 @@ def eval_(
     role = ("the test scenario" if env_seed == TEST_SEED else "a held-out map"
             if env_seed in HELDOUT_SEEDS else "a validation map" if env_seed in VALIDATION_SEEDS
             else "the map")  # fmt: skip
-    table = Table(title=f"{role}: env seed {env_seed}, {episodes} episodes")
+    rule = "" if collision_rule == "body" else f", {collision_rule} collision rule"
+    table = Table(title=f"{role}: env seed {env_seed}, {episodes} episodes{rule}")
     table.add_column("metric")
     table.add_column("value", justify="right")
     for key in ("success_rate", "collision_rate", "timeout_rate", "mean_time_to_goal",

@@ -124,7 +124,10 @@ def finish_run(run_dir: Path, device: str = "cpu", report_episodes: int = 200) -
     print(f"safenav train: policy chosen on validation ({selection['method']}, steps "
           f"{selection['chosen_steps']})\n  -> {run_dir / 'policy.pt'}\n"
           f"  test success {test['success_rate']:.3f} collision {test['collision_rate']:.3f}; "
-          f"held-out success {held['success_rate']:.3f} collision {held['collision_rate']:.3f}")  # fmt: skip
+          f"held-out success {held['success_rate']:.3f} collision {held['collision_rate']:.3f}\n"
+          f"  test under NavRL's collision rule: success "
+          f"{report['test_navrl_rule']['success_rate']:.3f} collision "
+          f"{report['test_navrl_rule']['collision_rate']:.3f}")  # fmt: skip
     return final
 
 

@@ -13,6 +13,8 @@ from typing import Any
 
 CRUISE_HALF_BAND = 0.3
 """Half width (m) of the height penalty's band around ``EnvConfig.cruise_height``."""
+COLLISION_RULES = ("body", "navrl")
+"""Values of ``EnvConfig.collision_rule``."""
 
 
 @dataclass(frozen=True)
@@ -45,6 +47,16 @@ class EnvConfig:
     """Highest allowed altitude; above it is a ceiling collision (NavRL)."""
     uav_radius: float = 0.3
     """Radius of the UAV's collision sphere in metres (NavRL)."""
+    collision_rule: str = "body"
+    """How a static collision is detected. ``"body"`` (the default, the spec's): the collision
+    sphere touches a pillar's geometry, its side or its top. ``"navrl"``: NavRL's rule
+    (``training/scripts/env.py``: ``max(lidar_scan) > lidar_range - 0.3``), a collision only when
+    a beam of the range image reads less than the radius; a UAV that grazes a pillar's top that no
+    beam hits flies on. This range image reads within a grid cell (0.1 m) of the truth, so the
+    rule is taken as contact under ``"body"`` that a beam also reads (a reading <= ``uav_radius``):
+    every side contact NavRL's exact ray caster counts, and none of the top grazes it misses. For figures comparable with NavRL-based papers (docs/csac-v1.md,
+    "The paper's collision rule"); not for training a policy to fly. Moving obstacles, the wall
+    and the altitude band collide as under ``"body"``."""
     v_max: float = 2.0
     """Largest commanded speed per goal-frame axis in m/s (paper)."""
     control_hz: float = 10.0
@@ -240,6 +252,8 @@ class EnvConfig:
             (not math.isfinite(s)) or s <= 0 for s in self.pillar_sides
         ):
             bad("pillar_sides", "must be a non-empty tuple of positive sizes")
+        if self.collision_rule not in COLLISION_RULES:
+            bad("collision_rule", f"must be one of {', '.join(COLLISION_RULES)}")
         if not self.lidar_v_angles or any(abs(a) >= 80 for a in self.lidar_v_angles):
             bad("lidar_v_angles", "must be a non-empty tuple of elevations within +-80 degrees")
         lo, hi = self.dyn_speed_range
@@ -325,4 +339,4 @@ def make_config(preset: str = "paper", **overrides) -> EnvConfig:
     return EnvConfig(**{**PRESETS[preset], **overrides})
 
 
-__all__ = ["PRESETS", "EnvConfig", "make_config", "observation_shapes"]
+__all__ = ["COLLISION_RULES", "PRESETS", "EnvConfig", "make_config", "observation_shapes"]

@@ -805,6 +805,8 @@ class SafeNavVectorEnv(VectorEnv):
             torch.minimum(aux["static_clear"], aux["dyn_clear"]), border_clear
         )
         hit_static = aux["static_clear"] <= cfg.uav_radius
+        if cfg.collision_rule == "navrl":  # NavRL's rule: only contact a beam reads (EnvConfig)
+            hit_static &= aux["ranges"].flatten(1).amin(-1) <= cfg.uav_radius
         hit_dynamic = aux["dyn_clear"] <= cfg.uav_radius
         # The arena is closed: touching the border wall is a collision like leaving the altitude band.
         hit_border = border_clear <= cfg.uav_radius

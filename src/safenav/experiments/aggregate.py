@@ -293,6 +293,10 @@ def seed_record(
     if isinstance(held, dict):
         heldout = {k: held.get(k) for k in ("seeds", "episodes_per_seed", "success_rate",
                                             "collision_rate", "timeout_rate")}  # fmt: skip
+    navrl = final.get("test_navrl_rule")  # reports before 2026-12-01 lack it
+    if isinstance(navrl, dict):
+        navrl = {k: navrl.get(k) for k in ("episodes", "success_rate", "collision_rate",
+                                           "timeout_rate", "collision_static_rate")}  # fmt: skip
 
     return {
         "algo": algo,
@@ -308,6 +312,7 @@ def seed_record(
         "border_time_fraction": metric("border_time_fraction"),
         "selection": "validation" if (run_dir / "selection.json").exists() else "final checkpoint",
         "heldout": heldout,
+        "test_navrl_rule": navrl if isinstance(navrl, dict) else None,
         "env_steps": env_steps,
         "wall_clock_s": wall_clock_s,
         "time_to_target": time_to_target(progress, target) if progress else None,
@@ -359,6 +364,7 @@ def aggregate_algo(
     steps = mean_std(r.get("env_steps") for r in per_seed)
     wall = mean_std(r.get("wall_clock_s") for r in per_seed)
     held = [r["heldout"] for r in evaluated if isinstance(r.get("heldout"), dict)]
+    navrl = [r["test_navrl_rule"] for r in evaluated if isinstance(r.get("test_navrl_rule"), dict)]
     return {
         "success_rate": mean_std(r["success_rate"] for r in evaluated),
         "collision_rate": mean_std(r["collision_rate"] for r in evaluated),
@@ -388,6 +394,20 @@ def aggregate_algo(
             for key in ("success_rate", "collision_rate", "timeout_rate")
         }
         if held
+        else None,  # fmt: skip
+        # The test scenario under NavRL's collision rule, the paper's (seeds that report it).
+        "test_navrl_rule": {
+            "seeds": len(navrl),
+            **{
+                key: mean_std(n.get(key) for n in navrl)
+                for key in ("success_rate", "collision_rate", "timeout_rate")
+            },
+            "ci95": {
+                key: confidence_intervals([(n.get(key), n.get("episodes")) for n in navrl])
+                for key in ("success_rate", "collision_rate")
+            },
+        }
+        if navrl
         else None,  # fmt: skip
         "seeds": len(evaluated),
         "env_steps": steps["mean"] if steps else None,
@@ -567,16 +587,27 @@ def render_markdown(results: dict[str, Any]) -> str:
         "| collision (paper) | timeout (ours) | env steps / seed | training time / seed |"
     )
     lines.append("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
-    for name, a in algos.items():
+
+    def beside_paper(name: str, ours: dict[str, Any]) -> str:
+        """``| algorithm | seeds | success (ours) | (paper) | collision (ours) | (paper) | timeout``."""
         p = paper.get(name)
-        lines.append(
-            f"| {display_name(name)} | {a['seeds']} | {fmt_rate(a['success_rate'])} "
-            f"| {pct(p['success_rate']) if p else '—'} "
-            f"| {fmt_rate(a['collision_rate'])} "
-            f"| {pct(p['collision_rate']) if p else '—'} "
-            f"| {fmt_rate(a['timeout_rate'])} | {fmt_steps(a['env_steps'])} "
-            f"| {fmt_seconds(a['wall_clock_s'])} |"
-        )
+        return (f"| {display_name(name)} | {ours['seeds']} | {fmt_rate(ours['success_rate'])} "
+                f"| {pct(p['success_rate']) if p else '—'} | {fmt_rate(ours['collision_rate'])} "
+                f"| {pct(p['collision_rate']) if p else '—'} | {fmt_rate(ours['timeout_rate'])} ")  # fmt: skip
+
+    for name, a in algos.items():
+        lines.append(beside_paper(name, a) + f"| {fmt_steps(a['env_steps'])} "
+                     f"| {fmt_seconds(a['wall_clock_s'])} |")  # fmt: skip
+    with_rule = {name: a for name, a in algos.items() if a.get("test_navrl_rule")}
+    if with_rule:
+        lines += ["", "## Under the paper's collision rule", "",
+                  "The same policies on the same test episodes, a static collision counted only "
+                  "where a range-image beam reads it (NavRL's rule, the paper's simulator; "
+                  "`EnvConfig.collision_rule`): a UAV that grazes a pillar's top no beam sees "
+                  "flies on. Mean ± std over the seeds whose report has it.", "",
+                  "| algorithm | seeds | success (ours) | success (paper) | collision (ours) "
+                  "| collision (paper) | timeout (ours) |", "|---|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+        lines += [beside_paper(name, a["test_navrl_rule"]) + "|" for name, a in with_rule.items()]
     lines += ["", "## 95 % confidence intervals", "",
               "Wilson: the episodes of every seed pooled (episode-level uncertainty); bootstrap: "
               "the mean over seeds resampled (seed-to-seed spread; none below 2 seeds). Held-out: "

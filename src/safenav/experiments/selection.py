@@ -135,7 +135,9 @@ def report_policy(
 ) -> dict[str, Any]:
     """The final report of a chosen policy: the test scenario (:data:`TEST_SEED`) and each
     held-out map, ``episodes`` episodes each (success / collision / timeout and the arena
-    metrics), plus the held-out episodes pooled."""
+    metrics), plus the held-out episodes pooled, and the test scenario once more under NavRL's
+    collision rule (``test_navrl_rule``: a static collision only where a beam reads it,
+    ``EnvConfig.collision_rule``), the rule behind the paper's figures."""
     from safenav.experiments.evaluate import evaluate
     from safenav.experiments.flight import resolve_policy
 
@@ -146,10 +148,9 @@ def report_policy(
             "border_time_fraction", "collision_static_rate", "collision_dynamic_rate",
             "collision_border_rate", "mean_time_to_goal", "min_clearance")  # fmt: skip
 
-    def summary(seed: int) -> dict[str, Any]:
-        res = evaluate(
-            fn, cfg, env_seed=seed, episodes=episodes, device=device, shield=own_shield(fn)
-        )
+    def summary(seed: int, rule: str = "body") -> dict[str, Any]:
+        res = evaluate(fn, cfg.replace(collision_rule=rule), env_seed=seed, episodes=episodes,
+                       device=device, shield=own_shield(fn))  # fmt: skip
         return {k: res.get(k) for k in keys} | {"env_seed": seed, "episodes": episodes,
                                             "per_episode": {k: res["per_episode"][k]
                                                             for k in ("success", "collision")}}  # fmt: skip
@@ -160,6 +161,7 @@ def report_policy(
                                                                      "timeout_rate")}  # fmt: skip
     return {"test": test, "heldout": {"seeds": list(heldout), "episodes_per_seed": episodes,
                                       **pooled, "per_seed": held},
+            "test_navrl_rule": summary(TEST_SEED, "navrl"),
             "shield": fn.meta.get("shield"), "flight_shield": flight_shield_spec(fn.meta)}  # fmt: skip
 
 
