@@ -2,7 +2,8 @@
 tiny CSAC run: ``checkpoint_sweep.py`` (with ``--sampled``), ``cost_critic_bias.py``,
 ``flight_grid.py``, ``speed_profile.py``, ``timeout_paths.py`` and ``altitude_profile.py``; and
 ``vecenv_overhead.py`` (docs/gymnasium.md) on Pendulum-v1; ``shield_memory.py`` (docs/deployment.md);
-``finish_runs.py`` (docs/csac-v1.md); ``shield_collisions.py`` (docs/deployment.md)."""
+``finish_runs.py`` (docs/csac-v1.md); ``shield_collisions.py`` (docs/deployment.md);
+``collision_rule.py`` (docs/csac-v1.md)."""
 
 from __future__ import annotations
 
@@ -350,3 +351,35 @@ def test_compare_trials_pairs_the_test_episodes_of_two_labels(tmp_path, monkeypa
     )
     with pytest.raises(SystemExit, match="no trial files"):
         script("compare_trials").main()
+
+
+def test_collision_rule_flies_validation_first_and_pools_by_episodes(tmp_path, monkeypatch, capsys):
+    """experiments/collision_rule.py (docs/csac-v1.md): every policy and rule on the validation
+    maps before any test flight; rates pooled by episodes; a flight's JSON file is reused."""
+    mod = script("collision_rule")
+    flown = []
+
+    def fake_eval(cmd, check, env, stdout):
+        seed, rule = int(cmd[cmd.index("--env-seed") + 1]), cmd[cmd.index("--collision-rule") + 1]
+        flown.append(seed)
+        n = int(cmd[cmd.index("--episodes") + 1])
+        rate = 0.5 if rule == "body" else 0.25
+        Path(cmd[cmd.index("--json") + 1]).write_text(json.dumps(
+            {"episodes": n, "success_rate": 1 - rate, "collision_rate": rate, "timeout_rate": 0.0,
+             "collision_static_rate": rate if seed == 12345 else 0.0,
+             "collision_dynamic_rate": 0.0 if seed == 12345 else rate}))  # fmt: skip
+
+    monkeypatch.setattr(mod.subprocess, "run", fake_eval)
+    out = tmp_path / "out"
+    monkeypatch.setattr(sys, "argv", ["collision_rule.py", "a.pt", "b.pt", "--out", str(out)])
+    mod.main()
+    assert len(flown) == 2 * 2 * 5 and set(flown[:16]) == {12345, 12346, 12347, 12348}
+    assert flown[16:] == [1, 1, 1, 1]
+    summary = json.loads((out / "summary.json").read_text())
+    val = summary["a"]["navrl"]["validation"]
+    assert val["episodes"] == 400 and val["collision_static_rate"] == pytest.approx(0.25 / 4)
+    assert summary["b"]["body"]["test"]["episodes"] == 200
+    assert "| `a` | test (200) | navrl | 0.750 |" in capsys.readouterr().out
+    flown.clear()
+    mod.main()  # every file is there: nothing flies again
+    assert flown == []
