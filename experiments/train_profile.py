@@ -13,7 +13,7 @@ its wall-clock into disjoint parts (a timed call inside another one counts for t
   ``Trainer.checkpoint`` (the last one included), ``Trainer.log``;
 - with ``--select``: ``selection (validation)``, the greedy soup on validation maps (part of the
   time to a run's policy), and ``report (test, held-out)``, its flights on the test and held-out
-  scenarios (after the choice);
+  scenarios (after the choice; since 2026-12-01 also the test under NavRL's collision rule);
 - ``other``: the rest of ``safenav train`` (set-up, curricula, Python between the parts).
 
 Run it alone on the machine: the figures are wall-clock seconds.

@@ -158,8 +158,12 @@ def test_pillar_collision_geometry(start, collides):
 @pytest.mark.parametrize(
     ("start", "body", "navrl"),
     [
-        ((0.0, -0.69, 1.0), True, True),  # the side: the level beam reads 0.29 < 0.3
+        ((0.0, -0.69, 1.0), True, True),  # the side: a level beam reads ~0.29 < 0.3
         ((0.0, -0.71, 1.0), False, False),  # the side at 0.31
+        # just above the top edge: the level beam passes over, the -10 deg beam meets the side
+        # at 0.2945 (the grid range image would read 0.3046: the exact cast is needed)
+        ((0.0, -0.69, 2.02), True, True),
+        ((0.0, 0.0, 2.047), True, True),  # over the top by 0.047: -10 deg reads 0.27 on the top
         ((0.0, 0.0, 2.25), True, False),  # over the top by 0.25: the -10 deg beam hits the
         # top plane 1.4 m out, past the pillar's edge (0.4 m), so no beam reads < 0.3
         ((0.0, 0.0, 2.35), False, False),

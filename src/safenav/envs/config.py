@@ -52,9 +52,9 @@ class EnvConfig:
     sphere touches a pillar's geometry, its side or its top. ``"navrl"``: NavRL's rule
     (``training/scripts/env.py``: ``max(lidar_scan) > lidar_range - 0.3``), a collision only when
     a beam of the range image reads less than the radius; a UAV that grazes a pillar's top that no
-    beam hits flies on. This range image reads within a grid cell (0.1 m) of the truth, so the
-    rule is taken as contact under ``"body"`` that a beam also reads (a reading <= ``uav_radius``):
-    every side contact NavRL's exact ray caster counts, and none of the top grazes it misses. For figures comparable with NavRL-based papers (docs/csac-v1.md,
+    beam hits flies on. The beams are cast exactly against the pillars for the test (as NavRL's
+    ray caster does against its obstacle mesh), not read off the grid-based range image, whose
+    tilted beams read only multiples of 0.1 m / cos(elevation). For figures comparable with NavRL-based papers (docs/csac-v1.md,
     "The paper's collision rule"); not for training a policy to fly. Moving obstacles, the wall
     and the altitude band collide as under ``"body"``."""
     v_max: float = 2.0
