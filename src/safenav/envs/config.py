@@ -54,9 +54,9 @@ class EnvConfig:
     a beam of the range image reads less than the radius; a UAV that grazes a pillar's top that no
     beam hits flies on. The beams are cast exactly against the pillars for the test (as NavRL's
     ray caster does against its obstacle mesh), not read off the grid-based range image, whose
-    tilted beams read only multiples of 0.1 m / cos(elevation). For figures comparable with NavRL-based papers (docs/csac-v1.md,
-    "The paper's collision rule"); not for training a policy to fly. Moving obstacles, the wall
-    and the altitude band collide as under ``"body"``."""
+    tilted beams read only multiples of 0.1 m / cos(elevation). For figures comparable with
+    NavRL-based papers (docs/csac-v1.md, "The paper's collision rule"); not for training a policy
+    to fly. Moving obstacles, the wall and the altitude band collide as under ``"body"``."""
     v_max: float = 2.0
     """Largest commanded speed per goal-frame axis in m/s (paper)."""
     control_hz: float = 10.0
