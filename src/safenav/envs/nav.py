@@ -32,6 +32,7 @@ from safenav.envs.sensors import (
     beam_hit_points,
     dynamic_obstacle_features,
     moving_obstacle_clearance,
+    pillar_boxes,
     pillar_clearance,
     quantize_heights,
     raycast_boxes_bruteforce,
@@ -715,8 +716,7 @@ class SafeNavVectorEnv(VectorEnv):
             ranges = raycast_height_map(self.heights, self.grid.origin, self.grid.size, pos_f, yaw_f,
                                         self.spec_lidar, world_f)  # fmt: skip
         else:
-            lo = torch.cat([p_xy - p_half[..., None], torch.zeros_like(p_half)[..., None]], -1)
-            hi = torch.cat([p_xy + p_half[..., None], p_h[..., None]], -1)
+            lo, hi = pillar_boxes(p_xy, p_half, p_h)
             walls_lo, walls_hi = self._wall_boxes()
             lo = torch.cat([lo, walls_lo.expand(*lo.shape[:-2], -1, -1)], -2)
             hi = torch.cat([hi, walls_hi.expand(*hi.shape[:-2], -1, -1)], -2)
@@ -767,9 +767,8 @@ class SafeNavVectorEnv(VectorEnv):
         of 0.1 m / cos e), reads less than the collision radius. Such a beam implies contact of
         the sphere, so only envs in contact need it (few per step)."""
         w, ps = self.world_idx[ids], self.n_static
-        xy, half, top = self.pillar_xy[w, :ps], self.pillar_half[w, :ps], self.pillar_height[w, :ps]
-        lo = torch.cat([xy - half[..., None], torch.zeros_like(half)[..., None]], -1)
-        hi = torch.cat([xy + half[..., None], top[..., None]], -1)
+        lo, hi = pillar_boxes(self.pillar_xy[w, :ps], self.pillar_half[w, :ps],
+                              self.pillar_height[w, :ps])  # fmt: skip
         ranges = raycast_boxes_bruteforce(lo, hi, self.pos[ids], self.yaw[ids], self.spec_lidar)
         return ranges.flatten(1).amin(-1) < self.cfg.uav_radius
 

@@ -138,6 +138,16 @@ def beam_hit_points(ranges: torch.Tensor, pos: torch.Tensor, heading: torch.Tens
     return torch.where((ranges < spec.max_range - 1e-4)[..., None], hits, far).flatten(1, 2)
 
 
+def pillar_boxes(
+    xy: torch.Tensor, half: torch.Tensor, height: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Lower and upper corners ``(..., P, 3)`` of ground-standing square pillars (centres ``xy``
+    ``(..., P, 2)``, half sides and heights ``(..., P)``), for :func:`raycast_boxes_bruteforce`."""
+    lo = torch.cat([xy - half[..., None], torch.zeros_like(half)[..., None]], -1)
+    hi = torch.cat([xy + half[..., None], height[..., None]], -1)
+    return lo, hi
+
+
 def raycast_boxes_bruteforce(
     box_lo: torch.Tensor,
     box_hi: torch.Tensor,
@@ -226,6 +236,7 @@ __all__ = [
     "quantize_heights",
     "box_surface_distance",
     "moving_obstacle_clearance",
+    "pillar_boxes",
     "pillar_clearance",
     "raycast_boxes_bruteforce",
     "raycast_height_map",

@@ -294,9 +294,9 @@ def seed_record(
         heldout = {k: held.get(k) for k in ("seeds", "episodes_per_seed", "success_rate",
                                             "collision_rate", "timeout_rate")}  # fmt: skip
     navrl = final.get("test_navrl_rule")  # reports before 2026-12-01 lack it
-    if isinstance(navrl, dict):
-        navrl = {k: navrl.get(k) for k in ("episodes", "success_rate", "collision_rate",
-                                           "timeout_rate", "collision_static_rate")}  # fmt: skip
+    navrl = ({k: navrl.get(k) for k in ("episodes", "success_rate", "collision_rate",
+                                        "timeout_rate", "collision_static_rate")}
+             if isinstance(navrl, dict) else None)  # fmt: skip
 
     return {
         "algo": algo,
@@ -312,7 +312,7 @@ def seed_record(
         "border_time_fraction": metric("border_time_fraction"),
         "selection": "validation" if (run_dir / "selection.json").exists() else "final checkpoint",
         "heldout": heldout,
-        "test_navrl_rule": navrl if isinstance(navrl, dict) else None,
+        "test_navrl_rule": navrl,
         "env_steps": env_steps,
         "wall_clock_s": wall_clock_s,
         "time_to_target": time_to_target(progress, target) if progress else None,
