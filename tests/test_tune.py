@@ -171,3 +171,22 @@ def test_a_space_of_the_other_family_or_without_options_is_refused(tmp_path, cap
     assert code == 2 and "searches no option" in err
     # run.* options reach train without a prefix
     assert option_args({"run.num_envs": 8}) == ["--num-envs", "8"]
+
+
+def test_the_overall_bar_counts_each_finished_run_once(tmp_path):
+    """The queue's overall bar ends at its total: a run that finishes is counted in the finished
+    steps only, not also among the live ones (it read 5000000/4000000 after four trials)."""
+    import io
+    import sys
+
+    from rich.console import Console
+
+    from safenav.common.child_runs import ChildRun, run_queue
+
+    runs = [ChildRun(name=f"r{i}", steps=10, command=lambda: [sys.executable, "-c", "pass"],
+                     steps_done=lambda: 10, finish=lambda s: "done", log=tmp_path / f"r{i}.log")
+            for i in range(3)]  # fmt: skip
+    out = io.StringIO()
+    assert run_queue(runs, 2, lambda line: None, True, Console(file=out, width=120)) == []
+    final = [line for line in out.getvalue().splitlines() if "all trials" in line][-1]
+    assert "30/30" in final, final

@@ -106,8 +106,8 @@ def _run(runs: list[ChildRun], jobs: int, running: dict, say: Callable[[str], No
             for name, (run, proc, log, t0, task) in list(running.items()):
                 done = min(run.steps_done(), run.steps)
                 bar.update(task, completed=done)
-                live += done
                 if proc.poll() is None:
+                    live += done  # a finished run counts once, in finished_steps
                     continue
                 log.close()
                 bar.remove_task(task)
