@@ -342,6 +342,9 @@ def test_reproduce_examples_run_as_written(example, capsys, tmp_path, monkeypatc
     seen = []
     monkeypatch.setattr("safenav.experiments.reproduce.run_sweep", seen.append)
     monkeypatch.chdir(tmp_path)
+    # the docs' commands run in the repository root, where the tuned recipes they name lie
+    (tmp_path / "results").mkdir()
+    (tmp_path / "results" / "tuning").symlink_to(ROOT / "results" / "tuning")
     argv = shlex.split(example, comments=True)
     assert argv[:2] == ["safenav", "reproduce"]
     code, _, err = run(capsys, argv[1:])
