@@ -204,6 +204,7 @@ def test_plan_total_steps_variants_and_order(tmp_path):
     assert cmd[:4] == [sys.executable, "-m", "safenav", "train"]
     assert cmd[cmd.index("--algo") + 1] == "csac" and cmd[-2:] == ["--cost-target", "min"]
     assert cmd[cmd.index("--preset") + 1] == "easy" and "--resume" not in cmd
+    assert cmd[cmd.index("--torch-threads") + 1] == "1"  # the trial's CPUs, not its recipe's
     resumed = by["ppo-seed7"].train_command(resume=True)
     assert resumed[resumed.index("--resume") + 1] == str(by["ppo-seed7"].run_dir)
     # Defaults per algorithm when --total-steps names none.
