@@ -139,6 +139,14 @@ def test_trial_records_stand_in_for_missing_run_dirs(tmp_path):
     assert csac0.eval["success_rate"] == pytest.approx(0.95)
     written = {p.name for p in plots.plot_all([root], tmp_path / "fig")}
     assert written == {"fig3_validation_curves.png", "fig4_test_results.png"}
+    # Some run directories back (a later sweep into the same OUT): the training-log figures
+    # would show those alone, so they are not written either.
+    learning_run(root / "runs" / "sac" / "seed0", "sac", 0, steps=20_000, final_success=0.85,
+                 constrained=False, eval_every=5_000)  # fmt: skip
+    mixed = plots.find_runs([root])
+    assert len(mixed) == 8 and sum(r.run_dir.suffix != ".json" for r in mixed) == 1
+    written = {p.name for p in plots.plot_all([root], tmp_path / "fig-mixed")}
+    assert written == {"fig3_validation_curves.png", "fig4_test_results.png"}
     table = plots.eval_table(plots.group(runs))
     low, high = table["csac"]["ci95"]["success_rate"]
     assert low <= table["csac"]["success_rate"]["mean"] <= high

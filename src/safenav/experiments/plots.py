@@ -526,18 +526,25 @@ def plot_all(
     """Write every figure the runs under ``paths`` support into ``out_dir``; returns the paths.
 
     Fig. 4 needs ``eval.json`` in the run directories; λ/d need a constrained algorithm that
-    logged ``constraint/lambda``. Figures without data are not written. ``runs`` (from
+    logged ``constraint/lambda``. Figures without data are not written. The figures of the
+    training logs (learning curves, λ/d, return and cost) are written only when every run has
+    its run directory: where some have only their trial file (a sweep whose earlier run
+    directories are gone), they would show the others alone. ``runs`` (from
     :func:`find_runs`) saves reading ``paths`` again.
     """
-    groups = group(runs if runs is not None else find_runs(paths))
+    runs = list(runs if runs is not None else find_runs(paths))
+    groups = group(runs)
     out_dir = Path(out_dir)
     written = [
         plot_validation_curves(groups, out_dir / FIGURES["validation_curves"]),
-        plot_learning_curves(groups, out_dir / FIGURES["learning_curves"], window),
         plot_test_results(groups, out_dir / FIGURES["test_results"]),
-        plot_constraint(groups, out_dir / FIGURES["constraint"]),
-        plot_return_cost(groups, out_dir / FIGURES["return_cost"], window),
     ]
+    if not any(r.run_dir.suffix == ".json" for r in runs):  # a trial file stands for its run
+        written += [
+            plot_learning_curves(groups, out_dir / FIGURES["learning_curves"], window),
+            plot_constraint(groups, out_dir / FIGURES["constraint"]),
+            plot_return_cost(groups, out_dir / FIGURES["return_cost"], window),
+        ]
     return [p for p in written if p is not None]
 
 
