@@ -15,7 +15,7 @@ def reproduce(
     out: Path | None = None,
     algos: tuple[str, ...] = ("paper",),
     seeds: str = "auto",
-    first_seed: int = 0,
+    first_seed: int = 1,
     total_steps: tuple[str, ...] = (),
     preset: str = "paper",
     address: str | None = None,
@@ -61,7 +61,8 @@ def reproduce(
         out: Output directory (runs/, logs/, trials/, results.json, results.md, figures/); default results/paper for the paper's comparison (no --algos, no --variants), else results/<algos joined by +>.
         algos: Algorithms (safenav train --algo) or --variants labels to run; paper (the default): the paper's comparison, its algorithms and ablations; with --variants alone, only the variants.
         seeds: Training seeds: a count N (first_seed, first_seed+1, ...), a range A-B or a list A,B,C, then optionally LABEL=SEEDS for particular labels, e.g. "1-5 sac_lag=1-3"; auto: the paper comparison's seeds, else 5.
-        first_seed: The first training seed when --seeds is a count.
+        first_seed: The first training seed when --seeds is a count (1, as the paper comparison's
+            seeds 1-5 and safenav bench: --seeds 5 is seeds 1-5).
         total_steps: Env steps per trial: N for every algorithm and/or ALGO=N (300k, 2M, 1e6 accepted); unnamed algorithms use a per-algorithm default (docs/reproduce.md).
         preset: Env preset to train on (easy, medium, paper).
         address: Ray cluster address (e.g. ray://head:10001 or auto); default: start a local Ray.

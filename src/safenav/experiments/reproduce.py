@@ -502,7 +502,7 @@ class SweepConfig:
     out: Path
     algos: tuple[str, ...] = ("csac", "sac", "ppo")
     seeds: int = 5
-    first_seed: int = 0
+    first_seed: int = 1
     seed_list: tuple[int, ...] = ()
     """Explicit training seeds (``--seeds 1-5``); empty: ``seeds`` seeds from ``first_seed``."""
     label_seeds: dict[str, tuple[int, ...]] = field(default_factory=dict)
