@@ -43,7 +43,7 @@ def test_tiny_reproduce_end_to_end(tmp_path):
         assert sum(rates) == pytest.approx(1.0, abs=1e-6)
         assert all(0.0 <= r <= 1.0 for r in rates)
         assert algo["env_steps"] >= 2000 and algo["wall_clock_s"] > 0
-        assert [r["seed"] for r in algo["per_seed"]] == [0]
+        assert [r["seed"] for r in algo["per_seed"]] == [1]  # --seeds 1: one seed, from seed 1
         assert all(r["eval_episodes"] == 10 for r in algo["per_seed"])
     assert data["ray"]["parallel_trials"] == 2 and data["failed"] == []
     assert data["command"].startswith("safenav reproduce")

@@ -25,7 +25,7 @@ pytest.importorskip("ray")
 
 
 def sweep(tmp_path, python, **kw) -> rep.SweepConfig:
-    return rep.SweepConfig(out=tmp_path / "out", algos=("csac", "sac"), seeds=2,
+    return rep.SweepConfig(out=tmp_path / "out", algos=("csac", "sac"), seeds=2, first_seed=0,
                            total_steps=("1000",), preset="easy", cpus_per_trial=1, num_cpus=2,
                            eval_episodes=10, progress=False, python=python,
                            command="safenav reproduce (test)", **kw)  # fmt: skip
@@ -126,7 +126,7 @@ from pathlib import Path
 from safenav.common.stopping import Terminated
 from safenav.experiments import reproduce as rep
 cfg = rep.SweepConfig(out=Path(sys.argv[1]), algos=("hang",), variants=("hang=sac --hang --stop-seconds 5",),
-                      seeds=1, total_steps=("1000",), preset="easy", cpus_per_trial=1, num_cpus=2,
+                      seeds=1, first_seed=0, total_steps=("1000",), preset="easy", cpus_per_trial=1, num_cpus=2,
                       eval_episodes=10, progress=False, python=sys.argv[2], command="test")
 try:
     rep.run_sweep(cfg)
