@@ -181,6 +181,12 @@ def test_env_kwargs_from_the_command_line_and_a_recipe(tmp_path, capsys):
 
     parsed = parse_train_args(["--algo", "csac", "--env-kwargs", "reward_collision", "-100"])
     assert parsed["run"].env_kwargs == {"reward_collision": -100.0}
+    # The command line's env kwargs add to the recipe's (csac: reward_collision = -100), key by
+    # key, and win where both name one.
+    added = parse_train_args(["--algo", "csac", "--env-kwargs", "lidar_memory", "10"])
+    assert added["run"].env_kwargs == {"reward_collision": -100, "lidar_memory": 10}
+    mine = parse_train_args(["--config", "csac", "--env-kwargs", "reward_collision", "-50"])
+    assert mine["run"].env_kwargs == {"reward_collision": -50.0}
     path = tmp_path / "mine.toml"
     path.write_text(
         '[recipe]\nalgo = "sac"\nbase = "sac"\n[run.env_kwargs]\nreward_collision = -50.0\n'

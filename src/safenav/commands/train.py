@@ -50,7 +50,8 @@ def train(
 
     --config NAME|PATH starts from a recipe: one shipped with safenav (csac, csac-paper,
     csac-maxcost, sac, sac-lag, ppo, ppo-lag, ...) or a TOML file of your own; options given on
-    the command line override it, and config.json records the resolved values and the recipe.
+    the command line override it (--env-kwargs adds to the recipe's env kwargs, key by key), and
+    config.json records the resolved values and the recipe.
     Without --config, --algo A on SafeNav takes the recipe named A, and on any other Gymnasium
     env the recipe of its task family (classic-*, box2d-*, mujoco-*, else gym-*; -sac for csac,
     sac and sac_lag, -ppo for ppo and ppo_lag), named in the first line printed; --config none
@@ -143,7 +144,10 @@ def given_flag(flag: str, args: tuple[str, ...] | list[str]) -> bool:
 
 
 def _recipe_overrides(section: dict, obj, prefix: str, args) -> dict:
-    """The recipe's values for the fields of ``obj`` whose flags ``args`` does not give."""
+    """The recipe's values for the fields of ``obj`` whose flags ``args`` does not give. A
+    mapping given on the command line (``--env-kwargs``) adds to the recipe's mapping, key by key
+    (the command line's keys win), rather than replacing it: ``--algo csac --env-kwargs
+    lidar_memory 10`` keeps the recipe's crash loss."""
     import dataclasses
 
     out = {}
@@ -153,6 +157,8 @@ def _recipe_overrides(section: dict, obj, prefix: str, args) -> dict:
             sub = _recipe_overrides(value, current, f"{prefix}{key}.", args)
             if sub:
                 out[key] = sub
+        elif isinstance(value, dict) and isinstance(current, dict):
+            out[key] = {**value, **current} if given_flag(f"{prefix}{key}", args) else value
         elif not given_flag(f"{prefix}{key}", args):
             out[key] = value
     return out
