@@ -6,7 +6,12 @@ bootstrap CI (scipy) and McNemar's exact test on the paired test episodes of the
     .venv/bin/python experiments/compare_trials.py results/csac_shielded/trials/csac_shielded \\
         results/csac/trials/csac [--json OUT]
 
-Each argument is a trial-file prefix: ``PREFIX-s<seed>.json`` are that label's trials.
+Each argument is a trial-file prefix: ``PREFIX-s<seed>.json`` are that label's trials, or, for
+runs ended by ``experiments/finish_runs.py``, ``PREFIX-s<seed>-final.json`` (e.g.
+``results/csac-v1/levers/shieldml``). ``--seeds`` keeps only the seeds named, in both labels:
+
+    .venv/bin/python experiments/compare_trials.py results/csac-v1/levers/shieldml \\
+        results/csac_shielded/trials/csac_shielded --seeds 1 5 2
 """
 
 from __future__ import annotations
@@ -17,17 +22,30 @@ import re
 from pathlib import Path
 
 from safenav.common.jsonout import write_json
-from safenav.experiments.stats import compare
+from safenav.experiments.stats import compare, outcomes_string
 
 
 def trials(prefix: str) -> list[dict]:
-    """The trial records ``PREFIX-s<seed>.json``, by seed."""
+    """The trial records ``PREFIX-s<seed>.json`` (or records made from ``PREFIX-s<seed>-final.json``
+    reports), by seed."""
     base = Path(prefix)
     found = sorted((int(m[1]), p) for p in base.parent.glob(f"{base.name}-s*.json")
                    if (m := re.fullmatch(rf"{re.escape(base.name)}-s(\d+)\.json", p.name)))  # fmt: skip
-    if not found:
-        raise SystemExit(f"no trial files {prefix}-s<seed>.json")
-    return [json.loads(p.read_text()) for _, p in found]
+    if found:
+        return [json.loads(p.read_text()) for _, p in found]
+    finals = sorted((int(m[1]), p) for p in base.parent.glob(f"{base.name}-s*-final.json")
+                    if (m := re.fullmatch(rf"{re.escape(base.name)}-s(\d+)-final\.json", p.name)))  # fmt: skip
+    if not finals:
+        raise SystemExit(f"no trial files {prefix}-s<seed>.json or {prefix}-s<seed>-final.json")
+    return [final_record(seed, json.loads(p.read_text())) for seed, p in finals]
+
+
+def final_record(seed: int, final: dict) -> dict:
+    """A trial-like record from a ``final.json`` report: test rates and per-episode outcomes."""
+    test = final["test"]
+    return {"seed": seed, "success_rate": test["success_rate"],
+            "collision_rate": test["collision_rate"],
+            "test_outcomes": outcomes_string(test.get("per_episode"))}  # fmt: skip
 
 
 def table(a_label: str, b_label: str, result: dict) -> list[str]:
@@ -48,8 +66,13 @@ def main() -> None:
     parser.add_argument("a", help="trial-file prefix of label A, e.g. results/csac/trials/csac")
     parser.add_argument("b", help="trial-file prefix of label B")
     parser.add_argument("--json", type=Path, default=None, help="write the comparison here too")
+    parser.add_argument("--seeds", type=int, nargs="+", default=None,
+                        help="compare only these seeds (both labels)")  # fmt: skip
     args = parser.parse_args()
     a, b = trials(args.a), trials(args.b)
+    if args.seeds:
+        a = [r for r in a if r["seed"] in args.seeds]
+        b = [r for r in b if r["seed"] in args.seeds]
     result = compare(a, b)
     print(f"A: {args.a} seeds {[r['seed'] for r in a]}; B: {args.b} seeds {[r['seed'] for r in b]}")
     print("\n".join(table(Path(args.a).name, Path(args.b).name, result)))

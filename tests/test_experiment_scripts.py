@@ -353,6 +353,29 @@ def test_compare_trials_pairs_the_test_episodes_of_two_labels(tmp_path, monkeypa
         script("compare_trials").main()
 
 
+def test_compare_trials_reads_finish_runs_reports_and_keeps_the_seeds_named(
+    tmp_path, monkeypatch, capsys
+):
+    """compare_trials.py on ``PREFIX-s<seed>-final.json`` reports (experiments/finish_runs.py):
+    their per-episode test outcomes are paired with a label's trial files, only on --seeds."""
+    for seed, (success, collision) in ((1, ([1, 0, 0], [0, 1, 0])), (2, ([1, 1, 0], [0, 0, 1]))):
+        final = {"test": {"success_rate": sum(success) / 3, "collision_rate": sum(collision) / 3,
+                          "per_episode": {"success": success, "collision": collision}}}  # fmt: skip
+        (tmp_path / f"lever-s{seed}-final.json").write_text(json.dumps(final))
+    for seed, o in ((1, "CCS"), (2, "SSS"), (3, "CCC")):
+        record = {"seed": seed, "test_outcomes": o, "success_rate": o.count("S") / 3,
+                  "collision_rate": o.count("C") / 3}  # fmt: skip
+        (tmp_path / f"trial-s{seed}.json").write_text(json.dumps(record))
+    out = tmp_path / "cmp.json"
+    monkeypatch.setattr(sys, "argv", ["compare_trials.py", str(tmp_path / "lever"),
+                                      str(tmp_path / "trial"), "--seeds", "1", "--json", str(out)])  # fmt: skip
+    script("compare_trials").main()
+    assert "seeds [1]; B:" in capsys.readouterr().out
+    m = json.loads(out.read_text())["collision_rate"]["mcnemar"]
+    # seed 1 only: the lever collides at episode 1, the trial at episodes 0 and 1 -> 0 / 1
+    assert (m["pairs"], m["only_a"], m["only_b"], m["seeds"]) == (3, 0, 1, [1])
+
+
 def test_collision_rule_flies_validation_first_and_pools_by_episodes(tmp_path, monkeypatch, capsys):
     """experiments/collision_rule.py (docs/csac-v1.md): every policy and rule on the validation
     maps before any test flight; rates pooled by episodes; a flight's JSON file is reused."""
