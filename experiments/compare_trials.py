@@ -29,15 +29,18 @@ def trials(prefix: str) -> list[dict]:
     """The trial records ``PREFIX-s<seed>.json`` (or records made from ``PREFIX-s<seed>-final.json``
     reports), by seed."""
     base = Path(prefix)
-    found = sorted((int(m[1]), p) for p in base.parent.glob(f"{base.name}-s*.json")
-                   if (m := re.fullmatch(rf"{re.escape(base.name)}-s(\d+)\.json", p.name)))  # fmt: skip
-    if found:
+    if found := files_by_seed(base, ".json"):
         return [json.loads(p.read_text()) for _, p in found]
-    finals = sorted((int(m[1]), p) for p in base.parent.glob(f"{base.name}-s*-final.json")
-                    if (m := re.fullmatch(rf"{re.escape(base.name)}-s(\d+)-final\.json", p.name)))  # fmt: skip
-    if not finals:
-        raise SystemExit(f"no trial files {prefix}-s<seed>.json or {prefix}-s<seed>-final.json")
-    return [final_record(seed, json.loads(p.read_text())) for seed, p in finals]
+    if finals := files_by_seed(base, "-final.json"):
+        return [final_record(seed, json.loads(p.read_text())) for seed, p in finals]
+    raise SystemExit(f"no trial files {prefix}-s<seed>.json or {prefix}-s<seed>-final.json")
+
+
+def files_by_seed(base: Path, suffix: str) -> list[tuple[int, Path]]:
+    """``(seed, path)`` of the files ``BASE-s<seed>SUFFIX``, by seed."""
+    pattern = rf"{re.escape(base.name)}-s(\d+){re.escape(suffix)}"
+    return sorted((int(m[1]), p) for p in base.parent.glob(f"{base.name}-s*{suffix}")
+                  if (m := re.fullmatch(pattern, p.name)))  # fmt: skip
 
 
 def final_record(seed: int, final: dict) -> dict:
