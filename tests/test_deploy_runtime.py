@@ -212,6 +212,11 @@ def test_runtime_clamps_to_v_max_per_goal_frame_axis() -> None:
          "non-finite or negative-size tracked obstacle"),
         (lambda rt, c: rt.update_depth([DepthImage(np.ones((4, 4), np.float32), 2, 2, 2, 2,
                                                    np.full((3, 3), np.nan), np.zeros(3))]), "non-finite camera pose"),
+        # a focal length that is zero as the float32 map kernels read it (found by the fuzz)
+        (lambda rt, c: rt.update_depth([DepthImage(np.ones((4, 4), np.float32), 1e-50, 2, 2, 2,
+                                                   np.eye(3), np.zeros(3))]), "intrinsics (as float32)"),
+        (lambda rt, c: rt.update_depth([DepthImage(np.ones((4, 4), np.float32), 2, 2, 2, 2,
+                                                   np.eye(3), np.array([1e300, 0, 0]))]), "non-finite camera pose"),
     ],
 )  # fmt: skip
 def test_runtime_hovers_on_stale_or_invalid_inputs(spoil, reason) -> None:

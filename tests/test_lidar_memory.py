@@ -1,12 +1,15 @@
 """``EnvConfig.lidar_memory``: the memory image appended to the range image (beyond the paper);
-the beams' elevations as a string from the command line."""
+the beams' elevations as a string from the command line; the onboard runtime's memory image."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
-from safenav.deploy.export import check_deployable
+from safenav.cli import main
+from safenav.deploy.export import OnnxPolicy, check_deployable, load_sidecar
+from safenav.deploy.runtime import OnboardRuntime, RuntimeConfig
 from safenav.envs.config import make_config, observation_shapes
 from safenav.envs.nav import SafeNavVectorEnv
 from safenav.envs.scripted import go_to_goal
@@ -88,12 +91,83 @@ def test_partial_reset_keeps_the_other_envs_memory() -> None:
     assert torch.allclose(obs["lidar"][0, E:], obs["lidar"][0, :E], atol=1e-4)
 
 
-def test_memory_policies_fly_their_own_observation_and_are_not_exported() -> None:
+def test_memory_policies_fly_their_own_observation_and_deploy() -> None:
     cfg = make_config("paper", lidar_memory=10)
     assert scenario_config(cfg, "easy").lidar_memory == 10
-    with pytest.raises(SafenavError, match="lidar_memory"):
-        check_deployable(cfg, "policy.pt")
-    check_deployable(make_config("paper"), "policy.pt")
+    check_deployable(cfg, "policy.pt")  # the onboard runtime builds the memory image
+    with pytest.raises(SafenavError, match="lidar_history"):
+        check_deployable(make_config("paper", lidar_memory=10, lidar_history=2), "policy.pt")
+
+
+def _runtime_of(env: SafeNavVectorEnv, i: int, config: RuntimeConfig | None = None):
+    """An onboard runtime that sees env ``i``'s map and flies to its goal."""
+    g2 = env.grid.size**2
+    w = int(env.world_idx[i])
+    rt = OnboardRuntime(lambda s, lidar, d: np.zeros((1, 3), np.float32), env.cfg,
+                        config or RuntimeConfig(require_tracker=False))  # fmt: skip
+    rt.map.cast_map = env.heights[w * g2 : (w + 1) * g2].clone()
+    rt.update_state(env.pos[i].numpy(), env.vel[i].numpy())
+    rt.set_goal(env.goal[i].numpy(), start=env.start[i].numpy())
+    return rt
+
+
+def test_the_onboard_runtime_builds_the_envs_memory_image() -> None:
+    """Same map, same flight -> the runtime's memory image is the env's at every step (its
+    odometry places the remembered hits as the env's state does), and a new goal forgets."""
+    env = _env(n=4, memory=5)
+    obs, _ = env.reset(seed=200_004)
+    runtimes = {i: _runtime_of(env, i) for i in range(4)}  # until its episode ends
+    compared = gained = 0.0
+    for _ in range(40):
+        for i, rt in runtimes.items():
+            rt.update_state(env.pos[i].numpy(), env.vel[i].numpy())
+            peek, _ = rt.observation()  # looking does not remember
+            mine, _ = rt.observation(remember=True)
+            assert torch.equal(peek["lidar"], mine["lidar"])
+            assert mine["lidar"].shape == (1, 2 * E, 36)
+            torch.testing.assert_close(mine["lidar"][0], obs["lidar"][i], atol=1e-5, rtol=0)
+            gained = max(gained, float((mine["lidar"][0, E:] - mine["lidar"][0, :E]).max()))
+            compared += 1
+        obs, _, term, trunc, _ = env.step(go_to_goal(obs))
+        for i in (term | trunc).nonzero().flatten().tolist():
+            runtimes.pop(i, None)
+    assert compared >= 80 and gained > 0.2  # many steps, and the memory showed more
+    rt = _runtime_of(env, 0)
+    for _ in range(3):
+        rt.observation(remember=True)
+    rt.update_state(env.pos[0].numpy() + 1.0, env.vel[0].numpy())
+    rt.set_goal(env.goal[0].numpy(), start=env.pos[0].numpy())  # a new flight
+    fresh, _ = rt.observation(remember=True)
+    torch.testing.assert_close(fresh["lidar"][0, E:], fresh["lidar"][0, :E], atol=1e-5, rtol=0)
+
+
+def test_fly_spans_the_memorys_seconds_at_its_setpoint_rate() -> None:
+    cfg = make_config("paper", lidar_memory=10)  # 10 images at 10 Hz: 1 s
+    assert RuntimeConfig.for_flight(cfg, 0, 20.0).policy_memory == 20
+    assert RuntimeConfig.for_flight(cfg, 1, 10.0).policy_memory == 10
+    assert RuntimeConfig.for_flight(make_config("paper"), 0, 20.0).policy_memory == 0
+
+
+def test_a_memory_policy_exports_and_its_sidecar_says_so(tmp_path) -> None:
+    pytest.importorskip("onnxruntime")
+    run = tmp_path / "memory"
+    main(["train", "--algo", "csac", "--preset", "easy", "--seed", "1", "--num-envs", "4",
+          "--total-steps", "200", "--env-kwargs", "lidar_memory", "3",
+          "--csac.learning-starts", "64", "--csac.batch-size", "16", "--csac.net.hidden", "32", "32",
+          "--eval-every", "0", "--no-progress", "--no-tensorboard", "--torch-threads", "1",
+          "--run-dir", str(run)])  # fmt: skip
+    onnx = tmp_path / "policy.onnx"
+    main(["export", str(run / "checkpoint.pt"), "--onnx", str(onnx)])
+    meta, cfg = load_sidecar(onnx)
+    assert cfg.lidar_memory == 3
+    lidar = meta["observation"]["lidar"]
+    assert lidar["shape"] == [8, 36] and lidar["memory_rows"]["control_steps"] == 3
+    runtime = OnboardRuntime(OnnxPolicy(onnx), cfg, RuntimeConfig(require_tracker=False))
+    runtime.update_state([0.0, -8.0, 1.5], [0.0, 0.0, 0.0])
+    runtime.update_points(np.zeros((0, 3)))
+    runtime.set_goal([0.0, 8.0, 1.5])
+    setpoint = runtime.step()
+    assert not setpoint.hover and setpoint.observation["lidar"].shape == (8, 36)
 
 
 def test_tuple_fields_from_the_command_line() -> None:

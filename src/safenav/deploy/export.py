@@ -5,7 +5,7 @@ the network: the observation layout and scaling, the action scaling and frame, `
 rate the policy was trained at, and the full env configuration (:class:`EnvConfig`).
 
 Inputs of the ONNX graph (batch dimension ``N`` dynamic, float32): ``state (N, 8)``, ``lidar (N, 4,
-36)``, ``dynamic (N, 5, 10)``; output ``action (N, 3)`` in ``[-1, 1]``, the goal-frame velocity
+36)`` (``(N, 8, 36)`` with a memory image, ``lidar_memory``), ``dynamic (N, 5, 10)``; output ``action (N, 3)`` in ``[-1, 1]``, the goal-frame velocity
 divided by ``v_max``. Exported with the TorchScript-based exporter (``dynamo=False``): one static
 graph, no onnxscript rewriting, identical on every torch version that still ships it; the dynamo
 exporter is the fallback.
@@ -57,13 +57,21 @@ def policy_conventions(cfg: EnvConfig) -> dict[str, Any]:
                           "velocity_m_s": cfg.v_max},
             },
             "lidar": {
-                "shape": [len(cfg.lidar_v_angles), cfg.lidar_h_beams],
+                "shape": list(observation_shapes(cfg)["lidar"]),
                 "value": "(range - min(hit_distance, range)) / range",
                 "range_m": cfg.lidar_range,
                 "rows_elevation_deg": list(cfg.lidar_v_angles),
                 "columns_azimuth_deg": [360.0 * j / cfg.lidar_h_beams for j in range(cfg.lidar_h_beams)],
                 "azimuth_zero": "goal-frame x (toward the goal), counter-clockwise",
                 "grid_resolution_m": cfg.grid_resolution,
+                **({"memory_rows": {
+                    "rows": [len(cfg.lidar_v_angles), 2 * len(cfg.lidar_v_angles)],
+                    "control_steps": cfg.lidar_memory,
+                    "value": "per cell the nearest beam hit of the last control_steps range "
+                             "images (the current one included), kept in the world by odometry "
+                             "and seen from the current position: (range - d) / range",
+                    "forget": "when a new goal is set",
+                }} if cfg.lidar_memory else {}),
             },
             "dynamic": {
                 "shape": [cfg.num_tracked, 10],
@@ -88,17 +96,13 @@ def policy_conventions(cfg: EnvConfig) -> dict[str, Any]:
 
 def check_deployable(cfg: EnvConfig, where: str | Path) -> None:
     """``SafenavError`` unless the onboard runtime can build the observations of a policy of env
-    configuration ``cfg`` (``where`` names it): not for a range-image history yet."""
+    configuration ``cfg`` (``where`` names it): not for a range-image history yet (a memory
+    image, ``lidar_memory``, it builds)."""
     if cfg.lidar_history > 1:
         raise SafenavError(f"{where}: policies trained with lidar_history > 1 cannot be deployed "
                            f"yet: this one reads the range images of the last {cfg.lidar_history} "
                            "control steps, and the onboard runtime (safenav export / fly) builds "
                            "the current one only; evaluate it in simulation (safenav eval)")  # fmt: skip
-    if cfg.lidar_memory > 0:
-        raise SafenavError(f"{where}: policies trained with lidar_memory > 0 cannot be deployed "
-                           f"yet: this one reads a memory image of the last {cfg.lidar_memory} "
-                           "range images, which the onboard runtime (safenav export / fly) does "
-                           "not build; evaluate it in simulation (safenav eval)")  # fmt: skip
 
 
 def call_actor(

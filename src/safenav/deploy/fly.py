@@ -315,7 +315,10 @@ class FlightController:
             return
         ranges = None
         if sp is not None and sp.observation is not None:  # lidar = (range - d) / range
-            ranges = self.runtime.cfg.lidar_range * (1.0 - sp.observation["lidar"])
+            current = sp.observation["lidar"][
+                : len(self.runtime.cfg.lidar_v_angles)
+            ]  # no memory rows
+            ranges = self.runtime.cfg.lidar_range * (1.0 - current)
         self.recorder.record(
             now, local_ned_to_world(tel.position_ned, self.config.origin),
             local_ned_to_world(tel.velocity_ned, (0.0, 0.0, 0.0)), self.runtime.goal_yaw,

@@ -45,7 +45,13 @@ from safenav.deploy.perception_link import DepthImage, PerceptionFrame, TrackedO
 from safenav.deploy.shield import MemoryShield, ShieldConfig, map_scan_hits, shield_action
 from safenav.envs.config import EnvConfig
 from safenav.envs.nav import DIST_SCALE, Z_SCALE
-from safenav.envs.sensors import RangeImageSpec, dynamic_obstacle_features, raycast_height_map
+from safenav.envs.sensors import (
+    RangeImageSpec,
+    beam_hit_points,
+    dynamic_obstacle_features,
+    memory_image,
+    raycast_height_map,
+)
 from safenav.envs.world import GridSpec
 
 log = logging.getLogger("safenav.deploy.runtime")
@@ -91,6 +97,10 @@ class RuntimeConfig:
     """The shield also takes the map scan's hits (:func:`~safenav.deploy.shield.map_scan_hits`
     on the map built from depth images): the pillars at the vehicle's lower extent, whether the
     range image's beams see them now or not."""
+    policy_memory: int = 0
+    """Range images in the policy's memory image (``EnvConfig.lidar_memory`` > 0), one per
+    control step; 0: the env's ``lidar_memory`` (the runtime steps at the env's rate). ``safenav
+    fly`` converts the env's 10 Hz images to its setpoint rate (:meth:`for_flight`)."""
     geofence: bool = True
     """Mark the env's arena border as a wall in the onboard map, as the simulator does (SafeNav-v1
     trains policies in a closed arena): the flight area is a geofence the policy sees coming."""
@@ -108,15 +118,22 @@ class RuntimeConfig:
         if the memory is more than 100 setpoints."""
         from safenav.errors import SafenavError
 
+        # The policy's memory image (lidar_memory) spans the same seconds at the setpoint rate.
+        policy_memory = (max(1, round(env_config.lidar_memory * rate_hz * env_config.dt))
+                         if env_config.lidar_memory else 0)  # fmt: skip
+        if policy_memory > 1000:
+            raise SafenavError(f"lidar_memory {env_config.lidar_memory} at --rate {rate_hz:g} Hz is "
+                               f"{policy_memory} range images, more than 1000")  # fmt: skip
         if shield_memory <= 0:
-            return cls()
+            return cls(policy_memory=policy_memory)
         steps = 1 if shield_memory == 1 else max(2, round(shield_memory * rate_hz * env_config.dt))
         if steps > 100:
             raise SafenavError(f"--shield-memory {shield_memory} ({shield_memory * env_config.dt:g} s of range "
                                f"images) at --rate {rate_hz:g} Hz is {steps} setpoints, more than 100")  # fmt: skip
         braking = ShieldConfig.braking_of(env_config) if brake else {}
         return cls(shield=ShieldConfig.for_env(env_config, mover_margin=mover_margin, **braking),
-                   shield_memory=steps, shield_map=shield_map)  # fmt: skip
+                   shield_memory=steps, shield_map=shield_map,
+                   policy_memory=policy_memory)  # fmt: skip
 
 
 @dataclass
@@ -145,7 +162,8 @@ class OnboardRuntime:
 
     Args:
         policy: ``(state (1, 8), lidar (1, 4, 36), dynamic (1, 5, 10)) -> action (1, 3)`` NumPy
-            float32, e.g. :class:`~safenav.deploy.export.OnnxPolicy`.
+            float32, e.g. :class:`~safenav.deploy.export.OnnxPolicy` (``lidar (1, 8, 36)`` with
+            a memory image).
         env_config: the policy's env configuration (beam layout, scales, v_max, grid).
         config: guards and perception settings.
         grid: the map's extent (default: the env's map plus padding, world-fixed).
@@ -177,6 +195,13 @@ class OnboardRuntime:
                                and (memory > 1 or scan or self.config.shield.brake_time > 0)
                                else None)  # fmt: skip
         self._episode_start = True  # the memory shield's next image begins a new memory
+        if self.config.policy_memory < 0:
+            raise ValueError(f"policy_memory {self.config.policy_memory}: 0 or more range images")
+        # The policy's memory image: beam hits of the last images, world frame (see observation)
+        self._mem_slots = (self.config.policy_memory or env_config.lidar_memory
+                           if env_config.lidar_memory else 0)  # fmt: skip
+        self._mem_points: torch.Tensor | None = None  # (slots, E * C, 3); FAR = no point
+        self._mem_slot = 0
         self.clock = clock
         self.spec = RangeImageSpec.for_config(env_config)
         self.map = HeightMap(
@@ -216,6 +241,7 @@ class OnboardRuntime:
             self._goal = goal
             self._yaw = goal_frame_yaw(start, goal)
             self._episode_start = True  # a new flight: what the memory shield saw is not on it
+            self._mem_points = None  # nor what the policy's memory image remembered
 
     @property
     def goal(self) -> np.ndarray | None:
@@ -369,8 +395,13 @@ class OnboardRuntime:
                 return f"stale {name}: {now - stamp:.2f} s old > {limit:.2f} s"
         return ""
 
-    def observation(self) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
-        """The env-layout observation (batch of 1) and the raw range image (metres), now."""
+    def observation(self, remember: bool = False) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        """The env-layout observation (batch of 1) and the raw range image (metres), now.
+
+        A policy with a memory image (``EnvConfig.lidar_memory``) sees the current range image's
+        beam hits with those of the images remembered before it, placed in the world by the
+        odometry, as the env does; ``remember=True`` (:meth:`step`, once per control step) keeps
+        the current hits for the next steps, in place of the oldest."""
         cfg = self.cfg
         pos = torch.tensor(self._pos, dtype=torch.float32)[None]
         yaw = torch.tensor([self._yaw], dtype=torch.float32)
@@ -387,12 +418,29 @@ class OnboardRuntime:
         else:
             dynamic = torch.zeros(1, cfg.num_tracked, 10)
         state = state_features(self._pos, self._vel, self._goal, self._yaw, cfg.v_max)
-        obs = {
-            "state": torch.from_numpy(state)[None],
-            "lidar": (cfg.lidar_range - ranges) / cfg.lidar_range,
-            "dynamic": dynamic,
-        }
+        lidar = (cfg.lidar_range - ranges) / cfg.lidar_range
+        if self._mem_slots:
+            lidar = torch.cat([lidar, self._memory_image(ranges, pos, yaw, remember)], 1)
+        obs = {"state": torch.from_numpy(state)[None], "lidar": lidar, "dynamic": dynamic}
         return obs, ranges
+
+    def _memory_image(self, ranges: torch.Tensor, pos: torch.Tensor, yaw: torch.Tensor,
+                      remember: bool) -> torch.Tensor:  # fmt: skip
+        """The memory image ``(1, E, C)`` of the current hits and the remembered ones (a ring
+        of ``_mem_slots`` images, the oldest at ``_mem_slot``: the current hits replace it)."""
+        far = 1.0e4
+        hits = beam_hit_points(ranges, pos, yaw, self.spec, far)[0]
+        if self._mem_points is None:  # a new flight: the first image is all it remembers
+            self._mem_points = torch.full((self._mem_slots, *hits.shape), far)
+            self._mem_slot = 0
+        others = torch.cat(
+            [self._mem_points[: self._mem_slot], self._mem_points[self._mem_slot + 1 :]]
+        )
+        image = memory_image(torch.cat([others, hits[None]])[None], pos, yaw, self.cfg)
+        if remember:
+            self._mem_points[self._mem_slot] = hits
+            self._mem_slot = (self._mem_slot + 1) % self._mem_slots
+        return image
 
     def distance_to_goal(self) -> float:
         with self._lock:
@@ -409,7 +457,7 @@ class OnboardRuntime:
             if reason:
                 return self._hover(reason)
             t0 = time.perf_counter()
-            obs, _ = self.observation()
+            obs, _ = self.observation(remember=True)
             t1 = time.perf_counter()
             np_obs = {k: v.numpy() for k, v in obs.items()}
             if not all(np.isfinite(v).all() for v in np_obs.values()):
@@ -479,9 +527,12 @@ def _checked_image(img: DepthImage) -> DepthImage:
     R = np.asarray(img.R, dtype=np.float64).reshape(3, 3)
     t = np.asarray(img.t, dtype=np.float64).reshape(3)
     k = [float(x) for x in (img.fx, img.fy, img.cx, img.cy)]
-    if not (np.isfinite(R).all() and np.isfinite(t).all() and all(map(math.isfinite, k))
-            and k[0] != 0 and k[1] != 0):  # fmt: skip
-        raise ValueError("non-finite camera pose or intrinsics")
+    # Checked as the map's float32 kernels read them: 1e-50 is a zero focal length there, 1e300 inf.
+    with np.errstate(over="ignore", under="ignore"):
+        r32, t32, k32 = (np.asarray(x, dtype=np.float32) for x in (R, t, k))
+    if not (np.isfinite(r32).all() and np.isfinite(t32).all() and np.isfinite(k32).all()
+            and k32[0] != 0 and k32[1] != 0):  # fmt: skip
+        raise ValueError("non-finite camera pose or intrinsics (as float32)")
     return DepthImage(depth, *k, R, t)
 
 

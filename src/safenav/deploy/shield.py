@@ -486,10 +486,11 @@ def shield_action(
     corrected)``; unchanged actions are returned bit for bit.
 
     Static obstacles are the range image's beam hits; moving obstacles are the tracked ones,
-    decoded from the ``dynamic`` features. This is exactly what the onboard runtime runs.
+    decoded from the ``dynamic`` features. This is exactly what the onboard runtime runs. Rows
+    after the current image's (a memory image, ``EnvConfig.lidar_memory``) are not read.
     """
     spec = _spec(cfg)
-    lidar, dyn = obs["lidar"], obs["dynamic"]
+    lidar, dyn = obs["lidar"][:, : len(cfg.lidar_v_angles)], obs["dynamic"]
     one = action.shape[0] == 1 and action.device.type == "cpu" and kernels.AVAILABLE
     if one and cfg.response_time == 0 and cfg.brake_time == 0:
         return _shield_action_compiled(lidar, dyn, action, cfg, spec)

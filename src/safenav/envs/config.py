@@ -98,7 +98,8 @@ class EnvConfig:
     elevation, the lowest also holding every point below it): per cell the nearest remembered
     point, ``(range - d) / range``. It shows a pillar that fell under the lowest beam or between
     two beams as the UAV closed in, which a memoryless range image loses (docs/csac-v1.md, "The
-    sensor, not only the learning"). Not deployable yet, as ``lidar_history``."""
+    sensor, not only the learning"). Deployable: the onboard runtime keeps the hits by odometry
+    and builds the same rows (``safenav export`` / ``fly``; ``RuntimeConfig.policy_memory``)."""
     num_tracked: int = 5
     """Number of nearest moving obstacles in the observation (NavRL)."""
     dyn_speed_range: tuple[float, float] = (0.5, 1.5)

@@ -31,6 +31,7 @@ from safenav.envs.sensors import (
     RangeImageSpec,
     beam_hit_points,
     dynamic_obstacle_features,
+    memory_image,
     moving_obstacle_clearance,
     pillar_boxes,
     pillar_clearance,
@@ -637,25 +638,7 @@ class SafeNavVectorEnv(VectorEnv):
         else:
             self._mem_slot = (self._mem_slot + 1) % cfg.lidar_memory
             self._mem[:, self._mem_slot] = hits
-        return torch.cat([lidar, self._memory_image(self._mem[sel], pos, yaw)], 1)
-
-    def _memory_image(
-        self, points: torch.Tensor, pos: torch.Tensor, yaw: torch.Tensor
-    ) -> torch.Tensor:
-        """World points ``(n, ..., 3)`` seen from ``pos`` with column 0 at ``yaw``: per (elevation
-        row, azimuth column) cell the nearest within range, ``(range - d) / range``; ``(n, E, C)``."""
-        cfg = self.cfg
-        e, c, r = len(cfg.lidar_v_angles), cfg.lidar_h_beams, cfg.lidar_range
-        rel = points.flatten(1, -2) - pos[:, None]
-        dist = rel.norm(dim=-1)
-        az = torch.atan2(rel[..., 1], rel[..., 0]) - yaw[:, None]
-        col = torch.round(az * (c / (2 * math.pi))).long() % c
-        elev = torch.rad2deg(torch.atan2(rel[..., 2], rel[..., :2].norm(dim=-1)))
-        angles = torch.tensor(cfg.lidar_v_angles, device=self.device)
-        row = torch.bucketize(elev, (angles[1:] + angles[:-1]) / 2)  # nearest beam's elevation
-        cell = torch.full((len(pos), e * c), r, device=self.device)
-        cell.scatter_reduce_(1, row * c + col, dist.clamp(max=r), "amin")
-        return ((r - cell) / r).view(-1, e, c)
+        return torch.cat([lidar, memory_image(self._mem[sel], pos, yaw, cfg)], 1)
 
     def _reset_mask(self, mask, seed: int | None) -> torch.Tensor | None:
         """The ``reset_mask`` option as a bool tensor on the device (``None``: reset all)."""

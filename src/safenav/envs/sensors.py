@@ -138,6 +138,27 @@ def beam_hit_points(ranges: torch.Tensor, pos: torch.Tensor, heading: torch.Tens
     return torch.where((ranges < spec.max_range - 1e-4)[..., None], hits, far).flatten(1, 2)
 
 
+def memory_image(points: torch.Tensor, pos: torch.Tensor, heading: torch.Tensor,
+                 cfg: EnvConfig) -> torch.Tensor:  # fmt: skip
+    """The memory image (``EnvConfig.lidar_memory``) of remembered world points ``(N, ..., 3)``
+    (e.g. :func:`beam_hit_points` of past range images) seen from ``pos`` ``(N, 3)`` with column
+    0 at ``heading`` ``(N,)``: per (elevation row, azimuth column) cell of the range image's
+    layout the nearest point within range, ``(range - d) / range``; ``(N, E, C)``. A point goes
+    to the row of the nearest beam elevation (the lowest row also takes every point below it).
+    The simulator and the onboard runtime both call it."""
+    e, c, r = len(cfg.lidar_v_angles), cfg.lidar_h_beams, cfg.lidar_range
+    rel = points.flatten(1, -2) - pos[:, None]
+    dist = rel.norm(dim=-1)
+    az = torch.atan2(rel[..., 1], rel[..., 0]) - heading[:, None]
+    col = torch.round(az * (c / (2 * math.pi))).long() % c
+    elev = torch.rad2deg(torch.atan2(rel[..., 2], rel[..., :2].norm(dim=-1)))
+    angles = torch.tensor(cfg.lidar_v_angles, device=points.device, dtype=points.dtype)
+    row = torch.bucketize(elev, (angles[1:] + angles[:-1]) / 2)  # nearest beam's elevation
+    cell = torch.full((len(pos), e * c), r, device=points.device, dtype=points.dtype)
+    cell.scatter_reduce_(1, row * c + col, dist.clamp(max=r), "amin")
+    return ((r - cell) / r).view(-1, e, c)
+
+
 def pillar_boxes(
     xy: torch.Tensor, half: torch.Tensor, height: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -233,6 +254,7 @@ __all__ = [
     "RangeImageSpec",
     "beam_hit_points",
     "dynamic_obstacle_features",
+    "memory_image",
     "quantize_heights",
     "box_surface_distance",
     "moving_obstacle_clearance",
