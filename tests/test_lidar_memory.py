@@ -174,6 +174,7 @@ def test_tuple_fields_from_the_command_line() -> None:
     """``--env-kwargs lidar_v_angles "(-30,-15,0,15)"`` arrives as a string: make_config reads it."""
     assert make_config("paper", lidar_v_angles="(-30,-15,0,15)").lidar_v_angles == (-30, -15, 0, 15)
     assert make_config("paper", lidar_v_angles="0, 10").lidar_v_angles == (0.0, 10.0)
+    assert make_config("paper", lidar_v_angles=[-30, 0]).lidar_v_angles == (-30, 0)  # TOML array
     with pytest.raises(ValueError, match="comma-separated"):
         make_config("paper", lidar_v_angles="low,high")
     env = SafeNavVectorEnv(2, preset="paper", output="torch", lidar_v_angles="-30,-15,0,15")

@@ -318,8 +318,9 @@ def observation_shapes(cfg: EnvConfig | Mapping[str, Any]) -> dict[str, tuple[in
 def make_config(preset: str = "paper", **overrides) -> EnvConfig:
     """The named preset with ``overrides`` applied; ``ValueError`` for unknown names or fields.
     A whole float for an integer field is taken as that integer (a value written ``3.0`` in a
-    recipe or JSON file), and a string of comma-separated numbers for a tuple field as that tuple
-    (``--env-kwargs lidar_v_angles -30,-15,0,15``; brackets allowed)."""
+    recipe or JSON file), a list for a tuple field as that tuple (a TOML array), and a string of
+    comma-separated numbers as that tuple (``--env-kwargs lidar_v_angles -30,-15,0,15``;
+    brackets allowed)."""
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}: choose one of {sorted(PRESETS)}")
     types = {f.name: f.type for f in dataclasses.fields(EnvConfig)}
@@ -337,6 +338,8 @@ def make_config(preset: str = "paper", **overrides) -> EnvConfig:
             except ValueError:
                 raise ValueError(f"EnvConfig.{name}={value!r} is invalid: give comma-separated "
                                  "numbers, e.g. -10,0,10,20") from None  # fmt: skip
+        elif str(types[name]).startswith("tuple") and isinstance(value, list):
+            overrides[name] = tuple(value)  # a recipe's TOML array or a JSON list
     return EnvConfig(**{**PRESETS[preset], **overrides})
 
 
