@@ -46,6 +46,7 @@ from safenav.deploy.shield import MemoryShield, ShieldConfig, map_scan_hits, shi
 from safenav.envs.config import EnvConfig
 from safenav.envs.nav import DIST_SCALE, Z_SCALE
 from safenav.envs.sensors import (
+    FAR_POINT,
     RangeImageSpec,
     beam_hit_points,
     dynamic_obstacle_features,
@@ -428,10 +429,9 @@ class OnboardRuntime:
                       remember: bool) -> torch.Tensor:  # fmt: skip
         """The memory image ``(1, E, C)`` of the current hits and the remembered ones (a ring
         of ``_mem_slots`` images, the oldest at ``_mem_slot``: the current hits replace it)."""
-        far = 1.0e4
-        hits = beam_hit_points(ranges, pos, yaw, self.spec, far)[0]
+        hits = beam_hit_points(ranges, pos, yaw, self.spec)[0]
         if self._mem_points is None:  # a new flight: the first image is all it remembers
-            self._mem_points = torch.full((self._mem_slots, *hits.shape), far)
+            self._mem_points = torch.full((self._mem_slots, *hits.shape), FAR_POINT)
             self._mem_slot = 0
         others = torch.cat(
             [self._mem_points[: self._mem_slot], self._mem_points[self._mem_slot + 1 :]]

@@ -42,7 +42,7 @@ import torch
 
 from safenav.deploy import kernels
 from safenav.envs.config import EnvConfig
-from safenav.envs.sensors import RangeImageSpec
+from safenav.envs.sensors import FAR_POINT, RangeImageSpec
 from safenav.envs.world import CUBOID_HEIGHT, DYN_WIDTHS
 
 STATE_VELOCITY = slice(5, 8)
@@ -670,10 +670,10 @@ class MemoryShield:
         lidar = obs["lidar"][:, : len(cfg.lidar_v_angles)]
         ranges = cfg.lidar_range * (1.0 - lidar.to(action.dtype))
         pos, yaw = pos.to(action.dtype), yaw.to(action.dtype)
-        hits = beam_hit_points(ranges, pos, yaw, spec, far=_FAR)  # (N, B, 3) world
+        hits = beam_hit_points(ranges, pos, yaw, spec, far=FAR_POINT)  # (N, B, 3) world
         n, b = hits.shape[:2]
         if self._points is None or self._points.shape[0] != n or self._points.shape[2] != b:
-            self._points = torch.full((n, self.memory, b, 3), _FAR, dtype=hits.dtype,
+            self._points = torch.full((n, self.memory, b, 3), FAR_POINT, dtype=hits.dtype,
                                       device=hits.device)  # fmt: skip
             self._slot = 0
         self._slot = (self._slot + 1) % self.memory
@@ -681,7 +681,7 @@ class MemoryShield:
         fresh = fresh.to(torch.bool)  # episodes that begin now: nothing older belongs to them
         if bool(fresh.any()):
             keep = self._points[fresh, self._slot].clone()
-            self._points[fresh] = _FAR
+            self._points[fresh] = FAR_POINT
             self._points[fresh, self._slot] = keep
         # Into the current heading frame (column 0 of the image along +x).
         world = self._points.flatten(1, 2) - pos[:, None]
@@ -701,9 +701,6 @@ class MemoryShield:
                                         for a, b in zip((rel, valid, planar, dsel), extra, strict=True))  # fmt: skip
         return _shield_static_and_tracked(rel, valid, planar, dsel, obs["dynamic"], action, cfg,
                                           obs.get("state"), pos[:, 2])  # fmt: skip
-
-
-_FAR = 1.0e4
 
 
 def shield_for_memory(memory: int, map_scan: bool = False, mover_margin: float = 0.0,

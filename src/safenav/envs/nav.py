@@ -28,6 +28,7 @@ from safenav.envs.dynamics import (
     world_to_goal_frame,
 )
 from safenav.envs.sensors import (
+    FAR_POINT,
     RangeImageSpec,
     beam_hit_points,
     dynamic_obstacle_features,
@@ -622,7 +623,7 @@ class SafeNavVectorEnv(VectorEnv):
         reset (``start``: a bool mask of the envs that begin an episode; they forget and
         remember their first image, the others see their unchanged state again), and the
         SAME_STEP autoreset (``ids``: the envs whose next episode begins, observed alone)."""
-        cfg, far = self.cfg, 1.0e4
+        cfg, far = self.cfg, FAR_POINT
         sel = slice(None) if ids is None else ids
         pos, yaw = self.pos[sel], self.yaw[sel]
         hits = beam_hit_points(ranges, pos, yaw, self.spec_lidar, far)

@@ -125,8 +125,13 @@ def raycast_height_map(
     return dist.reshape(n, nh, nv).transpose(1, 2)
 
 
+FAR_POINT = 1.0e4
+"""Where a beam without a hit puts its point (metres): far beyond any range, so that rings of
+remembered hits (the memory image, the memory shield) can hold "no point" in the same tensor."""
+
+
 def beam_hit_points(ranges: torch.Tensor, pos: torch.Tensor, heading: torch.Tensor,
-                    spec: RangeImageSpec, far: float = 1.0e4) -> torch.Tensor:  # fmt: skip
+                    spec: RangeImageSpec, far: float = FAR_POINT) -> torch.Tensor:  # fmt: skip
     """World points where the beams of a range image hit: ``ranges`` ``(N, E, C)`` metres cast
     from ``pos`` ``(N, 3)`` with column 0 at ``heading`` ``(N,)``; ``(N, E * C, 3)``, a beam
     without a hit (its full range) put ``far`` away."""
@@ -250,6 +255,7 @@ def moving_obstacle_clearance(
 
 
 __all__ = [
+    "FAR_POINT",
     "HEIGHT_QUANTUM",
     "RangeImageSpec",
     "beam_hit_points",
