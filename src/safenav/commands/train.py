@@ -311,7 +311,15 @@ def changed_options(given_cfg, saved_cfg, prefix: str, args) -> list[str]:
 
 def check_budget(family: str, run: RunConfig, cfg) -> None:
     """``SafenavError`` for an off-policy run whose budget ends within its warm-up of uniform
-    random actions: it would never update its networks."""
+    random actions: it would never update its networks. PPO collects whole rollouts, so a budget
+    that is not a multiple of one rollout runs to the next multiple: said in one line."""
+    if family == "ppo":
+        rollout = cfg.rollout_steps * run.num_envs
+        steps = -(-run.total_steps // rollout) * rollout
+        if steps != run.total_steps:
+            print(f"safenav train: note: PPO collects whole rollouts of {rollout:,} env steps "
+                  f"(--ppo.rollout-steps {cfg.rollout_steps} x --num-envs {run.num_envs}), so "
+                  f"--total-steps {run.total_steps:,} trains {steps:,}", file=sys.stderr)  # fmt: skip
     if family == "csac" and run.total_steps <= cfg.learning_starts:
         from safenav.errors import SafenavError
 
