@@ -82,20 +82,11 @@ PAPER_VARIANTS: tuple[str, ...] = (
     "ppo_3m=ppo",
     "sac_lag_3m=sac_lag",
     "ppo_lag_3m=ppo_lag",
-    # Each baseline with the values its own tuning chose on validation maps (safenav tune, 8
-    # trials each; docs/reproduce.md "Tuning effort per algorithm"), at 3M: CSAC's tuning effort
-    # matched. Paths relative to the repository root, where results/paper is.
-    "sac_tuned_3m=sac --config results/tuning/sac/best.toml",
-    "ppo_tuned_3m=ppo --config results/tuning/ppo/best.toml",
-    "sac_lag_tuned_3m=sac_lag --config results/tuning/sac-lag/best.toml",
-    "ppo_lag_tuned_3m=ppo_lag --config results/tuning/ppo-lag/best.toml",
 )
 PAPER_SEEDS = ("1-5 sac_lag=1-3 ppo_lag=1-3 csac_paper=1-3 csac_min=1-3 csac_fixed_d=1-3 "
-               "sac_lag_3m=1-3 ppo_lag_3m=1-3 sac_lag_tuned_3m=1-3 ppo_lag_tuned_3m=1-3")  # fmt: skip
+               "sac_lag_3m=1-3 ppo_lag_3m=1-3")  # fmt: skip
 PAPER_TOTAL_STEPS: tuple[str, ...] = ("1M", "csac_3m=3M", "sac_3m=3M", "ppo_3m=3M",
-                                      "sac_lag_3m=3M", "ppo_lag_3m=3M", "sac_tuned_3m=3M",
-                                      "ppo_tuned_3m=3M", "sac_lag_tuned_3m=3M",
-                                      "ppo_lag_tuned_3m=3M")  # fmt: skip
+                                      "sac_lag_3m=3M", "ppo_lag_3m=3M")  # fmt: skip
 #: One evaluation protocol for every label of the comparison, whatever its recipe says: the
 #: validation curves of Fig. 3 at the same points, and the same policies for --select to choose
 #: from (the csac and sac recipes already do this; ppo's evaluates every 1M of its 30M).
