@@ -331,17 +331,16 @@ def test_a_budget_within_the_warm_up_is_refused_with_both_numbers(tmp_path, caps
     assert not run_dir.exists()  # refused before anything is written
 
 
-def test_a_ppo_budget_between_rollouts_says_what_it_trains(capsys):
+def test_a_ppo_budget_between_rollouts_says_what_it_trains():
     from types import SimpleNamespace
 
-    from safenav.commands.train import check_budget
+    from safenav.commands.train import rollout_note
 
     cfg = SimpleNamespace(rollout_steps=2048)
-    check_budget("ppo", SimpleNamespace(num_envs=2, total_steps=3000), cfg)
-    err = capsys.readouterr().err
-    assert len(err.strip().splitlines()) == 1 and "--total-steps 3,000 trains 4,096" in err
-    check_budget("ppo", SimpleNamespace(num_envs=2, total_steps=8192), cfg)
-    assert capsys.readouterr().err == ""  # whole rollouts: nothing to say
+    note = rollout_note("ppo_lag", SimpleNamespace(num_envs=2, total_steps=3000), cfg)
+    assert len(note.splitlines()) == 1 and "--total-steps 3,000 trains 4,096" in note
+    assert rollout_note("ppo", SimpleNamespace(num_envs=2, total_steps=8192), cfg) == ""  # whole
+    assert rollout_note("sac", SimpleNamespace(num_envs=2, total_steps=3000), cfg) == ""
 
 
 @pytest.mark.parametrize(

@@ -79,6 +79,8 @@ def train(
             print(recipe_line(recipe, run.env, chosen=config is None))
         if "lidar" not in obs_shapes:  # SafeNav: its range image has an encoder
             warn_images(run.env, obs_shapes)
+        if resume is None and (note := rollout_note(algo, run, cfg)):
+            print(note, file=sys.stderr)
         if resume is None:
             training.write_config(run_dir, algo, run, cfg, recipe_record(recipe))
         with cost_function(run.cost_fn):
@@ -309,17 +311,23 @@ def changed_options(given_cfg, saved_cfg, prefix: str, args) -> list[str]:
     return out
 
 
+def rollout_note(algo: str, run: RunConfig, cfg) -> str:
+    """PPO collects whole rollouts, so a budget that is not a multiple of one rollout runs to the
+    next multiple: the line that says so (printed once the run is accepted), else ``""``."""
+    if algo not in ("ppo", "ppo_lag"):
+        return ""
+    rollout = cfg.rollout_steps * run.num_envs
+    steps = -(-run.total_steps // rollout) * rollout
+    if steps == run.total_steps:
+        return ""
+    return (f"safenav train: note: PPO collects whole rollouts of {rollout:,} env steps "
+            f"(--ppo.rollout-steps {cfg.rollout_steps} x --num-envs {run.num_envs}), so "
+            f"--total-steps {run.total_steps:,} trains {steps:,}")  # fmt: skip
+
+
 def check_budget(family: str, run: RunConfig, cfg) -> None:
     """``SafenavError`` for an off-policy run whose budget ends within its warm-up of uniform
-    random actions: it would never update its networks. PPO collects whole rollouts, so a budget
-    that is not a multiple of one rollout runs to the next multiple: said in one line."""
-    if family == "ppo":
-        rollout = cfg.rollout_steps * run.num_envs
-        steps = -(-run.total_steps // rollout) * rollout
-        if steps != run.total_steps:
-            print(f"safenav train: note: PPO collects whole rollouts of {rollout:,} env steps "
-                  f"(--ppo.rollout-steps {cfg.rollout_steps} x --num-envs {run.num_envs}), so "
-                  f"--total-steps {run.total_steps:,} trains {steps:,}", file=sys.stderr)  # fmt: skip
+    random actions: it would never update its networks."""
     if family == "csac" and run.total_steps <= cfg.learning_starts:
         from safenav.errors import SafenavError
 
