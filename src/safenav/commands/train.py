@@ -236,7 +236,7 @@ def plan(algo: str, run: RunConfig, csac: CSACConfig, ppo: PPOConfig, run_dir: P
 
     if algo not in ALGOS:
         raise SafenavError(f"unknown algorithm {algo!r} (--algo): choose one of {', '.join(ALGOS)}")
-    family = "ppo" if algo in ("ppo", "ppo_lag") else "csac"
+    family = algo_family(algo)
     cfg = ppo if family == "ppo" else csac
     if resume is not None:
         if overwrite:
@@ -311,10 +311,16 @@ def changed_options(given_cfg, saved_cfg, prefix: str, args) -> list[str]:
     return out
 
 
+def algo_family(algo: str) -> str:
+    """``"ppo"`` for PPO and PPO-Lag (their options are ``--ppo.*``), ``"csac"`` for the SAC
+    family (``--csac.*``)."""
+    return "ppo" if algo in ("ppo", "ppo_lag") else "csac"
+
+
 def rollout_note(algo: str, run: RunConfig, cfg) -> str:
     """PPO collects whole rollouts, so a budget that is not a multiple of one rollout runs to the
     next multiple: the line that says so (printed once the run is accepted), else ``""``."""
-    if algo not in ("ppo", "ppo_lag"):
+    if algo_family(algo) != "ppo":
         return ""
     rollout = cfg.rollout_steps * run.num_envs
     steps = -(-run.total_steps // rollout) * rollout
@@ -404,7 +410,7 @@ def check_training_memory(algo: str, run: RunConfig, cfg, obs_shapes, action_dim
         import torch
 
         available = torch.cuda.mem_get_info(torch.device(run.device))[0]
-    family = "ppo" if algo in ("ppo", "ppo_lag") else "csac"
+    family = algo_family(algo)
     knobs = {  # what sizes each part: the fix the message names
         "envs": "--num-envs", "evaluation envs": "--eval-episodes",
         "replay buffer": "--csac.buffer-size", "minibatches": "--csac.batch-size",
