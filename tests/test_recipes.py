@@ -51,6 +51,19 @@ def test_csac_paper_is_the_papers_method_and_variants_say_how_they_depart():
             assert "maxcost" in name or "csac-maxcost" in _text(name), name
 
 
+@pytest.mark.parametrize("name", ["sac", "ppo", "sac-lag", "ppo-lag"])
+def test_the_tuned_recipes_are_what_safenav_tune_chose(name):
+    """``NAME-tuned`` ships the values of ``results/tuning/NAME/best.toml`` (what ``safenav tune``
+    wrote), so that ``safenav reproduce`` finds them from any working directory."""
+    from pathlib import Path
+
+    chosen = Path(__file__).parents[1] / "results" / "tuning" / name / "best.toml"
+    shipped, tuned = load_recipe(f"{name}-tuned"), load_recipe(str(chosen))
+    assert shipped.algo == tuned.algo == name.replace("-", "_")
+    for section in ("run", "csac", "ppo"):
+        assert shipped.section(section) == tuned.section(section), section
+
+
 def test_bases_resolve_and_later_values_win():
     csac = load_recipe("csac")
     assert csac.section("csac")["cost_target"] == "max"  # from csac-maxcost

@@ -254,11 +254,14 @@ def test_no_flags_plan_the_papers_comparison(tmp_path, monkeypatch):
                      "csac_min": [1, 2, 3], "csac_fixed_d": [1, 2, 3],
                      "csac_3m": [1, 2, 3, 4, 5], "sac_3m": [1, 2, 3, 4, 5],
                      "ppo_3m": [1, 2, 3, 4, 5], "sac_lag_3m": [1, 2, 3],
-                     "ppo_lag_3m": [1, 2, 3]}  # fmt: skip
+                     "ppo_lag_3m": [1, 2, 3], "sac_tuned_3m": [1, 2, 3, 4, 5],
+                     "ppo_tuned_3m": [1, 2, 3, 4, 5], "sac_lag_tuned_3m": [1, 2, 3],
+                     "ppo_lag_tuned_3m": [1, 2, 3]}  # fmt: skip
     steps = {t.label: t.total_steps for t in trials}
     assert set(steps.values()) == {1_000_000, 3_000_000} and steps["ppo_3m"] == 3_000_000
     assert {k for k, v in steps.items() if v != 1_000_000} == {
-        "csac_3m", "sac_3m", "ppo_3m", "sac_lag_3m", "ppo_lag_3m"}  # fmt: skip
+        "csac_3m", "sac_3m", "ppo_3m", "sac_lag_3m", "ppo_lag_3m", "sac_tuned_3m", "ppo_tuned_3m",
+        "sac_lag_tuned_3m", "ppo_lag_tuned_3m"}  # fmt: skip
     assert {t.algo for t in trials if t.label.endswith("_3m")} == {
         "csac", "sac", "ppo", "sac_lag", "ppo_lag"}  # fmt: skip
     by = {t.name: t for t in trials}
@@ -266,6 +269,9 @@ def test_no_flags_plan_the_papers_comparison(tmp_path, monkeypatch):
     # one evaluation protocol for all, whatever the recipe: every 250k, 400 validation episodes
     assert all(t.train_args[:6] == rep.PAPER_TRAIN_ARGS for t in trials)
     assert by["csac_fixed_d-seed2"].train_args[-1] == "--csac.curriculum.no-enabled"
+    # the tuned baselines: each its packaged recipe, found from any working directory
+    assert by["sac_lag_tuned_3m-seed3"].train_args[-2:] == ("--config", "sac-lag-tuned")
+    assert by["ppo_tuned_3m-seed5"].algo == "ppo"
     # named algorithms: results/<algos>, seeds per label where given
     seen.clear()
     main(["reproduce", "--preset", "easy", "--algos", "csac", "sac", "--seeds", "1-3 sac=4,5"])

@@ -82,11 +82,19 @@ PAPER_VARIANTS: tuple[str, ...] = (
     "ppo_3m=ppo",
     "sac_lag_3m=sac_lag",
     "ppo_lag_3m=ppo_lag",
+    # Each baseline with the values `safenav tune` chose for it on validation maps (8 trials each,
+    # as CSAC's recipe got; docs/reproduce.md counts them), at the same 3M budget.
+    "sac_tuned_3m=sac --config sac-tuned",
+    "ppo_tuned_3m=ppo --config ppo-tuned",
+    "sac_lag_tuned_3m=sac_lag --config sac-lag-tuned",
+    "ppo_lag_tuned_3m=ppo_lag --config ppo-lag-tuned",
 )
 PAPER_SEEDS = ("1-5 sac_lag=1-3 ppo_lag=1-3 csac_paper=1-3 csac_min=1-3 csac_fixed_d=1-3 "
-               "sac_lag_3m=1-3 ppo_lag_3m=1-3")  # fmt: skip
+               "sac_lag_3m=1-3 ppo_lag_3m=1-3 sac_lag_tuned_3m=1-3 ppo_lag_tuned_3m=1-3")  # fmt: skip
 PAPER_TOTAL_STEPS: tuple[str, ...] = ("1M", "csac_3m=3M", "sac_3m=3M", "ppo_3m=3M",
-                                      "sac_lag_3m=3M", "ppo_lag_3m=3M")  # fmt: skip
+                                      "sac_lag_3m=3M", "ppo_lag_3m=3M", "sac_tuned_3m=3M",
+                                      "ppo_tuned_3m=3M", "sac_lag_tuned_3m=3M",
+                                      "ppo_lag_tuned_3m=3M")  # fmt: skip
 #: One evaluation protocol for every label of the comparison, whatever its recipe says: the
 #: validation curves of Fig. 3 at the same points, and the same policies for --select to choose
 #: from (the csac and sac recipes already do this; ppo's evaluates every 1M of its 30M).
