@@ -12,6 +12,8 @@
 #   bash experiments/seed_levers.sh NAME STEPS "SEEDS" [TRAIN OPTIONS...]
 #   STOP_AT=500000 bash experiments/seed_levers.sh rc50 1000000 "1 2 3 4 5" \
 #       --env-kwargs reward_collision -50
+#   ALGO=sac bash experiments/seed_levers.sh sacshieldml 1000000 "1 2 3 4 5" \
+#       --config sac-shielded-memory      # another algorithm (default ALGO=csac)
 #
 # Runs go to RUNS (default runs/levers, ignored by git). Keep the machine's CPUs to it: a 2-thread
 # trainer beside another job slows down many times over (docs/reproduce.md).
@@ -49,7 +51,7 @@ for seed in $SEEDS; do
     with_sigint $SAFENAV train --resume "$dir" --total-steps "$STEPS" --no-progress \
       >> "$dir.log" 2>&1 &
   else
-    with_sigint $SAFENAV train --algo csac --seed "$seed" --total-steps "$STEPS" \
+    with_sigint $SAFENAV train --algo "${ALGO:-csac}" --seed "$seed" --total-steps "$STEPS" \
       --eval-every 250000 --eval-episodes 400 --checkpoint-every 250000 --no-progress \
       --run-dir "$dir" "$@" > "$dir.log" 2>&1 &
   fi
