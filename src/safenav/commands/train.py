@@ -314,7 +314,9 @@ def changed_options(given_cfg, saved_cfg, prefix: str, args) -> list[str]:
 def algo_family(algo: str) -> str:
     """``"ppo"`` for PPO and PPO-Lag (their options are ``--ppo.*``), ``"csac"`` for the SAC
     family (``--csac.*``)."""
-    return "ppo" if algo in ("ppo", "ppo_lag") else "csac"
+    from safenav.recipes import PPO_ALGOS
+
+    return "ppo" if algo in PPO_ALGOS else "csac"
 
 
 def rollout_note(algo: str, run: RunConfig, cfg) -> str:
