@@ -17,6 +17,7 @@ from safenav.algos.config import CSACConfig
 from safenav.algos.ppo_config import PPOConfig
 from safenav.cli import app
 from safenav.common.config import RunConfig
+from safenav.common.families import algo_family
 
 ALGOS = ("csac", "sac", "ppo", "ppo_lag", "sac_lag")
 # Options a resumed run may change; every other option comes from the run's config.json.
@@ -309,14 +310,6 @@ def changed_options(given_cfg, saved_cfg, prefix: str, args) -> list[str]:
             if not same:
                 out.append(f"--{flag.replace('_', '-')} {mine} (the run has {theirs})")
     return out
-
-
-def algo_family(algo: str) -> str:
-    """``"ppo"`` for PPO and PPO-Lag (their options are ``--ppo.*``), ``"csac"`` for the SAC
-    family (``--csac.*``)."""
-    from safenav.recipes import PPO_ALGOS
-
-    return "ppo" if algo in PPO_ALGOS else "csac"
 
 
 def rollout_note(algo: str, run: RunConfig, cfg) -> str:

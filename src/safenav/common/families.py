@@ -1,4 +1,5 @@
-"""The task family of a Gymnasium env id (what ``safenav train`` picks a recipe by)."""
+"""The task family of a Gymnasium env id (what ``safenav train`` picks a recipe by) and the
+algorithm family of an ``--algo`` (which options and learner it takes)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,15 @@ FAMILIES = {
     "gymnasium.envs.mujoco": ("mujoco", "Gymnasium MuJoCo locomotion"),
 }
 """Entry-point package of a Gymnasium env -> (recipe family, its name in words)."""
+
+PPO_ALGOS = ("ppo", "ppo_lag")
+"""The on-policy algorithms; every other ``--algo`` is of the SAC family."""
+
+
+def algo_family(algo: str) -> str:
+    """``"ppo"`` for PPO and PPO-Lag (their options are ``--ppo.*``), ``"csac"`` for the SAC
+    family (``--csac.*``)."""
+    return "ppo" if algo in PPO_ALGOS else "csac"
 
 
 def task_family(env_id: str) -> tuple[str, str]:
@@ -33,4 +43,4 @@ def task_family(env_id: str) -> tuple[str, str]:
     return "gym", "a Gymnasium env outside the classic control, Box2D and MuJoCo families"
 
 
-__all__ = ["FAMILIES", "task_family"]
+__all__ = ["FAMILIES", "PPO_ALGOS", "algo_family", "task_family"]

@@ -20,6 +20,8 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from safenav.common.families import PPO_ALGOS
+
 FLOAT = 4
 SAFENAV_ENV_BYTES = 64 * 1024
 GYM_ENV_BYTES = 16 * 1024
@@ -65,7 +67,7 @@ def training_memory(algo: str, num_envs: int, total_steps: int, cfg: Any,
     envs hold ``map_sets`` map sets (2 with ``--map-refresh-mode per-env``)."""
     obs = sum(math.prod(s) for s in obs_shapes.values())
     parts = {"envs": env_bytes(num_envs, env_config, map_sets)}
-    if algo in ("ppo", "ppo_lag"):
+    if algo in PPO_ALGOS:
         per = obs + action_dim + 1 + 3 * 2 + 1
         parts["rollout"] = 2 * cfg.rollout_steps * num_envs * per * FLOAT
         critics = 2

@@ -30,7 +30,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from safenav.common.families import task_family
+from safenav.common.families import PPO_ALGOS, task_family
 from safenav.errors import SafenavError
 
 if sys.version_info >= (3, 11):
@@ -39,7 +39,6 @@ else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
 SECTIONS = ("run", "csac", "ppo")
-PPO_ALGOS = ("ppo", "ppo_lag")
 
 
 @dataclass(frozen=True)
@@ -177,5 +176,5 @@ def apply(obj: Any, overrides: dict[str, Any], where: str = "") -> Any:
         ) from None
 
 
-__all__ = ["SECTIONS", "Recipe", "apply", "available", "default_recipe", "load_recipe",
-           "task_family"]  # fmt: skip
+__all__ = ["PPO_ALGOS", "SECTIONS", "Recipe", "apply", "available", "default_recipe",
+           "load_recipe", "task_family"]  # fmt: skip

@@ -50,6 +50,7 @@ from safenav.common.checkpoint import (
 )
 from safenav.common.config import RunConfig, to_dict
 from safenav.common.curriculum import ConstraintCurriculum, DensityCurriculum
+from safenav.common.families import PPO_ALGOS
 from safenav.common.logger import RunLogger
 from safenav.common.normalize import make_normalization
 from safenav.common.progress import ProgressDisplay  # here, not lazily: its import draws `random`
@@ -117,7 +118,7 @@ def algo_config(algo: str, cfg: CSACConfig | PPOConfig) -> CSACConfig | PPOConfi
         return sac_config(cfg)
     if algo == "sac_lag":
         return sac_lag_config(cfg)
-    if algo in ("ppo", "ppo_lag"):
+    if algo in PPO_ALGOS:
         return dataclasses.replace(cfg, constrained=algo == "ppo_lag")
     return cfg
 
