@@ -51,7 +51,7 @@ def test_csac_paper_is_the_papers_method_and_variants_say_how_they_depart():
             assert "maxcost" in name or "csac-maxcost" in _text(name), name
 
 
-@pytest.mark.parametrize("name", ["sac", "ppo", "sac-lag", "ppo-lag"])
+@pytest.mark.parametrize("name", ["csac", "sac", "ppo", "sac-lag", "ppo-lag"])
 def test_the_tuned_recipes_are_what_safenav_tune_chose(name):
     """``NAME-tuned`` ships the values of ``results/tuning/NAME/best.toml`` (what ``safenav tune``
     wrote), so that ``safenav reproduce`` finds them from any working directory."""
