@@ -592,9 +592,10 @@ def test_progress_line_fits_80_and_100_columns(monkeypatch):
     display.close()
 
 
-def test_readme_documents_the_exit_codes():
-    text = (ROOT / "README.md").read_text()
-    section = text.split("### Exit codes")[1].split("\n## ")[0]
+def test_the_exit_codes_are_documented_and_the_readme_links_them():
+    assert "docs/reliability.md#exit-codes" in (ROOT / "README.md").read_text()
+    text = (ROOT / "docs" / "reliability.md").read_text()
+    section = text.split("\n## Exit codes")[1].split("\n## ")[0]
     for code, word in (("0", "success"), ("1", "runtime"), ("2", "usage"), ("3", "aborted"),
                        ("4", "collided"), ("130", "Ctrl-C"), ("143", "SIGTERM")):  # fmt: skip
         assert re.search(rf"^\| {code} \|.*{word}", section, re.M | re.I), code
