@@ -503,6 +503,29 @@ def test_cpu_hours_estimate_and_eta(tmp_path, fake_python):
     line = rep.eta_line(1, 4, 250, 1000, 600.0, now=0.0)
     assert line == "1 of 4 trials done; about 30.0 min left (ETA 00:30 UTC)"
     assert rep.eta_line(0, 4, 0, 1000, 5.0) == "0 of 4 trials done"
+    # per trial: the sum of the parts, which the sweep schedules on its slots
+    per_trial, _ = rep.estimate_trial_cpu_seconds(todo, [], states(todo))
+    assert sum(per_trial.values()) == pytest.approx(
+        rep.estimate_cpu_seconds(todo, [], states(todo))[0]
+    )
+    assert set(per_trial) == {t.name for t in todo}
+
+
+def test_wall_clock_counts_the_trials_that_run_with_slots_idle():
+    """Three 2-hour trials on two slots take 4 h (the third runs alone), not 3 h; the ETA of a
+    last trial running alone is its own length, not half of it (csac_tuned_3m seed 5,
+    2026-12-03: "about 60 min left" for a trial that took 2 h)."""
+    assert rep.schedule_seconds([7200, 7200, 7200], 2) == 14400
+    assert rep.schedule_seconds([3000, 1000, 1000, 1000], 2) == 3000
+    assert rep.schedule_seconds([100, 200], 8) == 200
+    assert rep.schedule_seconds([], 2) == 0.0
+    assert rep.schedule_seconds([5, 5], 0) == 10  # no slot reported: one at a time
+    # trials of 2000 and 4000 steps ran together for 2 h, 2000 steps each: the first is done,
+    # the second has 2000 steps left at one slot's rate (7200 s x 2 slots / 4000 steps)
+    line = rep.eta_line(1, 2, 4000, 6000, 7200.0, now=0.0, steps_left=[2000], slots=2)
+    assert line == "1 of 2 trials done; about 2.00 h left (ETA 02:00 UTC)"
+    # the old estimate (the steps left at both slots' rate) said half of it
+    assert "about 60.0 min left" in rep.eta_line(1, 2, 4000, 6000, 7200.0, now=0.0)
 
 
 def test_confidence_intervals_wilson_by_hand_and_bootstrap_over_seeds():

@@ -652,12 +652,16 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
                 f"done), {cluster['parallel_trials']} at a time on {cluster['nodes']} Ray "
                 f"node(s), {cluster['cpus']:.0f} CPUs; logs in {out / 'logs'}"
             )
-            cpu_s, source = estimate_cpu_seconds(todo, [t for t in trials if t not in todo], states)
-            busy = max(1, min(len(todo), cluster["parallel_trials"])) * cfg.cpus_per_trial
+            per_trial, source = estimate_trial_cpu_seconds(
+                todo, [t for t in trials if t not in todo], states
+            )
+            cpu_s = sum(per_trial.values())
+            slots = max(1, cluster["parallel_trials"])
+            wall_s = schedule_seconds([per_trial[t.name] / t.cpus for t in todo], slots)
             console.print(f"[bold]reproduce[/]: about {cpu_s / 3600:.1f} CPU-hours, "
-                          f"{fmt_seconds(cpu_s / busy)} of wall clock at {busy} CPUs busy "
-                          f"(rate: {source})")  # fmt: skip
-            outcomes, failures = _run_on_ray(cfg, todo, states, console)
+                          f"{fmt_seconds(wall_s)} of wall clock at {min(slots, len(todo))} "
+                          f"trial(s) at a time (rate: {source})")  # fmt: skip
+            outcomes, failures = _run_on_ray(cfg, todo, states, console, slots=slots)
     finally:
         if sigterm is not None:
             signal.signal(signal.SIGTERM, sigterm)
@@ -763,9 +767,17 @@ def trial_recipe(trial: Trial) -> str | None:
 
 def estimate_cpu_seconds(todo: list[Trial], done: list[Trial],
                          states: dict[str, str]) -> tuple[float, str]:  # fmt: skip
-    """``(CPU-seconds, where the rate came from)`` that ``todo`` still needs: each trial's
-    remaining steps (a resumed one has fewer; ``states`` from :func:`trial_state`) at its
-    algorithm's rate, measured on the finished
+    """``(CPU-seconds, where the rate came from)`` that ``todo`` still needs: the sum of
+    :func:`estimate_trial_cpu_seconds`."""
+    per_trial, source = estimate_trial_cpu_seconds(todo, done, states)
+    return sum(per_trial.values()), source
+
+
+def estimate_trial_cpu_seconds(todo: list[Trial], done: list[Trial],
+                               states: dict[str, str]) -> tuple[dict[str, float], str]:  # fmt: skip
+    """``({trial name: CPU-seconds}, where the rate came from)`` that each trial of ``todo``
+    still needs: its remaining steps (a resumed one has fewer; ``states`` from
+    :func:`trial_state`) at its algorithm's rate, measured on the finished
     trials of ``done`` where there are any (their records' wall clock x CPUs / env steps), else
     :data:`CPU_S_PER_STEP_BY_RECIPE` for the recipe it names, else :data:`CPU_S_PER_STEP`."""
     measured: dict[str, list[float]] = {}  # by label: variants of one algorithm differ
@@ -774,7 +786,7 @@ def estimate_cpu_seconds(todo: list[Trial], done: list[Trial],
         wall, steps = rec.get("wall_clock_s"), rec.get("env_steps") or rec.get("budget_env_steps")
         if wall and steps:
             measured.setdefault(t.label, []).append(float(wall) * t.cpus / float(steps))
-    total, sources = 0.0, set()
+    per_trial, sources = {}, set()
     for t in todo:
         if measured.get(t.label):
             rate = sum(measured[t.label]) / len(measured[t.label])
@@ -784,8 +796,19 @@ def estimate_cpu_seconds(todo: list[Trial], done: list[Trial],
                 t.algo, max(CPU_S_PER_STEP.values())
             )
             sources.add("measured on the 2-core development machine")
-        total += rate * max(0, t.total_steps - steps_done(t, states[t.name]))
-    return total, " and ".join(sorted(sources)) or "-"
+        per_trial[t.name] = rate * max(0, t.total_steps - steps_done(t, states[t.name]))
+    return per_trial, " and ".join(sorted(sources)) or "-"
+
+
+def schedule_seconds(durations: Sequence[float], slots: int) -> float:
+    """Wall clock of jobs of these durations run in this order on ``slots`` parallel slots, each
+    starting when the first slot frees (Ray's queue is first in, first out). Not the sum over
+    slots: a sweep's last trials run with slots idle (3 trials on 2 slots take two trials' time)."""
+    free = [0.0] * max(1, slots)
+    for d in durations:
+        i = free.index(min(free))
+        free[i] += d
+    return max(free)
 
 
 def steps_done(trial: Trial, state: str) -> int:
@@ -802,18 +825,28 @@ def eta_line(
     steps_total: int,
     elapsed_s: float,
     now: float | None = None,
+    steps_left: Sequence[int] | None = None,
+    slots: int = 1,
 ) -> str:
     """``"3 of 5 trials done; about 41 min left (ETA 08:12 UTC)"``: the steps left at the rate
-    the sweep has made steps so far."""
+    the sweep has made steps so far. With ``steps_left`` (each unfinished trial's, in queue
+    order) and ``slots`` (trials at a time), each trial's time at one slot's share of that rate,
+    scheduled on the slots (:func:`schedule_seconds`), so that a last trial running alone is not
+    counted at the rate of all slots."""
     text = f"{done} of {count} trials done"
     if 0 < steps_done < steps_total and elapsed_s > 0:
         left = (steps_total - steps_done) * elapsed_s / steps_done
+        if steps_left is not None:
+            per_step = elapsed_s * max(1, min(slots, count)) / steps_done  # one slot's s / step
+            left = schedule_seconds([per_step * n for n in steps_left if n > 0], slots)
         at = datetime.fromtimestamp((time.time() if now is None else now) + left, timezone.utc)
         text += f"; about {fmt_seconds(left)} left (ETA {at:%H:%M} UTC)"
     return text
 
 
-def _run_on_ray(cfg: SweepConfig, todo: list[Trial], states: dict[str, str], console: Any):
+def _run_on_ray(
+    cfg: SweepConfig, todo: list[Trial], states: dict[str, str], console: Any, slots: int = 1
+):
     """Submit ``todo`` as Ray tasks and wait for them with a live progress table."""
     import ray
     from rich import progress as rp
@@ -844,6 +877,9 @@ def _run_on_ray(cfg: SweepConfig, todo: list[Trial], states: dict[str, str], con
     def steps_now() -> int:
         return sum(max(0, min(now[t.name], t.total_steps) - first[t.name]) for t in todo)
 
+    def steps_left() -> list[int]:  # the unfinished trials', in queue order
+        return [max(0, t.total_steps - now[t.name]) for t in todo if t in pending.values()]
+
     with rp.Progress(*columns, console=console, disable=not cfg.progress,
                   refresh_per_second=2) as bar:  # fmt: skip
         overall = bar.add_task("all trials (steps)", total=steps_total, status="")
@@ -869,7 +905,8 @@ def _run_on_ray(cfg: SweepConfig, todo: list[Trial], states: dict[str, str], con
                     finished = len(outcomes) + len(failures)
                     console.print(f"[bold]reproduce[/]: {trial.name} {status}; "
                                   + eta_line(finished, len(todo), steps_now(), steps_total,
-                                             time.time() - t0))  # fmt: skip
+                                             time.time() - t0, steps_left=steps_left(),
+                                             slots=slots))  # fmt: skip
                 for trial in pending.values():
                     status_file = trial.log("status")
                     status = status_file.read_text().strip() if status_file.exists() else "queued"
@@ -987,7 +1024,9 @@ __all__ = [
     "TrialKilled",
     "RETRIES",
     "estimate_cpu_seconds",
+    "estimate_trial_cpu_seconds",
     "eta_line",
+    "schedule_seconds",
     "machine_description",
     "parse_steps",
     "parse_variants",
