@@ -465,30 +465,30 @@ def test_cpu_hours_estimate_and_eta(tmp_path, fake_python):
     def states(trials):
         return {t.name: rep.trial_state(t) for t in trials}
 
+    def total(*args):  # CPU-seconds of all the trials, and the rate's source
+        per_trial, source = rep.estimate_cpu_seconds(*args)
+        return sum(per_trial.values()), source
+
     todo = [make_trial(tmp_path, fake_python, total=1_000_000),
             dataclasses.replace(make_trial(tmp_path, fake_python, total=2_000_000), algo="ppo",
                                 label="ppo", run_dir=tmp_path / "runs" / "ppo" / "seed0")]  # fmt: skip
-    cpu_s, source = rep.estimate_cpu_seconds(todo, [], states(todo))
+    cpu_s, source = total(todo, [], states(todo))
     rates = rep.CPU_S_PER_STEP
     assert cpu_s == pytest.approx(1e6 * rates["csac"] + 2e6 * rates["ppo"])
     assert "development machine" in source
     # rows left by an attempt that never checkpointed are run again (the trial starts afresh) ...
     todo[0].run_dir.mkdir(parents=True)
     (todo[0].run_dir / "progress.csv").write_text("global_step,x\n250000,1\n")
-    assert rep.estimate_cpu_seconds(todo[:1], [], states(todo[:1]))[0] == pytest.approx(
-        1e6 * rates["csac"]
-    )
+    assert total(todo[:1], [], states(todo[:1]))[0] == pytest.approx(1e6 * rates["csac"])
     # ... a trial that resumes from its checkpoint counts the steps it has left
     (todo[0].run_dir / "checkpoint.pt").write_text("")
-    assert rep.estimate_cpu_seconds(todo[:1], [], states(todo[:1]))[0] == pytest.approx(
-        7.5e5 * rates["csac"]
-    )
+    assert total(todo[:1], [], states(todo[:1]))[0] == pytest.approx(7.5e5 * rates["csac"])
     # finished trials of the sweep give the rate: 1000 s x 1 CPU for 1000 steps = 1 s per step
     done = make_trial(tmp_path, fake_python, total=1000)
     done = dataclasses.replace(done, run_dir=tmp_path / "runs" / "csac" / "seed9", seed=9)
     done.record_path.parent.mkdir(parents=True, exist_ok=True)
     done.record_path.write_text(json.dumps({"wall_clock_s": 1000.0, "env_steps": 1000}))
-    cpu_s, source = rep.estimate_cpu_seconds(todo[:1], [done], states(todo[:1]))
+    cpu_s, source = total(todo[:1], [done], states(todo[:1]))
     assert (
         cpu_s == pytest.approx(7.5e5) and source == "this sweep's finished trials (training time)"
     )
@@ -497,18 +497,16 @@ def test_cpu_hours_estimate_and_eta(tmp_path, fake_python):
                                 train_args=("--eval-every", "1000", "--config", "csac-paper"))  # fmt: skip
     assert rep.trial_recipe(paper) == "csac-paper" and rep.trial_recipe(todo[0]) is None
     assert rep.trial_recipe(dataclasses.replace(paper, train_args=("--config=csac",))) == "csac"
-    cpu_s, _ = rep.estimate_cpu_seconds([paper], [done], states([paper]))
+    cpu_s, _ = total([paper], [done], states([paper]))
     assert cpu_s == pytest.approx(1e6 * rep.CPU_S_PER_STEP_BY_RECIPE["csac-paper"])
     assert rep.CPU_S_PER_STEP_BY_RECIPE["csac-paper"] > 10 * rates["csac"]
     line = rep.eta_line(1, 4, 250, 1000, 600.0, now=0.0)
     assert line == "1 of 4 trials done; about 30.0 min left (ETA 00:30 UTC)"
     assert rep.eta_line(0, 4, 0, 1000, 5.0) == "0 of 4 trials done"
-    # per trial: the sum of the parts, which the sweep schedules on its slots
-    per_trial, _ = rep.estimate_trial_cpu_seconds(todo, [], states(todo))
-    assert sum(per_trial.values()) == pytest.approx(
-        rep.estimate_cpu_seconds(todo, [], states(todo))[0]
-    )
-    assert set(per_trial) == {t.name for t in todo}
+    # per trial, for the sweep to schedule on its slots
+    per_trial, _ = rep.estimate_cpu_seconds(todo, [], states(todo))
+    assert per_trial == {todo[0].name: pytest.approx(7.5e5 * rates["csac"]),
+                         todo[1].name: pytest.approx(2e6 * rates["ppo"])}  # fmt: skip
 
 
 def test_wall_clock_counts_the_trials_that_run_with_slots_idle():

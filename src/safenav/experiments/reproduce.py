@@ -652,7 +652,7 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
                 f"done), {cluster['parallel_trials']} at a time on {cluster['nodes']} Ray "
                 f"node(s), {cluster['cpus']:.0f} CPUs; logs in {out / 'logs'}"
             )
-            per_trial, source = estimate_trial_cpu_seconds(
+            per_trial, source = estimate_cpu_seconds(
                 todo, [t for t in trials if t not in todo], states
             )
             cpu_s = sum(per_trial.values())
@@ -766,15 +766,7 @@ def trial_recipe(trial: Trial) -> str | None:
 
 
 def estimate_cpu_seconds(todo: list[Trial], done: list[Trial],
-                         states: dict[str, str]) -> tuple[float, str]:  # fmt: skip
-    """``(CPU-seconds, where the rate came from)`` that ``todo`` still needs: the sum of
-    :func:`estimate_trial_cpu_seconds`."""
-    per_trial, source = estimate_trial_cpu_seconds(todo, done, states)
-    return sum(per_trial.values()), source
-
-
-def estimate_trial_cpu_seconds(todo: list[Trial], done: list[Trial],
-                               states: dict[str, str]) -> tuple[dict[str, float], str]:  # fmt: skip
+                         states: dict[str, str]) -> tuple[dict[str, float], str]:  # fmt: skip
     """``({trial name: CPU-seconds}, where the rate came from)`` that each trial of ``todo``
     still needs: its remaining steps (a resumed one has fewer; ``states`` from
     :func:`trial_state`) at its algorithm's rate, measured on the finished
@@ -845,7 +837,7 @@ def eta_line(
 
 
 def _run_on_ray(
-    cfg: SweepConfig, todo: list[Trial], states: dict[str, str], console: Any, slots: int = 1
+    cfg: SweepConfig, todo: list[Trial], states: dict[str, str], console: Any, slots: int
 ):
     """Submit ``todo`` as Ray tasks and wait for them with a live progress table."""
     import ray
@@ -1024,7 +1016,6 @@ __all__ = [
     "TrialKilled",
     "RETRIES",
     "estimate_cpu_seconds",
-    "estimate_trial_cpu_seconds",
     "eta_line",
     "schedule_seconds",
     "machine_description",
