@@ -176,6 +176,6 @@ def test_the_committed_comparison_labels_get_distinct_colours():
     """results/paper's labels (the tuned recipes beside the ablations) each get their own colour."""
     order = ["csac", "sac", "ppo", "sac_lag", "ppo_lag", "sac_lag_tuned_3m", "sac_tuned_3m",
              "csac_3m", "csac_fixed_d", "csac_min", "csac_paper", "ppo_3m", "ppo_lag_3m",
-             "ppo_lag_tuned_3m", "ppo_tuned_3m", "sac_3m", "sac_lag_3m", "a", "b", "c", "d", "e"]  # fmt: skip
+             "ppo_lag_tuned_3m", "ppo_tuned_3m", "sac_3m", "sac_lag_3m", "csac_tuned_3m", "a", "b", "c", "d", "e"]  # fmt: skip
     colors = [plots.color_of(label, order) for label in order]
     assert len(set(colors)) == len(order)

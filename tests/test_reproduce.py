@@ -236,7 +236,7 @@ def test_plan_rejects_mistakes_with_one_line(tmp_path, changes, message):
 def test_no_flags_plan_the_papers_comparison(tmp_path, monkeypatch):
     """``safenav reproduce`` alone: CSAC, SAC, PPO on seeds 1-5, the Lagrangian baselines and the
     CSAC ablations on 1-3 at 1M; at 3M (where the curves flatten) CSAC, SAC, PPO on seeds 1-5 and
-    the Lagrangian baselines on 1-3."""
+    the Lagrangian baselines on 1-3; each algorithm's tuned recipe likewise at 3M."""
     from safenav.cli import main
 
     seen = {}
@@ -254,14 +254,15 @@ def test_no_flags_plan_the_papers_comparison(tmp_path, monkeypatch):
                      "csac_min": [1, 2, 3], "csac_fixed_d": [1, 2, 3],
                      "csac_3m": [1, 2, 3, 4, 5], "sac_3m": [1, 2, 3, 4, 5],
                      "ppo_3m": [1, 2, 3, 4, 5], "sac_lag_3m": [1, 2, 3],
-                     "ppo_lag_3m": [1, 2, 3], "sac_tuned_3m": [1, 2, 3, 4, 5],
+                     "ppo_lag_3m": [1, 2, 3], "csac_tuned_3m": [1, 2, 3, 4, 5],
+                     "sac_tuned_3m": [1, 2, 3, 4, 5],
                      "ppo_tuned_3m": [1, 2, 3, 4, 5], "sac_lag_tuned_3m": [1, 2, 3],
                      "ppo_lag_tuned_3m": [1, 2, 3]}  # fmt: skip
     steps = {t.label: t.total_steps for t in trials}
     assert set(steps.values()) == {1_000_000, 3_000_000} and steps["ppo_3m"] == 3_000_000
     assert {k for k, v in steps.items() if v != 1_000_000} == {
-        "csac_3m", "sac_3m", "ppo_3m", "sac_lag_3m", "ppo_lag_3m", "sac_tuned_3m", "ppo_tuned_3m",
-        "sac_lag_tuned_3m", "ppo_lag_tuned_3m"}  # fmt: skip
+        "csac_3m", "sac_3m", "ppo_3m", "sac_lag_3m", "ppo_lag_3m", "csac_tuned_3m", "sac_tuned_3m",
+        "ppo_tuned_3m", "sac_lag_tuned_3m", "ppo_lag_tuned_3m"}  # fmt: skip
     assert {t.algo for t in trials if t.label.endswith("_3m")} == {
         "csac", "sac", "ppo", "sac_lag", "ppo_lag"}  # fmt: skip
     by = {t.name: t for t in trials}

@@ -47,10 +47,10 @@ COLORS: dict[str, str] = {
     "sac_lag": "#ff7f0e",
 }
 #: Labels with no algorithm colour of their own (ablations, tuned recipes), in order; distinct from
-#: the algorithm colours and their dark shades, enough for results/paper's 7 such labels and more
+#: the algorithm colours and their dark shades, enough for results/paper's 8 such labels and more
 #: (they once wrapped round after 5: ppo_tuned_3m and sac_tuned_3m shared a pink).
 _EXTRA_COLORS = ("#8c564b", "#e377c2", "#17becf", "#bcbd22", "#7f7f7f", "#000000", "#e7ba52",
-                 "#637939", "#5254a3", "#ad494a", "#6baed6", "#fd8d3c")  # fmt: skip
+                 "#637939", "#5254a3", "#ad494a", "#6baed6", "#fd8d3c", "#9c9ede", "#e7969c")  # fmt: skip
 LINESTYLES: dict[str, str] = {"csac": "-", "sac": "--", "ppo": "-.", "ppo_lag": ":", "sac_lag": ":"}
 #: Algorithms without a Lagrange multiplier; their constraint columns (if any) are not plotted.
 UNCONSTRAINED = frozenset({"sac", "ppo"})

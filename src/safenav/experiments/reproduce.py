@@ -82,8 +82,9 @@ PAPER_VARIANTS: tuple[str, ...] = (
     "ppo_3m=ppo",
     "sac_lag_3m=sac_lag",
     "ppo_lag_3m=ppo_lag",
-    # Each baseline with the values `safenav tune` chose for it on validation maps (8 trials each,
-    # as CSAC's recipe got; docs/reproduce.md counts them), at the same 3M budget.
+    # Each algorithm with the values `safenav tune` chose for it on validation maps (8 trials
+    # each; docs/reproduce.md counts them), at the same 3M budget.
+    "csac_tuned_3m=csac --config csac-tuned",
     "sac_tuned_3m=sac --config sac-tuned",
     "ppo_tuned_3m=ppo --config ppo-tuned",
     "sac_lag_tuned_3m=sac_lag --config sac-lag-tuned",
@@ -92,7 +93,8 @@ PAPER_VARIANTS: tuple[str, ...] = (
 PAPER_SEEDS = ("1-5 sac_lag=1-3 ppo_lag=1-3 csac_paper=1-3 csac_min=1-3 csac_fixed_d=1-3 "
                "sac_lag_3m=1-3 ppo_lag_3m=1-3 sac_lag_tuned_3m=1-3 ppo_lag_tuned_3m=1-3")  # fmt: skip
 PAPER_TOTAL_STEPS: tuple[str, ...] = ("1M", "csac_3m=3M", "sac_3m=3M", "ppo_3m=3M",
-                                      "sac_lag_3m=3M", "ppo_lag_3m=3M", "sac_tuned_3m=3M",
+                                      "sac_lag_3m=3M", "ppo_lag_3m=3M", "csac_tuned_3m=3M",
+                                      "sac_tuned_3m=3M",
                                       "ppo_tuned_3m=3M", "sac_lag_tuned_3m=3M",
                                       "ppo_lag_tuned_3m=3M")  # fmt: skip
 #: One evaluation protocol for every label of the comparison, whatever its recipe says: the
