@@ -44,6 +44,22 @@ def test_last_step_reads_the_tail_of_a_long_file(tmp_path):
 # -- statistics --------------------------------------------------------------------------------
 
 
+def test_a_rerun_on_the_committed_comparison_runs_nothing(monkeypatch):
+    """Issue 21: ``safenav reproduce`` with no flags on the committed ``results/paper`` skips
+    every trial (a fresh clone has the trial records, not the ignored run directories)."""
+    from safenav.cli import main
+
+    repo = Path(__file__).resolve().parents[1]
+    seen = {}
+    monkeypatch.setattr(rep, "run_sweep", lambda cfg: seen.setdefault("cfg", cfg))
+    monkeypatch.chdir(repo)
+    main(["reproduce"])
+    trials = rep.plan(seen["cfg"])
+    left = [t.name for t in trials
+            if rep.trial_state(t) != "done" and rep.committed_record(t) is None]  # fmt: skip
+    assert len(trials) == 72 and not left, left  # 9 labels x 5 seeds, 9 x 3
+
+
 def test_mean_std_is_sample_std_and_skips_missing():
     assert agg.mean_std([0.8, 0.9, 1.0]) == pytest.approx({"mean": 0.9, "std": 0.1})
     assert agg.mean_std([0.7, None, 0.8, math.nan]) == pytest.approx(
