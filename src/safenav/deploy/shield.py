@@ -34,6 +34,7 @@ env's observation and action directly (goal frame):
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 from dataclasses import dataclass
@@ -48,6 +49,23 @@ from safenav.envs.world import CUBOID_HEIGHT, DYN_WIDTHS
 STATE_VELOCITY = slice(5, 8)
 """The velocity in the observation's ``state`` (goal frame, / v_max): after the goal direction
 (3), horizontal distance (1) and height difference (1) (``SafeNavVectorEnv`` observation)."""
+#: One vehicle on the CPU goes through the compiled kernel (the onboard runtime's path); False
+#: within :func:`batched_arithmetic`.
+_one_vehicle_kernel = True
+
+
+@contextlib.contextmanager
+def batched_arithmetic():
+    """Within it, one vehicle is shielded by the torch path a batch takes, not by the compiled
+    kernel: the same rules with different rounding (~1 ulp), which a flight amplifies within
+    seconds. ``safenav render`` flies in it, so that its episode is the same flight, bit for bit,
+    as that episode in ``safenav eval``'s batch (tests/test_render_matches_eval.py)."""
+    global _one_vehicle_kernel
+    before, _one_vehicle_kernel = _one_vehicle_kernel, False
+    try:
+        yield
+    finally:
+        _one_vehicle_kernel = before
 
 
 @dataclass(frozen=True)
@@ -361,7 +379,8 @@ def velocity_obstacle_shield(
     lagged = cfg.response_time > 0
     if lagged and v_now is None:
         raise ValueError("a shield with response_time > 0 needs the vehicle's velocity (v_now)")
-    if n == 1 and dev.type == "cpu" and kernels.AVAILABLE and compiled is not False and not lagged:
+    kernel = compiled if compiled is not None else _one_vehicle_kernel
+    if n == 1 and dev.type == "cpu" and kernels.AVAILABLE and kernel and not lagged:
         return _shield_one_compiled(v_des, rel, obs_vel, radius, valid, planar, cfg, dist)
     offset = response_offset(v_now, v_des[:, None, :], cfg) if lagged else None
     inside_des, _ = _vo_test(v_des[:, None, :], rel, obs_vel, radius, valid, planar, tau, offset)
@@ -491,7 +510,8 @@ def shield_action(
     """
     spec = _spec(cfg)
     lidar, dyn = obs["lidar"][:, : len(cfg.lidar_v_angles)], obs["dynamic"]
-    one = action.shape[0] == 1 and action.device.type == "cpu" and kernels.AVAILABLE
+    one = (action.shape[0] == 1 and action.device.type == "cpu" and kernels.AVAILABLE
+           and _one_vehicle_kernel)  # fmt: skip
     if one and cfg.response_time == 0 and cfg.brake_time == 0:
         return _shield_action_compiled(lidar, dyn, action, cfg, spec)
     ranges = cfg.lidar_range * (1.0 - lidar.to(action.dtype))
@@ -743,6 +763,7 @@ def brake_setting(value) -> bool | str:
 __all__ = [
     "MemoryShield",
     "ShieldConfig",
+    "batched_arithmetic",
     "brake_setting",
     "env_shield",
     "dynamic_obstacles_from_features",

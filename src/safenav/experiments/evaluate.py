@@ -8,6 +8,7 @@ the same for every run on every machine (up to float rounding of the policy netw
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Callable
 from typing import Any
@@ -72,7 +73,12 @@ def evaluate(
             "hit_border", "detour_ratio", "border_time", "outside_time")  # fmt: skip
     act = (lambda o: policy(o, env)) if getattr(policy, "needs_env", False) else policy
     record = {k: torch.zeros(episodes, device=env.device) for k in keys}
-    with Progress(disable=not progress, transient=True) as bar:
+    arithmetic = contextlib.nullcontext()
+    if shield is not None:  # one episode or 200: each flies as it does in the other's batch
+        from safenav.deploy.shield import batched_arithmetic
+
+        arithmetic = batched_arithmetic()
+    with Progress(disable=not progress, transient=True) as bar, arithmetic:
         task = bar.add_task(f"eval {episodes} episodes", total=cfg.max_episode_steps)
         for _ in range(cfg.max_episode_steps):
             action = act(obs).to(env.device).clamp(-1, 1)

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import torch
@@ -112,12 +113,14 @@ def fly_frames(
         seed=env_seed, options={"starts": starts[episode:], "goals": goals[episode:]}
     )
     act = (lambda o: fn(o, env)) if getattr(fn, "needs_env", False) else fn
+    arithmetic = contextlib.nullcontext()
     if shield_memory > 0 or shield_map:  # the shield's module loads Numba: only when it flies
-        from safenav.deploy.shield import shield_for_memory
+        from safenav.deploy.shield import batched_arithmetic, shield_for_memory
 
         shield = shield_for_memory(shield_memory, shield_map, shield_mover_margin,
                                    brake=shield_brake)  # fmt: skip
         act = lambda o, a=act: shield(env, o, a(o))  # noqa: E731
+        arithmetic = batched_arithmetic()  # the episode as safenav eval's batch flies it
     frames = [env.render()]
     recorder = None
     if record is not None:
@@ -128,7 +131,8 @@ def fly_frames(
                                           "preset": preset or "the checkpoint's",
                                           "env_seed": env_seed, "episode": episode})  # fmt: skip
     try:
-        stats = _fly_episode(env, act, cfg, frames, recorder, obs)
+        with arithmetic:
+            stats = _fly_episode(env, act, cfg, frames, recorder, obs)
     finally:
         if recorder is not None:
             recorder.close()
