@@ -68,6 +68,14 @@ def batched_arithmetic():
         _one_vehicle_kernel = before
 
 
+def _kernel_for(n: int, device: torch.device, compiled: bool | None = None) -> bool:
+    """Whether ``n`` vehicles on ``device`` go through the compiled kernel: one vehicle on the
+    CPU where Numba is there, unless ``compiled`` says otherwise (None: outside
+    :func:`batched_arithmetic`)."""
+    use = _one_vehicle_kernel if compiled is None else compiled
+    return use and n == 1 and device.type == "cpu" and kernels.AVAILABLE
+
+
 @dataclass(frozen=True)
 class ShieldConfig:
     """Parameters of the velocity-obstacle shield."""
@@ -379,8 +387,7 @@ def velocity_obstacle_shield(
     lagged = cfg.response_time > 0
     if lagged and v_now is None:
         raise ValueError("a shield with response_time > 0 needs the vehicle's velocity (v_now)")
-    kernel = compiled if compiled is not None else _one_vehicle_kernel
-    if n == 1 and dev.type == "cpu" and kernels.AVAILABLE and kernel and not lagged:
+    if _kernel_for(n, dev, compiled) and not lagged:
         return _shield_one_compiled(v_des, rel, obs_vel, radius, valid, planar, cfg, dist)
     offset = response_offset(v_now, v_des[:, None, :], cfg) if lagged else None
     inside_des, _ = _vo_test(v_des[:, None, :], rel, obs_vel, radius, valid, planar, tau, offset)
@@ -510,9 +517,8 @@ def shield_action(
     """
     spec = _spec(cfg)
     lidar, dyn = obs["lidar"][:, : len(cfg.lidar_v_angles)], obs["dynamic"]
-    one = (action.shape[0] == 1 and action.device.type == "cpu" and kernels.AVAILABLE
-           and _one_vehicle_kernel)  # fmt: skip
-    if one and cfg.response_time == 0 and cfg.brake_time == 0:
+    plain = cfg.response_time == 0 and cfg.brake_time == 0  # what the kernel models
+    if plain and _kernel_for(action.shape[0], action.device):
         return _shield_action_compiled(lidar, dyn, action, cfg, spec)
     ranges = cfg.lidar_range * (1.0 - lidar.to(action.dtype))
     rel, valid, planar, dist = _static_hits(ranges, spec, cfg.max_static)

@@ -829,8 +829,9 @@ def eta_line(
     counted at the rate of all slots."""
     text = f"{done} of {count} trials done"
     if 0 < steps_done < steps_total and elapsed_s > 0:
-        left = (steps_total - steps_done) * elapsed_s / steps_done
-        if steps_left is not None:
+        if steps_left is None:
+            left = (steps_total - steps_done) * elapsed_s / steps_done
+        else:
             per_step = elapsed_s * max(1, min(slots, count)) / steps_done  # one slot's s / step
             left = schedule_seconds([per_step * n for n in steps_left if n > 0], slots)
         at = datetime.fromtimestamp((time.time() if now is None else now) + left, timezone.utc)
