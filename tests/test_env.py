@@ -371,6 +371,27 @@ def test_reward_collision_is_paid_at_collision_steps_only():
         make_config("easy", reward_collision=1.0)
 
 
+def test_stall_penalty_starts_after_stall_seconds_without_progress_and_stops_at_progress():
+    """``w_stall`` (a named departure) subtracts its weight at each step from ``stall_seconds``
+    of hovering on, nothing while the UAV closes on the goal, and stops at the next progress."""
+    runs = []
+    for w in (0.0, 0.5):
+        env = hand_env(w_stall=w, stall_seconds=1.0, stall_progress=0.5)  # 10 steps at 10 Hz
+        place(env, (-3.0, 0.0, 1.5), goal=(8.0, 0.0, 1.5))
+        actions = [[0.0, 0.0, 0.0]] * 25 + [[1.0, 0.0, 0.0]] * 15  # hover 2.5 s, then fly at it
+        steps = [env.step(torch.tensor([a])) for a in actions]
+        runs.append([float(r[0]) for _, r, _, _, _ in steps])
+    plain, stalled = runs
+    extra = [r0 - r1 for r0, r1 in zip(plain, stalled, strict=True)]
+    assert extra[:9] == pytest.approx([0.0] * 9, abs=1e-5)  # 9 steps: no penalty yet
+    assert extra[9:25] == pytest.approx([0.5] * 16, abs=1e-5)  # from the 10th stalled step on
+    assert extra[-5:] == pytest.approx([0.0] * 5, abs=1e-5)  # flying at the goal: progress
+    for name, bad in (("w_stall", -0.5), ("stall_seconds", 0.0), ("stall_progress", -1.0),
+                      ("w_stall", float("nan"))):  # fmt: skip
+        with pytest.raises(ValueError, match=name):
+            make_config("easy", **{name: bad})
+
+
 @pytest.mark.parametrize(
     "x, z, until, extra",
     [

@@ -152,6 +152,20 @@ class EnvConfig:
     that stream, about 1 / (1 - gamma) = 100 at gamma 0.99; -100 restores that loss in terminal
     form without paying loitering."""
 
+    w_stall: float = 0.0
+    """Reward penalty per step while the UAV has made no progress for ``stall_seconds`` (a
+    departure from NavRL's reward; 0 = off, the default). Progress is the distance to the goal
+    falling ``stall_progress`` metres below its least value so far in the episode; the penalty
+    stops at the next such step. Against pockets among pillars where a policy behind the shield
+    hovers until the time limit (docs/csac-v1.md, "A penalty on time without progress"). At most
+    about ``w_stall / (1 - gamma)`` discounted (50 at 0.5 and gamma 0.99), kept below the crash
+    loss so that a crash never pays for ending it."""
+    stall_seconds: float = 3.0
+    """With ``w_stall`` > 0: seconds without progress before the penalty starts."""
+    stall_progress: float = 0.5
+    """With ``w_stall`` > 0: metres by which the distance to the goal must fall below its least
+    value so far to count as progress."""
+
     num_worlds: int = 0
     """Independent maps in a vector env (env i flies in map i % num_worlds); 0 = min(num_envs, 16)."""
 
@@ -208,7 +222,7 @@ class EnvConfig:
             "grid_resolution", "dyn_speed_period", "dyn_local_range", "goal_tolerance",
             "min_goal_distance", "max_episode_seconds", "reward_goal", "w_velocity", "w_static",
             "w_dynamic", "w_smooth", "w_height", "reward_collision", "cruise_height", "cruise_until",
-            "cruise_ramp",
+            "cruise_ramp", "w_stall", "stall_seconds", "stall_progress",
         ):  # fmt: skip
             finite(name)
         for name in ("num_static", "num_dynamic", "physics_substeps", "lidar_h_beams",
@@ -232,9 +246,13 @@ class EnvConfig:
             bad("lidar_history", "must be at most 8 (range images in the observation)")
         if not 0 <= self.lidar_memory <= 100:
             bad("lidar_memory", "must lie in [0, 100] control steps (0 = no memory image)")
-        for name in ("w_smooth", "w_height"):
+        for name in ("w_smooth", "w_height", "w_stall"):
             if getattr(self, name) < 0:
                 bad(name, "must be >= 0 (a penalty's weight; a negative one pays for it)")
+        if self.stall_seconds <= 0:
+            bad("stall_seconds", "must be > 0")
+        if self.stall_progress < 0:
+            bad("stall_progress", "must be >= 0 m")
         if self.reward_collision > 0:
             bad("reward_collision", "must be <= 0 (a penalty; a positive value pays crashes)")
         if not 0.0 <= self.density <= 1.0:

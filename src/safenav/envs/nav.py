@@ -197,7 +197,9 @@ class SafeNavVectorEnv(VectorEnv):
     instead if set, a named departure) + 20 on reaching the goal. NavRL's +1 per
     step is dropped: with success ending the episode it would pay loitering. ``reward_collision``
     (default 0) adds a reward at a collision step: -100 is the survival stream a crash loses in
-    NavRL (about 1 / (1 - 0.99)), in terminal form.
+    NavRL (about 1 / (1 - 0.99)), in terminal form. ``w_stall`` (default 0, a named departure)
+    subtracts a penalty per step once the distance to the goal has not fallen by
+    ``stall_progress`` below its least value for ``stall_seconds``.
 
     ## Cost
     ``info["cost"]`` (paper Eq. 3): 1 at a step with a collision (pillar, moving obstacle, the
@@ -344,6 +346,9 @@ class SafeNavVectorEnv(VectorEnv):
                        ("return", "cost", "path_length", "speed_sum", "border_steps",
                         "outside_steps")}  # fmt: skip
         self._min_clear = torch.full((n,), math.inf, device=dev)
+        # w_stall: the least distance to the goal so far and the steps since it last fell.
+        self._best_dist = torch.zeros(n, device=dev)
+        self._stalled = torch.zeros(n, dtype=torch.int64, device=dev)
         # Wall-clock start of each episode (time.perf_counter), for the episode statistic "t".
         self._t0 = torch.zeros(n, dtype=torch.float64, device=dev)
         self.worlds: list[World] = []
@@ -537,6 +542,8 @@ class SafeNavVectorEnv(VectorEnv):
                                       torch.maximum(starts[:, 2], goals[:, 2]) + 0.2], -1)  # fmt: skip
         self.steps[ids] = 0
         self.straight[ids] = (goals - starts).norm(dim=-1)
+        self._best_dist[ids] = self.straight[ids]
+        self._stalled[ids] = 0
         for v in self._stats.values():
             v[ids] = 0.0
         self._min_clear[ids] = math.inf
@@ -832,6 +839,12 @@ class SafeNavVectorEnv(VectorEnv):
         reward = (cfg.w_velocity * r_vel + cfg.w_static * r_static + cfg.w_dynamic * r_dyn
                   - cfg.w_smooth * p_smooth - cfg.w_height * p_height + cfg.reward_goal * success.float()
                   + cfg.reward_collision * collision.float())  # fmt: skip
+        if cfg.w_stall > 0:  # a named departure from NavRL (EnvConfig.w_stall)
+            progress = aux["dist"] < self._best_dist - cfg.stall_progress
+            self._best_dist = torch.where(progress, aux["dist"], self._best_dist)
+            self._stalled = torch.where(progress, 0, self._stalled + 1)
+            limit = round(cfg.stall_seconds * cfg.control_hz)
+            reward = reward - cfg.w_stall * (self._stalled >= limit).float()
         cost = collision.float()
 
         self.steps += 1
