@@ -94,17 +94,20 @@ def run(
     return rows
 
 
-def paired_differences(rows: list[dict], memories: list[str]) -> list[str]:
-    """Per memory N, its success and collision minus those without the shield (0) and behind the
-    memoryless shield (1), paired by policy: the mean and a 95 % percentile bootstrap CI over the
-    policies (scipy), a table in markdown."""
+def paired_differences(
+    rows: list[dict], memories: list[str], against: list[str] | None = None
+) -> list[str]:
+    """Per setting, its success and collision minus those of each setting in ``against`` listed
+    before it (default: without the shield, 0, and behind the memoryless shield, 1), paired by
+    policy: the mean and a 95 % percentile bootstrap CI over the policies (scipy), a table in
+    markdown."""
     from scipy.stats import bootstrap
 
     out = ["Paired by policy (mean difference, 95 % bootstrap CI over the policies):", "",
            "| memory N | against | success | collision |", "|---:|---:|---|---|"]  # fmt: skip
     by = {(r["policy"], r["memory"]): r for r in rows}
     policies = list(dict.fromkeys(r["policy"] for r in rows))
-    for base in (b for b in ("0", "1") if b in memories):
+    for base in (b for b in (against or ["0", "1"]) if b in memories):
         for m in memories[memories.index(base) + 1 :]:
             cells = []
             for k in ("success_rate", "collision_rate"):
@@ -137,6 +140,12 @@ def main() -> None:
         "heldout: seeds 2-6 x 200",
     )
     ap.add_argument("--out", type=Path, default=Path("results/shield-memory"))
+    ap.add_argument(
+        "--against",
+        nargs="+",
+        default=None,
+        help="settings the later ones are paired against (default: 0 and 1)",
+    )
     args = ap.parse_args()
     torch.set_num_threads(1)
     maps = {
@@ -157,7 +166,7 @@ def main() -> None:
         sel = [r for r in rows if r["memory"] == m]
         means = (_mean([r[k] for r in sel]) for k in KEYS[:5])
         lines.append(f"| {m} | " + " | ".join(f"{v:.3f}" for v in means) + " |")
-    lines += ["", *paired_differences(rows, args.memory)]
+    lines += ["", *paired_differences(rows, args.memory, args.against)]
     (args.out / f"table-{args.maps}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 

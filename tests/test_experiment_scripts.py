@@ -285,6 +285,11 @@ def test_shield_memory_flies_each_memory_and_pairs_them_by_policy(tiny_run, tmp_
     for m, base in (("1", "0"), ("3", "0"), ("3", "1"), ("1map", "1"), ("1map-mover0.3", "1")):
         d = rows[settings.index(m)]["collision_rate"] - rows[settings.index(base)]["collision_rate"]
         assert f"| {m} | {base} |" in table and f"{d:+.3f}" in table
+    # --against: the later settings paired against another one, and only against it
+    table = "\n".join(sm.paired_differences(rows, settings, ["1map"]))
+    d = rows[4]["success_rate"] - rows[3]["success_rate"]
+    assert f"| 1map-mover0.3 | 1map | {d:+.3f}" in table
+    assert "| 1 | 0 |" not in table and "| 1map | 1 |" not in table
 
 
 def test_shield_memory_parses_the_braking_settings():
