@@ -14,7 +14,9 @@ clearance from the tracked moving obstacles (``ShieldConfig.mover_margin``), e.g
 and ``-lag`` a shield that models the env's velocity tracker (``ShieldConfig.response_time``:
 candidates tested from where the vehicle really goes), e.g. ``1map-mover0.3-lag``, and ``-brake``
 the braking cap (``--shield-brake``: ``ShieldConfig.brake_time``), e.g. ``1map-mover0.3-brake``,
-or ``-slide`` its sliding form (``ShieldConfig.brake_slide``), e.g. ``1map-mover0.3-slide``.
+or ``-slide`` its sliding form (``ShieldConfig.brake_slide``), e.g. ``1map-mover0.3-slide``,
+and ``-keepK`` the candidate choice that keeps moving (``ShieldConfig.keep_moving`` = K, a
+fraction of the policy's horizontal speed), e.g. ``1map-mover0.3-brake-keep0.5``.
 One JSON per
 (policy, setting, map) in OUT
 (a rerun skips those that exist), then a table of the mean over maps per (policy, setting) on
@@ -51,19 +53,24 @@ def _mean(values: list) -> float:
     return sum(values) / len(values) if values else float("nan")
 
 
-def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str]:
-    """``"20"`` -> (20, False, 0.0, False, False); ``"20map"`` -> (20, True, 0.0, False, False);
-    ``"1map-mover0.3-lag"`` -> (1, True, 0.3, True, False) (``-lag``: the shield models the env's
-    velocity tracker, ``ShieldConfig.response_time``); ``"1map-mover0.3-brake"`` -> (1, True,
-    0.3, False, True) (the braking cap); ``-slide``: its sliding form, ``"slide"`` there."""
-    found = re.fullmatch(r"(\d+)(map)?(?:-mover([0-9.]+))?(-lag)?(-brake|-slide)?", setting)
+def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str, float]:
+    """``"20"`` -> (20, False, 0.0, False, False, 0.0); ``"20map"`` -> (20, True, 0.0, False,
+    False, 0.0); ``"1map-mover0.3-lag"`` -> (1, True, 0.3, True, False, 0.0) (``-lag``: the
+    shield models the env's velocity tracker, ``ShieldConfig.response_time``);
+    ``"1map-mover0.3-brake"`` -> (1, True, 0.3, False, True, 0.0) (the braking cap); ``-slide``:
+    its sliding form, ``"slide"`` there; ``-keep0.5``: ``ShieldConfig.keep_moving`` 0.5, last."""
+    found = re.fullmatch(
+        r"(\d+)(map)?(?:-mover([0-9.]+))?(-lag)?(-brake|-slide)?(?:-keep([0-9.]+))?", setting
+    )
     if found is None:
-        raise SystemExit(
-            f"shield setting {setting!r}: N, Nmap or either with -moverX, -lag, -brake or -slide"
-        )
+        raise SystemExit(f"shield setting {setting!r}: N, Nmap or either with -moverX, -lag, "
+                         "-brake or -slide, -keepK")  # fmt: skip
     brake = {None: False, "-brake": True, "-slide": "slide"}[found[5]]
+    keep = float(found[6] or 0.0)
+    if not 0.0 <= keep <= 1.0:
+        raise SystemExit(f"shield setting {setting!r}: -keepK takes K in [0, 1]")
     return (int(found[1]), found[2] is not None, float(found[3] or 0.0), found[4] is not None,
-            brake)  # fmt: skip
+            brake, keep)  # fmt: skip
 
 
 def run(
@@ -79,13 +86,14 @@ def run(
             for seed, episodes in maps:
                 f = out / f"{label(path)}-m{m}-seed{seed}-{episodes}.json"
                 if not f.exists():
-                    memory, scan, mover, lag, brake = parse_setting(m)
-                    shield = shield_for_memory(memory, scan, mover, lag, brake)
+                    memory, scan, mover, lag, brake, keep = parse_setting(m)
+                    shield = shield_for_memory(memory, scan, mover, lag, brake, keep)
                     r = evaluate(fn, cfg, env_seed=seed, episodes=episodes, shield=shield)
                     r.pop("per_episode", None)
                     write_json(f, {**r, "policy": str(path), "shield_memory": memory,
                                    "shield_map": scan, "mover_margin": mover,
-                                   "response": lag, "brake": brake})  # fmt: skip
+                                   "response": lag, "brake": brake,
+                                   **({"keep_moving": keep} if keep else {})})  # fmt: skip
                 per_map.append(json.loads(f.read_text()))
             mean = {k: _mean([r[k] for r in per_map]) for k in KEYS}
             rows.append({"policy": label(path), "memory": m, **mean})

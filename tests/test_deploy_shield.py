@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from safenav.deploy.shield import (
+    MemoryShield,
     ShieldConfig,
     _vo_test,
     shield_action,
@@ -491,3 +492,28 @@ def test_the_braking_shield_cuts_collisions_on_a_validation_map():
         result = evaluate(go_to_goal, cfg, env_seed=12345, episodes=64, shield=shield)
         rates.append(result["collision_rate"])
     assert rates[1] < rates[0]
+
+
+def test_keep_moving_takes_a_way_round_where_the_nearest_velocity_stalls() -> None:
+    """ShieldConfig.keep_moving: before a row of pillars the nearest admissible velocity to a
+    goal-ward one is (nearly) a hover; the choice that keeps moving slides along the row at no
+    less than the fraction of the policy's speed, admissible, and does not turn back."""
+    v = torch.tensor([[2.0, 0.0, 0.0]])
+    rel, vel, rad, valid, planar = scene([[1.0, -0.6, 0.0], [1.0, 0.0, 0.0], [1.0, 0.6, 0.0]],
+                                         planar=True)  # fmt: skip
+    nearest_out, _ = velocity_obstacle_shield(v, rel, vel, rad, valid, planar, ShieldConfig())
+    assert float(nearest_out[0, :2].norm()) < 1.0  # the premise: it stalls
+    cfg = ShieldConfig(keep_moving=0.5)
+    out, corrected = velocity_obstacle_shield(v, rel, vel, rad, valid, planar, cfg)
+    assert bool(corrected[0]) and bool(admissible(out, rel, vel, rad, valid, planar, cfg)[0])
+    assert float(out[0, :2].norm()) >= 1.0 and float(out[0, 0]) >= 0.0
+    # Where the nearest admissible velocity is fast enough, the choice is NavRL's.
+    one = scene([[1.5, 0.05, 0.0]], planar=True)
+    a, _ = velocity_obstacle_shield(v, *one, ShieldConfig(), compiled=False)
+    b, _ = velocity_obstacle_shield(v, *one, cfg, compiled=False)
+    assert torch.equal(a, b)
+    # One vehicle on the CPU: the same choice as the batch (the kernel does not model it).
+    one_out, _ = velocity_obstacle_shield(v, rel, vel, rad, valid, planar, cfg, compiled=True)
+    torch.testing.assert_close(one_out, out)
+    with pytest.raises(ValueError, match="keep_moving"):
+        MemoryShield(1, keep_moving=1.5)

@@ -294,10 +294,13 @@ def test_shield_memory_flies_each_memory_and_pairs_them_by_policy(tiny_run, tmp_
 
 def test_shield_memory_parses_the_braking_settings():
     sm = script("shield_memory")
-    assert sm.parse_setting("1map-mover0.3-brake") == (1, True, 0.3, False, True)
-    assert sm.parse_setting("1map-mover0.3-slide") == (1, True, 0.3, False, "slide")
+    assert sm.parse_setting("1map-mover0.3-brake") == (1, True, 0.3, False, True, 0.0)
+    assert sm.parse_setting("1map-mover0.3-slide") == (1, True, 0.3, False, "slide", 0.0)
+    assert sm.parse_setting("1map-mover0.3-brake-keep0.5") == (1, True, 0.3, False, True, 0.5)
     with pytest.raises(SystemExit, match="-slide"):
         sm.parse_setting("1map-brake-slide")
+    with pytest.raises(SystemExit, match=r"\[0, 1\]"):
+        sm.parse_setting("1map-keep1.5")
 
 
 def test_shield_collisions_says_how_each_episode_ended(tiny_run, monkeypatch, capsys):

@@ -143,6 +143,15 @@ class ShieldConfig:
     below which the env counts a collision; the cap limits the descent speed as for a wall."""
     z_max: float = 4.0
     """Likewise the ceiling."""
+    keep_moving: float = 0.0
+    """The candidate choice (beyond NavRL's shield): 0 = the admissible candidate nearest the
+    policy's velocity (NavRL's). Above 0, where that one keeps less than this fraction of the
+    policy's horizontal speed, the nearest admissible candidate that keeps at least that fraction
+    and does not turn back (horizontal component along the policy's >= 0) is taken, if one
+    exists. Why: in a pocket among pillars the nearest admissible velocity is a hover (any
+    sideways velocity is further from a goal-ward ``v_des`` than standing still), and a policy
+    that pursues the goal asks for the way through again at every step, so nothing moves the
+    vehicle round (docs/csac-v1.md)."""
 
     @staticmethod
     def response_of(cfg: EnvConfig) -> dict[str, float]:
@@ -387,7 +396,7 @@ def velocity_obstacle_shield(
     lagged = cfg.response_time > 0
     if lagged and v_now is None:
         raise ValueError("a shield with response_time > 0 needs the vehicle's velocity (v_now)")
-    if _kernel_for(n, dev, compiled) and not lagged:
+    if _kernel_for(n, dev, compiled) and not lagged and not cfg.keep_moving:
         return _shield_one_compiled(v_des, rel, obs_vel, radius, valid, planar, cfg, dist)
     offset = response_offset(v_now, v_des[:, None, :], cfg) if lagged else None
     inside_des, _ = _vo_test(v_des[:, None, :], rel, obs_vel, radius, valid, planar, tau, offset)
@@ -411,11 +420,26 @@ def velocity_obstacle_shield(
                            response_offset(v_now, cands, cfg) if lagged else None)  # fmt: skip
     cost = (cands - v_des[:, None, :]).square().sum(-1)
     best = torch.argmin(torch.where(inside, math.inf, cost), dim=-1)
+    if cfg.keep_moving > 0:
+        best = _keep_moving(best, cands, v_des, inside, cost, cfg.keep_moving)
     # Nothing admissible: latest time to collision, then nearest to v_des.
     fallback = torch.argmax(ttc.clamp(max=1e6) - 1e-3 * cost, dim=-1)
     choice = torch.where(inside.all(-1), fallback, best)
     out[rows] = torch.gather(cands, 1, choice[:, None, None].expand(-1, 1, 3))[:, 0]
     return out, corrected
+
+
+def _keep_moving(best, cands, v_des, inside, cost, fraction: float) -> torch.Tensor:
+    """``ShieldConfig.keep_moving``: where the candidate ``best`` ``(N,)`` keeps less than
+    ``fraction`` of ``v_des``'s horizontal speed, the nearest admissible one that keeps at least
+    that and does not turn back, if there is one."""
+    h = cands[..., :2]
+    speed = h.norm(dim=-1)  # (N, C)
+    need = fraction * v_des[:, :2].norm(dim=-1, keepdim=True)  # (N, 1)
+    moving = ~inside & (speed >= need) & ((h * v_des[:, None, :2]).sum(-1) >= 0)
+    other = torch.argmin(torch.where(moving, cost, math.inf), dim=-1)
+    slow = torch.gather(speed, 1, best[:, None])[:, 0] < need[:, 0]
+    return torch.where(slow & moving.any(-1), other, best)
 
 
 def _shield_one_compiled(v_des, rel, obs_vel, radius, valid, planar, cfg, dist=None):
@@ -517,7 +541,7 @@ def shield_action(
     """
     spec = _spec(cfg)
     lidar, dyn = obs["lidar"][:, : len(cfg.lidar_v_angles)], obs["dynamic"]
-    plain = cfg.response_time == 0 and cfg.brake_time == 0  # what the kernel models
+    plain = cfg.response_time == 0 and cfg.brake_time == 0 and not cfg.keep_moving  # the kernel's
     if plain and _kernel_for(action.shape[0], action.device):
         return _shield_action_compiled(lidar, dyn, action, cfg, spec)
     ranges = cfg.lidar_range * (1.0 - lidar.to(action.dtype))
@@ -647,7 +671,8 @@ class MemoryShield:
 
     def __init__(self, memory: int, cfg: ShieldConfig | None = None, max_static: int | None = None,
                  map_scan: bool = False, mover_margin: float = 0.0,
-                 response: bool = False, brake: bool | str = False):  # fmt: skip
+                 response: bool = False, brake: bool | str = False,
+                 keep_moving: float = 0.0):  # fmt: skip
         if not 1 <= memory <= 100:
             raise ValueError(f"memory must lie in [1, 100] range images, got {memory}")
         if not 0.0 <= mover_margin <= 2.0:
@@ -655,6 +680,9 @@ class MemoryShield:
         self.memory, self.cfg, self.max_static = int(memory), cfg, max_static
         self.map_scan = bool(map_scan)
         self.mover_margin = float(mover_margin)  # with the env's config (cfg None) only
+        if not 0.0 <= keep_moving <= 1.0:
+            raise ValueError(f"keep_moving must lie in [0, 1] (of the policy's speed), got {keep_moving}")
+        self.keep_moving = float(keep_moving)  # ditto: ShieldConfig.keep_moving
         self.response = bool(response)  # ditto: the env's velocity tracker (response_time)
         brake = brake_setting(brake)
         self.brake = bool(brake)  # ditto: the braking cap (brake_time)
@@ -671,7 +699,7 @@ class MemoryShield:
             env.cfg, mover_margin=self.mover_margin,
             **(ShieldConfig.response_of(env.cfg) if self.response else {}),
             **(ShieldConfig.braking_of(env.cfg) if self.brake else {}),
-            brake_slide=self.brake_slide)  # fmt: skip
+            brake_slide=self.brake_slide, keep_moving=self.keep_moving)  # fmt: skip
         extra = None
         if self.map_scan:
             extra = map_scan_hits(env.heights, env.grid.origin, env.grid.size, env.cfg.grid_resolution,
@@ -730,17 +758,18 @@ class MemoryShield:
 
 
 def shield_for_memory(memory: int, map_scan: bool = False, mover_margin: float = 0.0,
-                      response: bool = False, brake: bool | str = False):  # fmt: skip
+                      response: bool = False, brake: bool | str = False,
+                      keep_moving: float = 0.0):  # fmt: skip
     """The evaluation shield of a memory setting (``--shield-memory``): ``None`` for 0 (no
     shield), :func:`env_shield` for 1, a fresh :class:`MemoryShield` of ``memory`` images above;
     with ``map_scan`` (``--shield-map``) or a ``mover_margin`` (m, ``--shield-mover-margin``) a
     fresh ``MemoryShield(max(memory, 1), map_scan=..., mover_margin=...)``; ``response``: it
     models the env's velocity tracker (``ShieldConfig.response_time``); ``brake``
     (``--shield-brake``): the braking cap (``ShieldConfig.brake_time``), ``"slide"`` its sliding
-    form (``ShieldConfig.brake_slide``)."""
-    if map_scan or mover_margin or response or brake:
+    form (``ShieldConfig.brake_slide``); ``keep_moving``: ``ShieldConfig.keep_moving``."""
+    if map_scan or mover_margin or response or brake or keep_moving:
         return MemoryShield(max(memory, 1), map_scan=map_scan, mover_margin=mover_margin,
-                            response=response, brake=brake)  # fmt: skip
+                            response=response, brake=brake, keep_moving=keep_moving)  # fmt: skip
     if memory <= 0:
         return None
     return env_shield if memory == 1 else MemoryShield(memory)
