@@ -681,7 +681,9 @@ class MemoryShield:
         self.map_scan = bool(map_scan)
         self.mover_margin = float(mover_margin)  # with the env's config (cfg None) only
         if not 0.0 <= keep_moving <= 1.0:
-            raise ValueError(f"keep_moving must lie in [0, 1] (of the policy's speed), got {keep_moving}")
+            raise ValueError(
+                f"keep_moving must lie in [0, 1] (of the policy's speed), got {keep_moving}"
+            )
         self.keep_moving = float(keep_moving)  # ditto: ShieldConfig.keep_moving
         self.response = bool(response)  # ditto: the env's velocity tracker (response_time)
         brake = brake_setting(brake)
