@@ -68,3 +68,27 @@ def test_batched_arithmetic_is_restored_after_an_error():
         assert not sh._one_vehicle_kernel
         raise RuntimeError("restored even so")
     assert sh._one_vehicle_kernel
+
+
+def test_a_network_flying_alone_rounds_as_in_the_batch():
+    """Torch's CPU matrix products round 1-3 rows differently from a batch (~1e-7 in the actions
+    of this committed policy, with its memory image), which parted a rendered validation episode
+    from the same episode in ``safenav eval``'s batch (a timeout there, an arrival rendered):
+    ``flight.in_batch_rows`` gives the network a batch's rows, and ``fly_frames`` flies
+    checkpoints through it."""
+    import inspect
+    from pathlib import Path
+
+    from safenav.algos.policy import load_policy
+
+    path = Path(__file__).resolve().parents[1] / "results/csac-v1/levers/policies"
+    fn = load_policy(path / "shieldml-g995-s1/step_001000192.pt")
+    cfg, starts, goals = fixed_test_scenario(fn.env_config(), 12345, 100)
+    env = SafeNavVectorEnv(100, config=cfg, output="torch", autoreset_mode="Disabled")
+    obs, _ = env.reset(seed=12345, options={"starts": starts, "goals": goals})
+    with torch.no_grad():
+        batch = fn(obs)
+        for n in (1, 2, 3):
+            alone = flight.in_batch_rows(fn)({k: v[:n] for k, v in obs.items()})
+            assert alone.shape == (n, 3) and torch.equal(alone, batch[:n])
+    assert "in_batch_rows(fn)" in inspect.getsource(flight.fly_frames)

@@ -85,6 +85,28 @@ def render_episode(
     return stats
 
 
+BATCH_ROWS = 8
+"""Torch's CPU matrix products round a batch of 1-3 rows differently from a larger one (~1e-7 in
+the actions of a trained policy, measured), and a flight amplifies that within seconds: a
+network flying one episode alone is given at least this many rows (:func:`in_batch_rows`)."""
+
+
+def in_batch_rows(fn, rows: int = BATCH_ROWS):
+    """``fn`` called on at least ``rows`` rows (the observation's first row repeated), its
+    actions for the real rows returned, so that a policy network flying one episode rounds as it
+    does in ``safenav eval``'s batch: ``safenav render --episode K`` is then episode K of that
+    batch, bit for bit (a validation timeout otherwise arrived when rendered, 2026-12-04)."""
+
+    def call(obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        n = obs["state"].shape[0]
+        if n >= rows:
+            return fn(obs)
+        idx = torch.cat([torch.arange(n), torch.zeros(rows - n, dtype=torch.long)])
+        return fn({k: v[idx.to(v.device)] for k, v in obs.items()})[:n]
+
+    return call
+
+
 @torch.no_grad()
 def fly_frames(
     checkpoint: Path | None = None,
@@ -112,7 +134,10 @@ def fly_frames(
     obs, _ = env.reset(
         seed=env_seed, options={"starts": starts[episode:], "goals": goals[episode:]}
     )
-    act = (lambda o: fn(o, env)) if getattr(fn, "needs_env", False) else fn
+    if getattr(fn, "needs_env", False):
+        act = lambda o: fn(o, env)  # noqa: E731
+    else:
+        act = in_batch_rows(fn) if policy == "checkpoint" else fn
     arithmetic = contextlib.nullcontext()
     if shield_memory > 0 or shield_map:  # the shield's module loads Numba: only when it flies
         from safenav.deploy.shield import batched_arithmetic, shield_for_memory
