@@ -392,6 +392,32 @@ def test_stall_penalty_starts_after_stall_seconds_without_progress_and_stops_at_
             make_config("easy", **{name: bad})
 
 
+def test_near_miss_cost_is_one_at_the_first_step_within_the_margin_and_contact_is_unchanged():
+    """``near_miss_margin`` (a named departure from Eq. 3): the cost is 1 at the episode's first
+    step whose clearance falls under the margin and 0 at every other step, even at a later
+    contact; collisions are still counted as contact; a reset re-arms it."""
+    runs = {}
+    for margin in (0.0, 0.5):
+        env = hand_env(pillars=[(0.0, 0.0, 0.8, 5.0)], terminate_on_collision=False,
+                       near_miss_margin=margin)  # fmt: skip
+        for episode in range(2):
+            place(env, (-3.0, 0.0, 1.5), goal=(8.0, 0.0, 1.5))
+            steps = [env.step(torch.tensor([[0.5, 0.0, 0.0]])) for _ in range(60)]
+            runs[margin, episode] = [(float(i["cost"][0]), bool(i["collision"][0]),
+                                      float(i["clearance"][0])) for *_, i in steps]  # fmt: skip
+    contact = runs[0.0, 0]
+    assert [c for c, _, _ in contact] == [float(hit) for _, hit, _ in contact]  # Eq. 3
+    for episode in range(2):
+        near = runs[0.5, episode]
+        assert [hit for _, hit, _ in near] == [hit for _, hit, _ in contact]  # contact unchanged
+        first = next(t for t, (_, _, clear) in enumerate(near) if clear < 0.5)
+        assert first < next(t for t, (_, hit, _) in enumerate(near) if hit)  # before contact
+        assert [c for c, _, _ in near] == [float(t == first) for t in range(len(near))]
+    for bad in (-0.1, 3.0, float("nan")):
+        with pytest.raises(ValueError, match="near_miss_margin"):
+            make_config("easy", near_miss_margin=bad)
+
+
 @pytest.mark.parametrize(
     "x, z, until, extra",
     [

@@ -165,6 +165,15 @@ class EnvConfig:
     stall_progress: float = 0.5
     """With ``w_stall`` > 0: metres by which the distance to the goal must fall below its least
     value so far to count as progress."""
+    near_miss_margin: float = 0.0
+    """Metres of clearance under which the cost counts a near miss (a departure from the paper's
+    Eq. 3 cost, whose event is contact; 0 = off, the default). With a margin > 0 the cost of a
+    step is 1 at the episode's first step whose clearance from the pillars, the moving obstacles
+    and the wall falls under the margin, or that collides, and 0 at every other step: an episode
+    costs 1 if the UAV ever came that near (a body inflated by the margin), so a budget d is a
+    probability of a near miss per episode and the constraint curriculum's d_init / d_min keep
+    their units (docs/csac-v1.md, "A cost that counts near misses"). ``info["collision"]`` and
+    the episode statistics still count contact."""
 
     num_worlds: int = 0
     """Independent maps in a vector env (env i flies in map i % num_worlds); 0 = min(num_envs, 16)."""
@@ -222,7 +231,7 @@ class EnvConfig:
             "grid_resolution", "dyn_speed_period", "dyn_local_range", "goal_tolerance",
             "min_goal_distance", "max_episode_seconds", "reward_goal", "w_velocity", "w_static",
             "w_dynamic", "w_smooth", "w_height", "reward_collision", "cruise_height", "cruise_until",
-            "cruise_ramp", "w_stall", "stall_seconds", "stall_progress",
+            "cruise_ramp", "w_stall", "stall_seconds", "stall_progress", "near_miss_margin",
         ):  # fmt: skip
             finite(name)
         for name in ("num_static", "num_dynamic", "physics_substeps", "lidar_h_beams",
@@ -253,6 +262,8 @@ class EnvConfig:
             bad("stall_seconds", "must be > 0")
         if self.stall_progress < 0:
             bad("stall_progress", "must be >= 0 m")
+        if not 0.0 <= self.near_miss_margin <= 2.0:
+            bad("near_miss_margin", "must lie in [0, 2] m (0 = the paper's cost: contact)")
         if self.reward_collision > 0:
             bad("reward_collision", "must be <= 0 (a penalty; a positive value pays crashes)")
         if not 0.0 <= self.density <= 1.0:

@@ -203,8 +203,9 @@ class SafeNavVectorEnv(VectorEnv):
 
     ## Cost
     ``info["cost"]`` (paper Eq. 3): 1 at a step with a collision (pillar, moving obstacle, the
-    border wall, ground below ``z_min``, ceiling above ``z_max``), else 0. Never folded into the
-    reward.
+    border wall, ground below ``z_min``, ceiling above ``z_max``), else 0 (with
+    ``near_miss_margin`` > 0, a named departure: 1 at the episode's first near miss instead).
+    Never folded into the reward.
 
     ## Starting State
     Hovering (zero velocity) at one of the map's start/goal sites (``start_sites`` per side, 1 m
@@ -349,6 +350,8 @@ class SafeNavVectorEnv(VectorEnv):
         # w_stall: the least distance to the goal so far and the steps since it last fell.
         self._best_dist = torch.zeros(n, device=dev)
         self._stalled = torch.zeros(n, dtype=torch.int64, device=dev)
+        # near_miss_margin: whether the episode's one near-miss cost has been paid.
+        self._near_missed = torch.zeros(n, dtype=torch.bool, device=dev)
         # Wall-clock start of each episode (time.perf_counter), for the episode statistic "t".
         self._t0 = torch.zeros(n, dtype=torch.float64, device=dev)
         self.worlds: list[World] = []
@@ -544,6 +547,7 @@ class SafeNavVectorEnv(VectorEnv):
         self.straight[ids] = (goals - starts).norm(dim=-1)
         self._best_dist[ids] = self.straight[ids]
         self._stalled[ids] = 0
+        self._near_missed[ids] = False
         for v in self._stats.values():
             v[ids] = 0.0
         self._min_clear[ids] = math.inf
@@ -845,7 +849,12 @@ class SafeNavVectorEnv(VectorEnv):
             self._stalled = torch.where(progress, 0, self._stalled + 1)
             limit = round(cfg.stall_seconds * cfg.control_hz)
             reward = reward - cfg.w_stall * (self._stalled >= limit).float()
-        cost = collision.float()
+        if cfg.near_miss_margin > 0:  # a named departure from Eq. 3 (EnvConfig.near_miss_margin)
+            near = collision | (clearance - cfg.uav_radius < cfg.near_miss_margin)
+            cost = (near & ~self._near_missed).float()
+            self._near_missed = self._near_missed | near
+        else:
+            cost = collision.float()
 
         self.steps += 1
         terminated = success | (collision & cfg.terminate_on_collision)
