@@ -350,8 +350,6 @@ class SafeNavVectorEnv(VectorEnv):
         # w_stall: the least distance to the goal so far and the steps since it last fell.
         self._best_dist = torch.zeros(n, device=dev)
         self._stalled = torch.zeros(n, dtype=torch.int64, device=dev)
-        # near_miss_margin: whether the episode's one near-miss cost has been paid.
-        self._near_missed = torch.zeros(n, dtype=torch.bool, device=dev)
         # Wall-clock start of each episode (time.perf_counter), for the episode statistic "t".
         self._t0 = torch.zeros(n, dtype=torch.float64, device=dev)
         self.worlds: list[World] = []
@@ -547,7 +545,6 @@ class SafeNavVectorEnv(VectorEnv):
         self.straight[ids] = (goals - starts).norm(dim=-1)
         self._best_dist[ids] = self.straight[ids]
         self._stalled[ids] = 0
-        self._near_missed[ids] = False
         for v in self._stats.values():
             v[ids] = 0.0
         self._min_clear[ids] = math.inf
@@ -851,8 +848,8 @@ class SafeNavVectorEnv(VectorEnv):
             reward = reward - cfg.w_stall * (self._stalled >= limit).float()
         if cfg.near_miss_margin > 0:  # a named departure from Eq. 3 (EnvConfig.near_miss_margin)
             near = collision | (clearance - cfg.uav_radius < cfg.near_miss_margin)
-            cost = (near & ~self._near_missed).float()
-            self._near_missed = self._near_missed | near
+            # the episode's cost so far is 1 once its near miss is paid, else 0
+            cost = (near & (self._stats["cost"] == 0)).float()
         else:
             cost = collision.float()
 
