@@ -164,3 +164,47 @@ def test_cruise_holds_its_altitude_until_near_the_goal():
     # without the option, the downward beams' ground hits are obstacle points like any other
     pts = oracle.beam_hits(obs["lidar"], env.pos, env.yaw, env.cfg)
     assert (pts[..., 2].abs() < 0.05).any()
+
+
+def test_oracle_compare_pairs_episodes_by_map(tmp_path, capsys):
+    spec = importlib.util.spec_from_file_location(
+        "oracle_compare", ROOT / "experiments" / "oracle_compare.py"
+    )
+    compare = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(compare)
+    import json
+
+    def planner_file(name, maps):  # the per_map layout oracle_planner.py --json writes
+        per_map = {
+            seed: {
+                "per_episode": {
+                    "success": s,
+                    "collision": [1 - x for x in s],
+                    "timeout": [0.0] * len(s),
+                }
+            }  # fmt: skip
+            for seed, s in maps.items()
+        }
+        path = tmp_path / name
+        path.write_text(json.dumps({"per_map": per_map}))
+        return str(path)
+
+    a = planner_file("a.json", {"1": [1.0, 0.0, 0.0, 1.0], "2": [0.0, 0.0]})
+    b1 = planner_file("b1.json", {"1": [1.0, 1.0, 1.0, 1.0]})
+    b2 = planner_file("b2.json", {"2": [1.0, 0.0]})
+    out = tmp_path / "cmp.json"
+    sys.argv = ["oracle_compare.py", a, "--against", b1, b2, "--json", str(out)]
+    compare.main()
+    result = json.loads(out.read_text())
+    assert result["episodes"] == 6 and result["maps"] == ["1", "2"]
+    assert result["success"]["a"] == pytest.approx(2 / 6)
+    assert result["success"]["b"] == pytest.approx(5 / 6)
+    assert result["success"]["difference"] == pytest.approx(3 / 6)
+    assert result["success"]["mcnemar"]["only_a"] == 3  # episodes where only B succeeded
+    assert result["collision"]["difference"] == pytest.approx(-3 / 6)
+    assert "6 paired episodes" in capsys.readouterr().out
+    short = planner_file("short.json", {"1": [1.0], "2": [0.0, 0.0]})
+    with pytest.raises(SystemExit, match="episodes"):
+        compare.paired(compare.episodes([a]), compare.episodes([short]))
+    with pytest.raises(SystemExit, match="different maps"):
+        compare.paired(compare.episodes([a]), compare.episodes([b1]))
