@@ -1,4 +1,5 @@
-"""Two sets of `experiments/oracle_planner.py --json` files compared on the same episodes: pooled
+"""Two sets of `experiments/oracle_planner.py --json` or `safenav eval --json` files (a planner
+against a planner, or a learned policy against the planner) compared on the same episodes: pooled
 success / collision / timeout of each, and per rate the paired difference (B - A) with its 95 %
 bootstrap CI over episodes and McNemar's exact test (``safenav.experiments.stats``). The files
 are matched by map (env seed) and each map's episodes by index, so both sets must have flown the
@@ -7,6 +8,9 @@ same maps with the same number of episodes (the planner's episodes are fixed by 
     .venv/bin/python experiments/oracle_compare.py \\
         results/csac-v1/oracle/h200-mem/mem10-1234?.json \\
         --against results/csac-v1/oracle/beams72/beams72-1234?.json [--json OUT]
+    safenav eval POLICY --env-seed 12345 --episodes 36 --json policy-12345.json   # one per map
+    .venv/bin/python experiments/oracle_compare.py results/csac-v1/oracle/h200-mem/mem10-1234?.json \\
+        --against policy-1234?.json
 """
 
 from __future__ import annotations
@@ -24,10 +28,13 @@ RATES = ("success", "collision", "timeout")
 
 
 def episodes(paths: list[str]) -> dict[str, dict[str, list[float]]]:
-    """``{map seed: per_episode}`` over the files (a map in two files is an error)."""
+    """``{map seed: per_episode}`` over the files (a map in two files is an error): the planner's
+    ``per_map`` entries, or the one map of a ``safenav eval --json`` file."""
     out: dict[str, dict[str, list[float]]] = {}
     for path in paths:
-        for seed, entry in json.loads(Path(path).read_text())["per_map"].items():
+        data = json.loads(Path(path).read_text())
+        maps = data.get("per_map") or {str(data["env_seed"]): data}
+        for seed, entry in maps.items():
             if seed in out:
                 raise SystemExit(f"map {seed} appears twice (in {path})")
             out[seed] = entry["per_episode"]
@@ -52,6 +59,7 @@ def paired(a: dict, b: dict) -> dict:
             "a": float(xa.mean()), "b": float(xb.mean()), "difference": float(diff.mean()),
             "ci95": bootstrap_ci(lambda x, axis: x.mean(axis=axis), diff),
             "mcnemar": mcnemar_exact(xb, xa),  # only_a: episodes where only B had the event
+            "both": int((xa & xb).sum()),  # episodes where both had it
         }  # fmt: skip
     return result
 
@@ -69,8 +77,8 @@ def main() -> None:
         lo, hi = r["ci95"] or (float("nan"), float("nan"))
         m = r["mcnemar"]
         print(f"  {rate:9s} A {r['a']:.3f}  B {r['b']:.3f}  B-A {r['difference']:+.3f} "
-              f"(95 % CI {lo:+.3f} to {hi:+.3f}; McNemar only B {m['only_a']}, only A "
-              f"{m['only_b']}, p = {m['p_value']:.3f})")  # fmt: skip
+              f"(95 % CI {lo:+.3f} to {hi:+.3f}; both {r['both']}, only B {m['only_a']}, only A "
+              f"{m['only_b']}, McNemar p = {m['p_value']:.3f})")  # fmt: skip
     if args.json:
         write_json(args.json, result)
 

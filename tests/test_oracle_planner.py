@@ -191,7 +191,10 @@ def test_oracle_compare_pairs_episodes_by_map(tmp_path, capsys):
 
     a = planner_file("a.json", {"1": [1.0, 0.0, 0.0, 1.0], "2": [0.0, 0.0]})
     b1 = planner_file("b1.json", {"1": [1.0, 1.0, 1.0, 1.0]})
-    b2 = planner_file("b2.json", {"2": [1.0, 0.0]})
+    b2 = tmp_path / "b2.json"  # a safenav eval --json file: one map
+    b2.write_text(json.dumps({"env_seed": 2, "per_episode": {
+        "success": [1.0, 0.0], "collision": [0.0, 1.0], "timeout": [0.0, 0.0]}}))  # fmt: skip
+    b2 = str(b2)
     out = tmp_path / "cmp.json"
     sys.argv = ["oracle_compare.py", a, "--against", b1, b2, "--json", str(out)]
     compare.main()
@@ -201,6 +204,7 @@ def test_oracle_compare_pairs_episodes_by_map(tmp_path, capsys):
     assert result["success"]["b"] == pytest.approx(5 / 6)
     assert result["success"]["difference"] == pytest.approx(3 / 6)
     assert result["success"]["mcnemar"]["only_a"] == 3  # episodes where only B succeeded
+    assert result["success"]["both"] == 2
     assert result["collision"]["difference"] == pytest.approx(-3 / 6)
     assert "6 paired episodes" in capsys.readouterr().out
     short = planner_file("short.json", {"1": [1.0], "2": [0.0, 0.0]})
