@@ -115,6 +115,11 @@ class OracleConfig:
     memory: int = 1
     """With ``lidar``: the hit points of the last ``memory`` range images (each placed in the world
     from where it was taken; an episode starts with none), 1 = the current image only."""
+    map_scan: bool = False
+    """With ``lidar``: also the hits of the flight shield's map scan (``map_scan_hits``: 72 level
+    beams on the height map from the UAV's lower extent, the nearest 24), each a column that spans
+    all altitudes (tested in the horizontal plane, as the shield tests them): what the learned
+    policies' flight shield knows beside the range image."""
     cruise: float | None = None
     """Altitude (m) to hold while the goal is farther than ``cruise_until`` horizontally: the
     cost-to-go there is the horizontal one plus ``|z - cruise|`` (a Euclidean combination would
@@ -187,6 +192,22 @@ def beam_hits(lidar: torch.Tensor, pos: torch.Tensor, yaw: torch.Tensor, cfg) ->
     spec = RangeImageSpec.for_config(cfg)
     ranges = cfg.lidar_range * (1.0 - lidar[:, : len(spec.v_angles)])
     return beam_hit_points(ranges, pos, yaw, spec, FAR)
+
+
+def scan_columns(env: SafeNavVectorEnv, ids: torch.Tensor) -> torch.Tensor:
+    """World ``(x, y)`` ``(n, K, 2)`` of the flight shield's map-scan hits for envs ``ids``
+    (``safenav.deploy.shield.map_scan_hits`` with the env's shield config: columns in the heading
+    frame, whose column 0 lies along ``yaw``); scan beams without a hit are put ``FAR`` away."""
+    from safenav.deploy.shield import ShieldConfig, map_scan_hits
+
+    pos, yaw = env.pos[ids], env.yaw[ids]
+    rel, valid, _, _ = map_scan_hits(env.heights, env.grid.origin, env.grid.size,
+                                     env.cfg.grid_resolution, pos, yaw,
+                                     ShieldConfig.for_env(env.cfg), env.world_idx[ids])  # fmt: skip
+    c, s = torch.cos(yaw)[:, None], torch.sin(yaw)[:, None]
+    x = pos[:, None, 0] + c * rel[..., 0] - s * rel[..., 1]
+    y = pos[:, None, 1] + s * rel[..., 0] + c * rel[..., 1]
+    return torch.where(valid[..., None], torch.stack([x, y], -1), FAR)
 
 
 def to_action(v_world: torch.Tensor, cos_yaw, sin_yaw, v_max: float) -> torch.Tensor:
@@ -392,7 +413,7 @@ class OraclePlanner:
         sides = lambda p: torch.stack([ec.half - p[..., 0], ec.half + p[..., 0],  # noqa: E731
                                        ec.half - p[..., 1], ec.half + p[..., 1]], -1)  # fmt: skip
         wall_seen = (sides(pos0) <= rng)[:, None]  # (n, 1, 4)
-        hits = None
+        hits = columns = None
         if c.sense == "lidar":
             now = beam_hits(obs["lidar"], env.pos, env.yaw, ec)  # every env: the memory is per env
             if c.ignore_ground:
@@ -406,6 +427,8 @@ class OraclePlanner:
             else:
                 self.seen = torch.cat([now, self.seen[:, : -now.shape[1]]], 1)
             hits = self.seen[ids]
+            if c.map_scan:
+                columns = scan_columns(env, ids)
             hit_r = None
             if c.fill_gaps:  # the gap to the next beam at each hit's range
                 d = (hits - pos0[:, None]).norm(dim=-1).clamp(max=ec.lidar_range)
@@ -430,6 +453,8 @@ class OraclePlanner:
             else:  # the beams' hit points: what the range image shows, nothing between beams
                 dist = torch.cdist(p, hits)
                 static = (dist if hit_r is None else dist - hit_r[:, None]).amin(-1)
+                if columns is not None:
+                    static = torch.minimum(static, torch.cdist(p[..., :2], columns).amin(-1))
             static = static - ec.uav_radius
             mover = torch.full_like(static, math.inf)
             if nd:
@@ -569,6 +594,11 @@ def main(argv: list[str] | None = None) -> dict:
         help="with --sense lidar: range images remembered (1 = the current one)",
     )
     ap.add_argument(
+        "--map-scan",
+        action="store_true",
+        help="with --sense lidar: also the flight shield's map-scan hits, as columns",
+    )
+    ap.add_argument(
         "--env",
         nargs="*",
         default=[],
@@ -598,6 +628,7 @@ def main(argv: list[str] | None = None) -> dict:
                           w_smooth=args.w_smooth, privileged_range=args.privileged_range,
                           progress=args.progress, forecast=args.forecast, sense=args.sense,
                           memory=args.memory, fill_gaps=args.fill_gaps, cruise=args.cruise,
+                          map_scan=args.map_scan,
                           cruise_until=args.cruise_until,
                           ignore_ground=args.ignore_ground)  # fmt: skip
     if args.causes is not None:

@@ -138,6 +138,26 @@ def test_beam_hits_lie_on_the_surfaces_the_range_image_saw():
     assert surface[solid].max() <= 0.1
 
 
+def test_scan_columns_lie_on_pillar_sides():
+    """The map-scan hits, brought into the world, lie on the side of a pillar (or the wall) in
+    the horizontal plane: the shield's heading frame turned back by the planner correctly."""
+    env = SafeNavVectorEnv(8, preset="paper", output="torch", autoreset_mode="Disabled")
+    env.reset(seed=200_123)
+    cols = oracle.scan_columns(env, torch.arange(8))  # (8, K, 2)
+    hit = cols[..., 0].abs() < 1e3
+    assert hit.any()
+    w, ns = env.world_idx, env.n_static
+    flat = cols.reshape(-1, 2)
+    per = lambda t: t[w, :ns].repeat_interleave(cols.shape[1], 0)  # noqa: E731
+    foot = ((flat[:, None] - per(env.pillar_xy)).abs()
+            - per(env.pillar_half)[..., None]).clamp(min=0).norm(dim=-1).amin(-1)  # fmt: skip
+    h = env.cfg.half
+    x, y = flat[:, 0], flat[:, 1]
+    wall = torch.stack([h - x, h + x, h - y, h + y], -1).amin(-1)
+    side = torch.minimum(foot, wall.clamp(min=0)).reshape(cols.shape[:2])
+    assert side[hit].max() <= 0.15  # the height map's quantisation
+
+
 def test_lidar_sensing_flies_the_easy_map():
     torch.set_num_threads(1)
     cfg = make_config("easy")
