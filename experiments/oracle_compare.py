@@ -58,18 +58,20 @@ def paired(a: dict, b: dict) -> dict:
         result[rate] = {
             "a": float(xa.mean()), "b": float(xb.mean()), "difference": float(diff.mean()),
             "ci95": bootstrap_ci(lambda x, axis: x.mean(axis=axis), diff),
-            "mcnemar": mcnemar_exact(xb, xa),  # only_a: episodes where only B had the event
+            "mcnemar": mcnemar_exact(xa, xb),  # only_a: episodes where only A had the event
             "both": int((xa & xb).sum()),  # episodes where both had it
         }  # fmt: skip
     return result
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("files", nargs="+", help="set A: oracle_planner.py --json files")
+    parser.add_argument(
+        "files", nargs="+", help="set A: oracle_planner.py or safenav eval --json files"
+    )
     parser.add_argument("--against", nargs="+", required=True, help="set B: the same maps")
     parser.add_argument("--json", help="write the comparison here")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     result = paired(episodes(args.files), episodes(args.against))
     print(f"{result['episodes']} paired episodes on maps {', '.join(result['maps'])}")
     for rate in RATES:
@@ -77,8 +79,8 @@ def main() -> None:
         lo, hi = r["ci95"] or (float("nan"), float("nan"))
         m = r["mcnemar"]
         print(f"  {rate:9s} A {r['a']:.3f}  B {r['b']:.3f}  B-A {r['difference']:+.3f} "
-              f"(95 % CI {lo:+.3f} to {hi:+.3f}; both {r['both']}, only B {m['only_a']}, only A "
-              f"{m['only_b']}, McNemar p = {m['p_value']:.3f})")  # fmt: skip
+              f"(95 % CI {lo:+.3f} to {hi:+.3f}; both {r['both']}, only B {m['only_b']}, only A "
+              f"{m['only_a']}, McNemar p = {m['p_value']:.3f})")  # fmt: skip
     if args.json:
         write_json(args.json, result)
 

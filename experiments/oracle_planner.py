@@ -204,10 +204,8 @@ def scan_columns(env: SafeNavVectorEnv, ids: torch.Tensor) -> torch.Tensor:
     rel, valid, _, _ = map_scan_hits(env.heights, env.grid.origin, env.grid.size,
                                      env.cfg.grid_resolution, pos, yaw,
                                      ShieldConfig.for_env(env.cfg), env.world_idx[ids])  # fmt: skip
-    c, s = torch.cos(yaw)[:, None], torch.sin(yaw)[:, None]
-    x = pos[:, None, 0] + c * rel[..., 0] - s * rel[..., 1]
-    y = pos[:, None, 1] + s * rel[..., 0] + c * rel[..., 1]
-    return torch.where(valid[..., None], torch.stack([x, y], -1), FAR)
+    world = goal_frame_to_world(rel, torch.cos(yaw)[:, None], torch.sin(yaw)[:, None])
+    return torch.where(valid[..., None], pos[:, None, :2] + world[..., :2], FAR)
 
 
 def to_action(v_world: torch.Tensor, cos_yaw, sin_yaw, v_max: float) -> torch.Tensor:

@@ -216,14 +216,14 @@ def test_oracle_compare_pairs_episodes_by_map(tmp_path, capsys):
         "success": [1.0, 0.0], "collision": [0.0, 1.0], "timeout": [0.0, 0.0]}}))  # fmt: skip
     b2 = str(b2)
     out = tmp_path / "cmp.json"
-    sys.argv = ["oracle_compare.py", a, "--against", b1, b2, "--json", str(out)]
-    compare.main()
+    compare.main([a, "--against", b1, b2, "--json", str(out)])
     result = json.loads(out.read_text())
     assert result["episodes"] == 6 and result["maps"] == ["1", "2"]
     assert result["success"]["a"] == pytest.approx(2 / 6)
     assert result["success"]["b"] == pytest.approx(5 / 6)
     assert result["success"]["difference"] == pytest.approx(3 / 6)
-    assert result["success"]["mcnemar"]["only_a"] == 3  # episodes where only B succeeded
+    assert result["success"]["mcnemar"]["only_b"] == 3  # episodes where only B succeeded
+    assert result["success"]["mcnemar"]["only_a"] == 0
     assert result["success"]["both"] == 2
     assert result["collision"]["difference"] == pytest.approx(-3 / 6)
     assert "6 paired episodes" in capsys.readouterr().out
