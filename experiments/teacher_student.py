@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from oracle_planner import FAR, OracleConfig, OraclePlanner
+from oracle_planner import OracleConfig, OraclePlanner  # noqa: F401 (OraclePlanner: tests)
 
 from safenav.algos.config import CSACConfig
 from safenav.algos.csac import CSAC
@@ -47,6 +47,7 @@ from safenav.algos.policy import POLICY_FORMAT_VERSION, load_policy, policy_from
 from safenav.common.checkpoint import policy_state, save_checkpoint
 from safenav.common.config import RunConfig, to_dict
 from safenav.envs.nav import SafeNavVectorEnv
+from safenav.envs.planner import AutoresetPlanner
 from safenav.experiments.evaluate import evaluate
 from safenav.experiments.selection import VALIDATION_SEEDS
 from safenav.recipes import apply, load_recipe
@@ -54,24 +55,8 @@ from safenav.recipes import apply, load_recipe
 TRAIN_SEED0 = 200_000  # DAgger's maps: >= 100000 like training, apart from RunConfig's draws
 
 
-class Teacher(OraclePlanner):
-    """The planner as a labeller on auto-resetting envs: its per-episode memory (the previous
-    command, for smoothness) restarts for each env whose goal changed, not for all."""
-
-    @torch.no_grad()
-    def __call__(self, obs, env: SafeNavVectorEnv) -> torch.Tensor:
-        if self._env is not env:
-            self._start(env)
-        new = (env.goal != self._goals).any(-1)
-        self.prev_cmd[new] = 0.0
-        if self.seen is not None:  # --sense lidar: a new episode remembers nothing
-            self.seen[new] = FAR
-        self._goals = env.goal.clone()
-        self.finished[:] = False  # SAME_STEP autoreset: no env is ever left finished
-        return super().__call__(obs, env)
-
-    def _update_finished(self, env: SafeNavVectorEnv) -> None:
-        pass
+Teacher = AutoresetPlanner
+"""The planner as a labeller on auto-resetting envs (its per-episode memory restarts per env)."""
 
 
 def build_student(recipe: str, env: SafeNavVectorEnv) -> tuple[CSAC, CSACConfig, RunConfig]:

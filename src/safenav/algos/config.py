@@ -102,6 +102,15 @@ class CSACConfig:
     power spectrum 1/f^beta over the episode (``common.colored_noise``); the updates are unchanged.
     0 = white noise (SAC as published, the default), 1 = pink (Eberhard et al. 2023), 2 = red.
     Beyond the paper."""
+    planner_share: float = 0.0
+    """Beyond the paper: the share of each minibatch drawn from a privileged planner's flights
+    (``training.planner_flights``: planner B flown before training on maps of its own, kept
+    apart from the replay buffer; RLPD's symmetric sampling, Ball et al. 2023, uses 0.5). The
+    planner reads the simulator's state; the policy never sees it. 0 = off (paper). SafeNav only."""
+    planner_steps: int = 20_000
+    """Transitions the planner flies for ``planner_share`` (not counted in the run's env steps)."""
+    planner_envs: int = 16
+    """Envs the planner flies at once (its cost per transition grows with more)."""
     net: NetConfig = field(default_factory=NetConfig)
     """Network sizes and extractor sharing."""
     curriculum: ConstraintCurriculumConfig = field(default_factory=ConstraintCurriculumConfig)
@@ -120,6 +129,13 @@ class CSACConfig:
             )
         if self.cost_n_step < 1:
             raise ValueError(f"cost-n-step={self.cost_n_step} must be >= 1")
+        if not 0.0 <= self.planner_share < 1.0:
+            raise ValueError(f"planner-share={self.planner_share} must lie in [0, 1) (0 = off)")
+        if self.planner_share > 0 and (
+            self.planner_envs < 1 or self.planner_steps < self.planner_envs
+        ):
+            raise ValueError(f"planner-steps={self.planner_steps} must be >= planner-envs="
+                             f"{self.planner_envs} >= 1")  # fmt: skip
         if self.cost_gamma is not None and not 0 < self.cost_gamma <= 1:
             raise ValueError(f"cost-gamma={self.cost_gamma} must lie in (0, 1] (or None: gamma)")
         if (self.num_cost_critics < 0 or self.lambda_every < 1 or self.episode_lambda_lr <= 0

@@ -42,7 +42,7 @@ from safenav.algos.losses import (
     n_step_cost_target,
     reward_target,
 )
-from safenav.common.buffer import Batch, ReplayBuffer
+from safenav.common.buffer import Batch, ReplayBuffer, cat_batches
 from safenav.common.colored_noise import ColoredNoise
 from safenav.common.config import RunConfig
 from safenav.common.curriculum import MeasuredCostScale, episode_cost_to_q_scale
@@ -276,6 +276,10 @@ class CSACLearner:
         self.buffer = ReplayBuffer(min(cfg.buffer_size, max(run.total_steps, cfg.batch_size)),
                                    env.obs_shapes, env.action_dim, env.device, n_step=n_step)  # fmt: skip
         self.nstep = NStepWindow(cfg.cost_n_step, cfg.cost_discount) if n_step else None
+        self.obs_shapes, self.action_dim = env.obs_shapes, env.action_dim
+        self.planner_buffer: ReplayBuffer | None = (
+            None  # --csac.planner-share (set_planner_flights)
+        )
         self.horizon = cfg.cost_horizon or env_horizon(env.envs)
         self.measured_scale = (MeasuredCostScale(fallback=episode_cost_to_q_scale(1.0, cfg.cost_discount, self.horizon),
                                                  span_episodes=cfg.cost_scale_episodes)
@@ -323,6 +327,34 @@ class CSACLearner:
             self.buffer.add(*batch[:6], valid, *batch[6:])
         return step.next_obs, [step.episodes] if step.episodes is not None else [], env.num_envs
 
+    def set_planner_flights(self, flights: list[tuple[Batch, torch.Tensor, torch.Tensor]]) -> None:
+        """Keep a planner's flights (``training.planner_flights``: ``(transition, truncated,
+        valid)`` per vector step) in a buffer of their own, through an n-step window like the
+        replay's; :meth:`sample` then draws ``planner_share`` of each minibatch from them."""
+        total = sum(int(t.actions.shape[0]) for t, _, _ in flights)
+        buffer = ReplayBuffer(max(total, 1), self.obs_shapes, self.action_dim, self.device,
+                              n_step=self.nstep is not None)  # fmt: skip
+        window = (NStepWindow(self.cfg.cost_n_step, self.cfg.cost_discount)
+                  if self.nstep is not None else None)  # fmt: skip
+        for transition, truncated, valid in flights:
+            released = (
+                (transition, valid) if window is None else window.push(transition, truncated, valid)
+            )
+            if released is not None:
+                batch, ok = released
+                buffer.add(*batch[:6], ok, *batch[6:])
+        if len(buffer) == 0:
+            raise ValueError("the planner's flights hold no transition to replay")
+        self.planner_buffer = buffer
+
+    def sample(self, batch_size: int) -> Batch:
+        """A minibatch of the replay buffer, ``planner_share`` of it (rounded) from the planner's
+        flights when there are any (RLPD's symmetric sampling at that share)."""
+        if self.planner_buffer is None:
+            return self.buffer.sample(batch_size)
+        k = round(batch_size * self.cfg.planner_share)
+        return cat_batches(self.buffer.sample(batch_size - k), self.planner_buffer.sample(k))
+
     def observe(self, episodes: dict[str, list[float]]) -> None:
         if self.measured_scale is not None:
             self.measured_scale.observe_episodes(episodes["cost"])
@@ -355,7 +387,7 @@ class CSACLearner:
             d_q = self.d_q(d)
             while self.update_debt >= 1.0:
                 self.update_debt -= 1.0
-                m = self.agent.update(self.buffer.sample(cfg.batch_size), d_q)
+                m = self.agent.update(self.sample(cfg.batch_size), d_q)
                 if self.measured_scale is not None:
                     self.measured_scale.observe_q(float(m["constraint/qc_pi"]))
                 metrics.append(m)

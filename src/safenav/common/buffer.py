@@ -171,4 +171,17 @@ class ReplayBuffer:
         self.size, self.pos = n, int(state["pos"]) % self.capacity
 
 
-__all__ = ["Batch", "ReplayBuffer"]
+def cat_batches(a: Batch, b: Batch) -> Batch:
+    """The rows of ``a`` then those of ``b`` (a minibatch drawn from two buffers)."""
+
+    def cat(x, y):
+        if x is None:
+            return None
+        if isinstance(x, dict):
+            return {k: torch.cat([x[k], y[k]]) for k in x}
+        return torch.cat([x, y])
+
+    return Batch(*(cat(x, y) for x, y in zip(a, b, strict=True)))
+
+
+__all__ = ["Batch", "ReplayBuffer", "cat_batches"]

@@ -210,6 +210,12 @@ class RunConfig:
         scenario's env seed 1 nor the evaluation seed 12345."""
         return 100_000 + (self.seed * 7919 + refresh) * 1000
 
+    def planner_env_seed(self) -> int:
+        """Seed of the maps the planner flies for ``--csac.planner-share``: halfway between two
+        training map sets (map ``w`` is drawn from the seed + ``w``), so none of the training,
+        validation, held-out or test maps."""
+        return self.train_env_seed(0) + 500
+
 
 def flight_shield_spec(meta: dict[str, Any]) -> dict[str, Any] | None:
     """The shield a policy's ``meta`` says it flies behind: ``flight_shield`` (``safenav train

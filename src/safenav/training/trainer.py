@@ -58,6 +58,7 @@ from safenav.common.stopping import RunGuard, enable_sigint
 from safenav.envs.vector import TorchVecEnv, env_horizon, is_safenav, make_vec_env, obs_layout
 from safenav.errors import SafenavError
 from safenav.training.evaluation import BestPolicy, periodic_evaluation
+from safenav.training.planner_flights import fly_planner
 from safenav.training.runs import episode_charts, run_summary, write_run_config
 from safenav.training.shielded import ShieldedVecEnv, ShieldFn
 
@@ -210,6 +211,16 @@ class Trainer:
                 )
         self.learner: Learner = LEARNERS[algo](self.env, run, cfg)
         self.agent = self.learner.agent
+        self.planner_stats = None  # --csac.planner-share: the planner's flights, before training
+        if getattr(cfg, "planner_share", 0.0) > 0:
+            if not self.nav or self.normalization is not None:
+                raise SafenavError("--csac.planner-share: the planner flies SafeNav envs and reads "
+                                   "their raw observations (no --normalize-obs)")  # fmt: skip
+            flights, self.planner_stats = fly_planner(
+                run, {**env_kwargs, "density": run.density.end}, cfg.planner_steps,
+                cfg.planner_envs, self.device, progress)  # fmt: skip
+            self.learner.set_planner_flights(flights)
+            del flights
         self.curriculum = ConstraintCurriculum(cfg.curriculum)
 
         # -- resume: counters, curricula, the learner's state, then the RNG as it was
@@ -234,6 +245,8 @@ class Trainer:
         self.logger.event(self.global_step, "resume" if resume else "start", algo=algo,
                           density=self.density.density, d=self.curriculum.d,
                           map_refresh_every=self.refresh_every)  # fmt: skip
+        if self.planner_stats is not None:
+            self.logger.event(self.global_step, "planner_flights", **self.planner_stats)
         self.guard = RunGuard(self.run_dir, self.logger, self.agent,
                               last_saved=self.global_step if ckpt is not None else None)  # fmt: skip
         self.best = BestPolicy.for_run(self.run_dir, run.keep_policies, ckpt)
