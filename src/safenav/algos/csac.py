@@ -277,9 +277,8 @@ class CSACLearner:
                                    env.obs_shapes, env.action_dim, env.device, n_step=n_step)  # fmt: skip
         self.nstep = NStepWindow(cfg.cost_n_step, cfg.cost_discount) if n_step else None
         self.obs_shapes, self.action_dim = env.obs_shapes, env.action_dim
-        self.planner_buffer: ReplayBuffer | None = (
-            None  # --csac.planner-share (set_planner_flights)
-        )
+        # --csac.planner-share: the planner's flights, a buffer of their own (set_planner_flights)
+        self.planner_buffer: ReplayBuffer | None = None
         self.horizon = cfg.cost_horizon or env_horizon(env.envs)
         self.measured_scale = (MeasuredCostScale(fallback=episode_cost_to_q_scale(1.0, cfg.cost_discount, self.horizon),
                                                  span_episodes=cfg.cost_scale_episodes)
