@@ -3,6 +3,7 @@ the replay buffer and mixed into each minibatch at their share (``CSACLearner.sa
 
 from __future__ import annotations
 
+import csv
 import json
 
 import pytest
@@ -114,6 +115,9 @@ def test_train_with_the_planners_flights_end_to_end(tmp_path):
     events = [json.loads(line) for line in (run_dir / "events.jsonl").read_text().splitlines()]
     flown = [e for e in events if e["event"] == "planner_flights"]
     assert len(flown) == 1 and flown[0]["transitions"] == 64
+    with (run_dir / "progress.csv").open(newline="") as f:  # its minutes count in the run's
+        elapsed = [float(r["time/elapsed_s"]) for r in csv.DictReader(f)]
+    assert elapsed and min(elapsed) >= flown[0]["wall_s"]
     # a resumed run flies them again (they are not in the checkpoint)
     main(["train", "--resume", str(run_dir), "--total-steps", "400", "--no-progress"])
     events = [json.loads(line) for line in (run_dir / "events.jsonl").read_text().splitlines()]

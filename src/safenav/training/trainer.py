@@ -238,6 +238,8 @@ class Trainer:
                                        "run normalises (config.json): it was not written by it")  # fmt: skip
                 self.normalization.load_state_dict(ckpt["normalization"])
             set_rng_state(ckpt["rng"])
+        if self.planner_stats is not None:  # the planner's minutes count in the run's wall-clock
+            self.elapsed0 += self.planner_stats["wall_s"]
         self.env.set_density(self.density.density)
         columns = [*self.learner.columns, *(["charts/shield_rate"] if spec is not None else [])]
         self.logger = RunLogger(self.run_dir, columns, run.tensorboard,
