@@ -229,6 +229,8 @@ VERDICTS: dict[str, dict[str, int]] = {
     "train --csac.lambda-window": NONNEG, "train --csac.cost-scale-episodes": POSITIVE,
     "train --csac.cost-n-step": MEMORY, "train --csac.cost-horizon": NONNEG,
     "train --csac.cost-gamma": {},  # in (0, 1]
+    "train --csac.planner-share": {"0": ACCEPTED},  # in [0, 1)
+    "train --csac.planner-steps": POSITIVE, "train --csac.planner-envs": {},  # <= planner-steps
     **{f"train --{a}.net.{n}": MEMORY for a in ("csac", "ppo")
        for n in ("hidden", "lidar-kernel", "lidar-embed", "dynamic-hidden", "dynamic-embed",
                  "flatten-hidden")},

@@ -183,6 +183,11 @@ def test_scenario_config_keeps_the_policys_history():
     assert scenario_config(mine, None) is mine
     assert scenario_config(mine, "paper") == make_config("paper", lidar_history=3)
     assert scenario_config(None, "easy") == make_config("easy")
+    # and its sensor: tilted beams would otherwise give an image of the same shape, read wrongly
+    tilted = make_config("paper", lidar_v_angles=(-30.0, -15.0, 0.0, 15.0), lidar_memory=10)
+    flown = scenario_config(tilted, "easy")
+    assert flown.lidar_v_angles == (-30.0, -15.0, 0.0, 15.0) and flown.lidar_memory == 10
+    assert flown.num_static == make_config("easy").num_static  # the easy scenario's map
 
 
 def test_validation_flies_with_the_history(history_run):

@@ -232,3 +232,26 @@ def test_oracle_compare_pairs_episodes_by_map(tmp_path, capsys):
         compare.paired(compare.episodes([a]), compare.episodes([short]))
     with pytest.raises(SystemExit, match="different maps"):
         compare.paired(compare.episodes([a]), compare.episodes([b1]))
+
+
+def test_eval_and_render_fly_the_planner(tmp_path):
+    """``--policy planner``: planner B as a reference on any map, with the beams it was measured
+    with, in ``safenav eval`` and ``safenav render``."""
+    import json
+
+    from safenav.cli import main
+    from safenav.envs.planner import PLANNER_B_BEAMS
+    from safenav.experiments.flight import resolve_policy
+
+    torch.set_num_threads(1)
+    planner, cfg = resolve_policy(None, "planner")
+    assert planner.needs_env and cfg.lidar_v_angles == PLANNER_B_BEAMS
+    out = tmp_path / "planner.json"
+    main(["eval", "--policy", "planner", "--preset", "easy", "--env-seed", "12345",
+          "--episodes", "4", "--json", str(out)])  # fmt: skip
+    got = json.loads(out.read_text())
+    assert got["checkpoint"] == "planner" and got["episodes"] == 4
+    assert got["success_rate"] >= 0.5  # it flies the easy map
+    gif = tmp_path / "planner.gif"
+    main(["render", "--policy", "planner", "--preset", "easy", "--env-seed", "12345", "--out", str(gif)])  # fmt: skip
+    assert gif.stat().st_size > 0

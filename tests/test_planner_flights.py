@@ -94,7 +94,8 @@ def test_minibatches_mix_the_flights_at_their_share(n_step):
 @pytest.mark.parametrize(
     "kwargs, message",
     [({"planner_share": 1.0}, "planner-share"), ({"planner_share": -0.1}, "planner-share"),
-     ({"planner_share": 0.25, "planner_steps": 2, "planner_envs": 4}, "planner-steps")],
+     ({"planner_share": 0.25, "planner_steps": 2, "planner_envs": 4}, "planner-steps"),
+     ({"planner_envs": 0}, "planner-envs")],
 )  # fmt: skip
 def test_planner_options_are_checked(kwargs, message):
     with pytest.raises(ValueError, match=message):

@@ -131,9 +131,7 @@ class CSACConfig:
             raise ValueError(f"cost-n-step={self.cost_n_step} must be >= 1")
         if not 0.0 <= self.planner_share < 1.0:
             raise ValueError(f"planner-share={self.planner_share} must lie in [0, 1) (0 = off)")
-        if self.planner_share > 0 and (
-            self.planner_envs < 1 or self.planner_steps < self.planner_envs
-        ):
+        if self.planner_envs < 1 or self.planner_steps < self.planner_envs:
             raise ValueError(f"planner-steps={self.planner_steps} must be >= planner-envs="
                              f"{self.planner_envs} >= 1")  # fmt: skip
         if self.cost_gamma is not None and not 0 < self.cost_gamma <= 1:

@@ -21,7 +21,9 @@ def eval_(
     shield_mover_margin: float = 0.0,
     shield_brake: bool = False,
     json_out: Annotated[Path | None, tyro.conf.arg(name="json")] = None,
-    policy: Literal["checkpoint", "scripted", "straight", "border", "random"] = "checkpoint",
+    policy: Literal[
+        "checkpoint", "scripted", "straight", "border", "random", "planner"
+    ] = "checkpoint",
     preset: str | None = None,
     collision_rule: Literal["body", "navrl"] = "body",
     device: str = "cpu",
@@ -33,7 +35,8 @@ def eval_(
     ``--shield`` corrects actions with the velocity-obstacle safety shield. ``--preset`` overrides
     the checkpoint's env preset. ``--policy scripted`` evaluates the potential-field baseline,
     ``straight`` flies straight at the goal, ``border`` around the field along the border (the
-    loophole probe: it must fail in the closed arena).
+    loophole probe: it must fail in the closed arena), ``planner`` the privileged planner B
+    (docs/csac-v1.md: it reads the simulator's state; a reference for how hard a map is).
 
     Args:
         checkpoint: Policy or training checkpoint, or a run directory (its checkpoint.pt).

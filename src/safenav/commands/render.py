@@ -16,7 +16,9 @@ MAX_EPISODE = 999_999  # the scenario draws episode + 1 start/goal pairs
 def render(
     checkpoint: tyro.conf.Positional[Path | None] = None,
     out: Path = Path("episode.gif"),
-    policy: Literal["checkpoint", "scripted", "straight", "border", "random"] = "checkpoint",
+    policy: Literal[
+        "checkpoint", "scripted", "straight", "border", "random", "planner"
+    ] = "checkpoint",
     preset: str | None = None,
     env_seed: int = 1,
     episode: int = 0,
@@ -37,7 +39,8 @@ def render(
 
     Flies episode ``episode`` of the fixed test scenario (env seed ``env_seed``, full density)
     with the checkpoint's deterministic policy, or a scripted potential-field controller
-    (``--policy scripted``, the default without a checkpoint) or uniform random actions.
+    (``--policy scripted``, the default without a checkpoint), uniform random actions, or the
+    privileged planner B (``--policy planner``: it reads the simulator's state).
     ``--record episode.mcap`` also logs it in MCAP with ROS 2 messages, in simulation time, for
     Foxglove or ``ros2 bag`` (docs/deployment.md, "Flight logs").
 

@@ -503,11 +503,14 @@ class AutoresetPlanner(OraclePlanner):
         pass
 
 
+PLANNER_B_BEAMS = (-30.0, -15.0, 0.0, 15.0)
+"""The beam elevations (degrees) planner B was measured with (``csac-shielded-memory``'s)."""
+
 PLANNER_B = OracleConfig(sense="lidar", memory=10, ignore_ground=True,
                          climbs=(-0.75, -0.25, 0.0, 0.25, 0.75))  # fmt: skip
 """Planner B of docs/csac-v1.md: the range image's hits of the last second (10 images, ground
 hits ignored), five climb rates, the observation's moving obstacles; 0.861 success / 0.097
 collision on 144 validation episodes with the tilted beams of ``csac-shielded-memory``."""
 
-__all__ = ["FAR", "PLANNER_B", "AutoresetPlanner", "OracleConfig", "OraclePlanner", "ScanFn",
+__all__ = ["FAR", "PLANNER_B", "PLANNER_B_BEAMS", "AutoresetPlanner", "OracleConfig", "OraclePlanner", "ScanFn",
            "beam_hits", "geodesic_fields", "mover_clearance", "sample_field", "to_action"]  # fmt: skip

@@ -15,13 +15,15 @@ from safenav.envs.scripted import BorderFollower, go_to_goal, potential_field
 from safenav.errors import SafenavError, SafenavRuntimeError
 from safenav.experiments.evaluate import fixed_test_scenario
 
-POLICIES = ("checkpoint", "scripted", "straight", "border", "random")
+POLICIES = ("checkpoint", "scripted", "straight", "border", "random", "planner")
 
 
 def resolve_policy(checkpoint: Path | None, policy: str, device: str = "cpu", loaded=None):
     """``(policy_fn, env_config)`` for a checkpoint (its env config) or a baseline: ``scripted``
     (potential field), ``straight`` (straight at the goal), ``border`` (around the field along
-    the border: the loophole probe), ``random``. ``loaded``: the checkpoint's
+    the border: the loophole probe), ``random``, ``planner`` (the privileged planner B,
+    :data:`~safenav.envs.planner.PLANNER_B`, which reads the simulator's state, with the tilted
+    beams it was measured with: a reference, not a policy). ``loaded``: the checkpoint's
     :class:`~safenav.algos.policy.Policy` when the caller has read it already (a SAC checkpoint
     holds its replay buffer: read it once)."""
     if policy == "checkpoint":
@@ -38,22 +40,33 @@ def resolve_policy(checkpoint: Path | None, policy: str, device: str = "cpu", lo
         return go_to_goal, None
     if policy == "border":
         return BorderFollower(), None
+    if policy == "planner":
+        from safenav.envs.planner import PLANNER_B, PLANNER_B_BEAMS, OraclePlanner
+
+        return OraclePlanner(PLANNER_B), make_config("paper", lidar_v_angles=PLANNER_B_BEAMS)
     if policy == "random":
         gen = torch.Generator().manual_seed(0)
         return (lambda obs: torch.rand(obs["state"].shape[0], 3, generator=gen) * 2 - 1), None
     raise SafenavError(f"unknown policy {policy!r}: choose one of {', '.join(POLICIES)}")
 
 
+SENSOR_FIELDS = ("lidar_range", "lidar_h_beams", "lidar_v_angles", "lidar_history",
+                 "lidar_memory", "num_tracked")  # fmt: skip
+"""The env config's fields that make a policy's observation: a preset's scenario keeps the
+policy's own (beams tilted otherwise give an image of the same shape, read wrongly)."""
+
+
 def scenario_config(cfg: EnvConfig | None, preset: str | None) -> EnvConfig:
     """The env config a policy flies in: the ``preset``'s scenario when one is given, else the
     policy's own ``cfg`` (else the paper's). A preset keeps what the policy reads beyond the
-    scenario, its range-image history and memory image (``lidar_history``, ``lidar_memory``)."""
+    scenario: its sensor (:data:`SENSOR_FIELDS`: range, beams and their elevations, range-image
+    history, memory image, tracked moving obstacles)."""
     if preset is None and cfg is not None:
         return cfg
     scenario = make_config(preset or "paper")
     if cfg is None:
         return scenario
-    return scenario.replace(lidar_history=cfg.lidar_history, lidar_memory=cfg.lidar_memory)
+    return scenario.replace(**{k: getattr(cfg, k) for k in SENSOR_FIELDS})
 
 
 @torch.no_grad()
