@@ -175,6 +175,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--cruise-until", type=float, default=d.cruise_until)
     ap.add_argument("--ignore-ground", action="store_true",
                     help="with --sense lidar: ground hits are not obstacles")  # fmt: skip
+    ap.add_argument("--keep-band", action="store_true",
+                    help="keep NavRL's altitude band (the height penalty's) as a margin")  # fmt: skip
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
@@ -187,7 +189,7 @@ def main(argv: list[str] | None = None) -> dict:
                           memory=args.memory, fill_gaps=args.fill_gaps, cruise=args.cruise,
                           map_scan=args.map_scan,
                           cruise_until=args.cruise_until,
-                          ignore_ground=args.ignore_ground)  # fmt: skip
+                          ignore_ground=args.ignore_ground, keep_band=args.keep_band)  # fmt: skip
     if args.causes is not None:
         if args.causes in RESERVED_SEEDS:
             raise SystemExit(f"env seed {args.causes} is a test or held-out map")

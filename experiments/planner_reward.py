@@ -13,6 +13,7 @@ goal, crash) is their difference from the env's own reward.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 
@@ -28,9 +29,10 @@ TERMS = ("velocity", "static", "height", "smooth", "rest")
 
 
 @torch.no_grad()
-def reward_terms(env_seed: int, episodes: int) -> dict:
+def reward_terms(env_seed: int, episodes: int, keep_band: bool = False) -> dict:
     """Per episode: each reward term's sum, the reward, the outcome and the share of steps
-    outside the altitude band (planner B, the beams it was measured with)."""
+    outside the altitude band (planner B, the beams it was measured with; ``keep_band``: planner B
+    keeping the band, ``OracleConfig.keep_band``)."""
     if env_seed in RESERVED_SEEDS:
         raise SystemExit(f"env seed {env_seed} is a test or held-out map: use a validation map")
     cfg, starts, goals = fixed_test_scenario(
@@ -38,7 +40,8 @@ def reward_terms(env_seed: int, episodes: int) -> dict:
     )
     env = SafeNavVectorEnv(episodes, config=cfg, output="torch", autoreset_mode="Disabled")
     obs, _ = env.reset(seed=env_seed, options={"starts": starts, "goals": goals})
-    planner, n, rows = OraclePlanner(PLANNER_B), episodes, len(cfg.lidar_v_angles)
+    config = dataclasses.replace(PLANNER_B, keep_band=keep_band)
+    planner, n, rows = OraclePlanner(config), episodes, len(cfg.lidar_v_angles)
     sums = {k: torch.zeros(n) for k in (*TERMS, "reward", "steps", "outside")}
     going = torch.ones(n, dtype=torch.bool)
     success = torch.zeros(n)
@@ -79,18 +82,25 @@ def reward_terms(env_seed: int, episodes: int) -> dict:
     summary |= {"reward_mean_success": mean(sums["reward"], ok),
                 "outside_band_share": round(float(sums["outside"].sum() / sums["steps"].sum()), 3),
                 "success_rate": round(float(ok.float().mean()), 3)}  # fmt: skip
-    return {"env_seed": env_seed, "episodes": episodes, "summary": summary, "per_episode": per}
+    return {
+        "env_seed": env_seed,
+        "episodes": episodes,
+        "keep_band": keep_band,
+        "summary": summary,
+        "per_episode": per,
+    }
 
 
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--env-seed", type=int, default=12345)
     ap.add_argument("--episodes", type=int, default=36)
+    ap.add_argument("--keep-band", action="store_true", help="planner B keeping the altitude band")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
-    out = reward_terms(args.env_seed, args.episodes)
+    out = reward_terms(args.env_seed, args.episodes, args.keep_band)
     print(json.dumps(out["summary"]))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -234,6 +234,7 @@ def test_oracle_compare_pairs_episodes_by_map(tmp_path, capsys):
         compare.paired(compare.episodes([a]), compare.episodes([b1]))
 
 
+@pytest.mark.long
 def test_eval_and_render_fly_the_planner(tmp_path):
     """``--policy planner``: planner B as a reference on any map, with the beams it was measured
     with, in ``safenav eval`` and ``safenav render``."""
@@ -255,3 +256,27 @@ def test_eval_and_render_fly_the_planner(tmp_path):
     gif = tmp_path / "planner.gif"
     main(["render", "--policy", "planner", "--preset", "easy", "--env-seed", "12345", "--out", str(gif)])  # fmt: skip
     assert gif.stat().st_size > 0
+
+
+@pytest.mark.long
+def test_keep_band_holds_navrls_altitude_band():
+    """``keep_band``: the planner stays in the altitude band of NavRL's height penalty, which
+    planner B, knowing only the ground and the ceiling, leaves."""
+    from dataclasses import replace
+
+    from safenav.envs.planner import PLANNER_B
+
+    torch.set_num_threads(1)
+    outside = {}
+    for keep in (False, True):
+        env, obs = _env(8)
+        planner = oracle.OraclePlanner(replace(PLANNER_B, keep_band=keep))
+        n_out = n_all = 0
+        for _ in range(80):
+            obs, _, term, trunc, _ = env.step(planner(obs, env))
+            live = ~planner.finished
+            z, lo, hi = env.pos[:, 2], env.band[:, 0], env.band[:, 1]
+            n_out += int((((z < lo - 0.05) | (z > hi + 0.05)) & live).sum())
+            n_all += int(live.sum())
+        outside[keep] = n_out / max(n_all, 1)
+    assert outside[True] <= 0.02 and outside[True] < outside[False], outside

@@ -22,6 +22,7 @@ from safenav.training.planner_flights import fly_planner
 EASY = RunConfig(env="SafeNav-v1", preset="easy", seed=3)
 
 
+@pytest.mark.long
 def test_flights_are_the_planners_and_leave_the_rng_alone():
     torch.set_num_threads(1)
     torch.manual_seed(0)
@@ -109,10 +110,11 @@ def test_train_with_the_planners_flights_end_to_end(tmp_path):
             "--csac.learning-starts", "100", "--csac.batch-size", "32", "--csac.buffer-size",
             "2000", "--csac.net.hidden", "32", "32"]  # fmt: skip
     main(["train", "--algo", "csac", "--env", "SafeNav-v1", "--preset", "easy", "--seed", "3",
-          "--total-steps", "300", "--shield", "--csac.planner-share", "0.25",
+          "--total-steps", "300", "--shield", "--csac.planner-share", "0.25", "--csac.planner-keep-band",
           "--csac.planner-steps", "64", "--csac.planner-envs", "4", "--run-dir", str(run_dir), *args])  # fmt: skip
     config = json.loads((run_dir / "config.json").read_text())
     assert config["csac"]["planner_share"] == 0.25 and config["csac"]["planner_steps"] == 64
+    assert config["csac"]["planner_keep_band"] is True
     events = [json.loads(line) for line in (run_dir / "events.jsonl").read_text().splitlines()]
     flown = [e for e in events if e["event"] == "planner_flights"]
     assert len(flown) == 1 and flown[0]["transitions"] == 64

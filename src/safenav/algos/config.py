@@ -111,6 +111,9 @@ class CSACConfig:
     """Transitions the planner flies for ``planner_share`` (not counted in the run's env steps)."""
     planner_envs: int = 16
     """Envs the planner flies at once (its cost per transition grows with more)."""
+    planner_keep_band: bool = False
+    """The planner keeps the altitude band of NavRL's height penalty (``OracleConfig.keep_band``),
+    so that the reward the critic learns agrees with its flights."""
     net: NetConfig = field(default_factory=NetConfig)
     """Network sizes and extractor sharing."""
     curriculum: ConstraintCurriculumConfig = field(default_factory=ConstraintCurriculumConfig)

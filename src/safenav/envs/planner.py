@@ -127,6 +127,12 @@ class OracleConfig:
     """With ``lidar``: beams that hit the ground (z < 5 cm) give no obstacle point (the altitude
     band is checked on its own). Without it, flying low, the downward beam's ground hits a few
     metres ahead count as obstacles and push the planner up."""
+    keep_band: bool = False
+    """Keep the altitude band of NavRL's height penalty (the env's ``band``: between the start's
+    and the goal's altitudes) as a margin: each metre outside it is an intrusion (``W_MARGIN`` per
+    metre, as the margins; not ruled out, since a pillar may be passed only above it). Without
+    it the planner knows only the ground and the ceiling, and the height penalty charges its
+    flights more than anything else (docs/csac-v1.md, "The planner's flights in the replay")."""
     near_pillars: int = 24
     """Pillars checked per episode: the nearest footprints (24 cover about 7 m at the paper
     density; a 2-3 s rollout reaches 4-6 m)."""
@@ -419,6 +425,7 @@ class OraclePlanner:
         p = pos0[:, None].expand(n, k, 3).contiguous()
         v = env.vel[ids, None].expand(n, k, 3).contiguous()
         never = c.horizon + 1
+        lo, hi = env.band[ids, 0, None], env.band[ids, 1, None]  # NavRL's altitude band
         first_hit = torch.full((n, k), never, device=env.device)  # first step in a collision
         reach = torch.full((n, k), never, device=env.device)  # first step at the goal
         intrude = torch.zeros(n, k, device=env.device)  # deepest intrusion into the margins (m)
@@ -448,6 +455,8 @@ class OraclePlanner:
             first_hit = torch.where(hit, t + 1, first_hit)
             depth = torch.maximum(torch.maximum(c.margin - static, c.margin + c.mover_margin - mover),
                                   c.margin - band).clamp(min=0)  # fmt: skip
+            if c.keep_band:
+                depth = torch.maximum(depth, torch.maximum(lo - p[..., 2], p[..., 2] - hi))
             intrude = torch.where(going, torch.maximum(intrude, depth), intrude)
             least = torch.where(going, torch.minimum(least, clear), least)
             at_goal = ((p - goal[:, None]) ** 2).sum(-1) < (0.9 * ec.goal_tolerance) ** 2

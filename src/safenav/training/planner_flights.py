@@ -18,6 +18,7 @@ the same initial weights and the same random warm-up.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from typing import Any
@@ -37,9 +38,11 @@ Flight = tuple[Batch, torch.Tensor, torch.Tensor]
 
 
 def fly_planner(run: RunConfig, env_kwargs: dict[str, Any], steps: int, num_envs: int,
-                device: torch.device | str, progress: bool = True) -> tuple[list[Flight], dict[str, Any]]:  # fmt: skip
+                device: torch.device | str, progress: bool = True,
+                keep_band: bool = False) -> tuple[list[Flight], dict[str, Any]]:  # fmt: skip
     """``ceil(steps / num_envs)`` vector steps of the planner on the run's env (``env_kwargs``:
-    its overrides, the density among them): the flights and their statistics (``transitions``,
+    its overrides, the density among them), keeping NavRL's altitude band when ``keep_band``
+    (``OracleConfig.keep_band``): the flights and their statistics (``transitions``,
     ``episodes``, ``success_rate``, ``collision_rate`` of the episodes that ended (None if
     none did), ``wall_s``)."""
     t0 = time.perf_counter()
@@ -47,7 +50,7 @@ def fly_planner(run: RunConfig, env_kwargs: dict[str, Any], steps: int, num_envs
     try:
         env = TorchVecEnv(make_vec_env(run.env, num_envs, device, run.preset, **env_kwargs), device)
         nav = env.envs.unwrapped
-        planner = AutoresetPlanner(PLANNER_B)
+        planner = AutoresetPlanner(dataclasses.replace(PLANNER_B, keep_band=keep_band))
         obs = env.reset(seed=run.planner_env_seed())
         flights: list[Flight] = []
         ended = {"success": [], "collision": []}
