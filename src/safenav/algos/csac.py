@@ -258,6 +258,16 @@ COLUMNS = (
 """Every progress.csv column of CSAC, SAC and SAC-Lag (docs/algorithms.md)."""
 
 
+def store(buffer: ReplayBuffer, window: NStepWindow | None, transition: Batch,
+          truncated: torch.Tensor, valid: torch.Tensor) -> None:  # fmt: skip
+    """Put one vector step's transitions into ``buffer``; with an n-step ``window`` (n-step cost
+    targets) they enter it n vector steps later, with their n-step fields."""
+    released = (transition, valid) if window is None else window.push(transition, truncated, valid)
+    if released is not None:
+        batch, ok = released  # add() takes valid between the one- and n-step fields
+        buffer.add(*batch[:6], ok, *batch[6:])
+
+
 class CSACLearner:
     """CSAC in the shared training loop (:class:`safenav.training.Trainer`): Algorithm 1's data
     side around :meth:`CSAC.update` - the warm-up (lines 5-8), acting and storing (line 10) in a
@@ -276,7 +286,6 @@ class CSACLearner:
         self.buffer = ReplayBuffer(min(cfg.buffer_size, max(run.total_steps, cfg.batch_size)),
                                    env.obs_shapes, env.action_dim, env.device, n_step=n_step)  # fmt: skip
         self.nstep = NStepWindow(cfg.cost_n_step, cfg.cost_discount) if n_step else None
-        self.obs_shapes, self.action_dim = env.obs_shapes, env.action_dim
         # --csac.planner-share: the planner's flights, a buffer of their own (set_planner_flights)
         self.planner_buffer: ReplayBuffer | None = None
         self.horizon = cfg.cost_horizon or env_horizon(env.envs)
@@ -315,15 +324,7 @@ class CSACLearner:
         transition = Batch(
             obs, actions, step.reward, step.cost, step.real_next_obs, step.terminated
         )
-        # with n-step cost targets a transition enters the buffer n vector steps later
-        released = (
-            (transition, step.valid)
-            if self.nstep is None
-            else self.nstep.push(transition, step.truncated, step.valid)
-        )
-        if released is not None:
-            batch, valid = released  # add() takes valid between the one- and n-step fields
-            self.buffer.add(*batch[:6], valid, *batch[6:])
+        store(self.buffer, self.nstep, transition, step.truncated, step.valid)
         return step.next_obs, [step.episodes] if step.episodes is not None else [], env.num_envs
 
     def set_planner_flights(self, flights: list[tuple[Batch, torch.Tensor, torch.Tensor]]) -> None:
@@ -331,17 +332,12 @@ class CSACLearner:
         valid)`` per vector step) in a buffer of their own, through an n-step window like the
         replay's; :meth:`sample` then draws ``planner_share`` of each minibatch from them."""
         total = sum(int(t.actions.shape[0]) for t, _, _ in flights)
-        buffer = ReplayBuffer(max(total, 1), self.obs_shapes, self.action_dim, self.device,
-                              n_step=self.nstep is not None)  # fmt: skip
+        buffer = ReplayBuffer(max(total, 1), self.agent.obs_shapes, self.agent.action_dim,
+                              self.device, n_step=self.nstep is not None)  # fmt: skip
         window = (NStepWindow(self.cfg.cost_n_step, self.cfg.cost_discount)
                   if self.nstep is not None else None)  # fmt: skip
         for transition, truncated, valid in flights:
-            released = (
-                (transition, valid) if window is None else window.push(transition, truncated, valid)
-            )
-            if released is not None:
-                batch, ok = released
-                buffer.add(*batch[:6], ok, *batch[6:])
+            store(buffer, window, transition, truncated, valid)
         if len(buffer) == 0:
             raise ValueError("the planner's flights hold no transition to replay")
         self.planner_buffer = buffer
