@@ -96,13 +96,18 @@ def policy_conventions(cfg: EnvConfig) -> dict[str, Any]:
 
 def check_deployable(cfg: EnvConfig, where: str | Path) -> None:
     """``SafenavError`` unless the onboard runtime can build the observations of a policy of env
-    configuration ``cfg`` (``where`` names it): not for a range-image history yet (a memory
-    image, ``lidar_memory``, it builds)."""
+    configuration ``cfg`` (``where`` names it): not for a range-image history or a pillar list
+    (``static_tracked``) yet (a memory image, ``lidar_memory``, it builds)."""
     if cfg.lidar_history > 1:
         raise SafenavError(f"{where}: policies trained with lidar_history > 1 cannot be deployed "
                            f"yet: this one reads the range images of the last {cfg.lidar_history} "
                            "control steps, and the onboard runtime (safenav export / fly) builds "
                            "the current one only; evaluate it in simulation (safenav eval)")  # fmt: skip
+    if getattr(cfg, "static_tracked", 0):
+        raise SafenavError(f"{where}: policies trained with static_tracked > 0 cannot be deployed "
+                           f"yet: this one reads a list of the {cfg.static_tracked} nearest pillars, "
+                           "which the onboard runtime (safenav export / fly) does not build; "
+                           "evaluate it in simulation (safenav eval)")  # fmt: skip
 
 
 def call_actor(

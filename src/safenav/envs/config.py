@@ -15,6 +15,10 @@ CRUISE_HALF_BAND = 0.3
 """Half width (m) of the height penalty's band around ``EnvConfig.cruise_height``."""
 COLLISION_RULES = ("body", "navrl")
 """Values of ``EnvConfig.collision_rule``."""
+STATIC_FEATURES = 7
+"""Columns of a ``static`` observation row (``EnvConfig.static_tracked``; beyond the paper): the
+nearest point of the pillar's footprint relative to the UAV (goal frame x, y) / range (2), its
+centre likewise (2), half side / 0.4 m (1), top minus the UAV's altitude / range (1), 1 (1)."""
 
 
 @dataclass(frozen=True)
@@ -102,6 +106,14 @@ class EnvConfig:
     and builds the same rows (``safenav export`` / ``fly``; ``RuntimeConfig.policy_memory``)."""
     num_tracked: int = 5
     """Number of nearest moving obstacles in the observation (NavRL)."""
+    static_tracked: int = 0
+    """Pillars in a ``static`` observation entry (0 = none, the paper's observation; the default).
+    Beyond the paper: the ``static_tracked`` pillars nearest the UAV (by clearance) within
+    ``lidar_range``, one row of ``STATIC_FEATURES`` each in the goal frame, as the ``dynamic``
+    rows (:func:`safenav.envs.sensors.static_obstacle_features`): the pillars' geometry where the
+    range image shows a few hit points. A planner with this view passes every pillar on the
+    validation episodes (docs/csac-v1.md, "What the range image costs"). Not deployable yet
+    (``safenav export`` / ``fly`` refuse it: the onboard runtime builds no pillar list)."""
     dyn_speed_range: tuple[float, float] = (0.5, 1.5)
     """Speed range of moving obstacles in m/s, resampled every ``dyn_speed_period`` (NavRL)."""
     dyn_speed_period: float = 2.0
@@ -237,7 +249,7 @@ class EnvConfig:
             finite(name)
         for name in ("num_static", "num_dynamic", "physics_substeps", "lidar_h_beams",
                      "num_tracked", "num_worlds", "start_sites", "lidar_history",
-                     "lidar_memory"):  # fmt: skip
+                     "lidar_memory", "static_tracked"):  # fmt: skip
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int):
                 bad(name, "must be an integer")
@@ -256,6 +268,8 @@ class EnvConfig:
             bad("lidar_history", "must be at most 8 (range images in the observation)")
         if not 0 <= self.lidar_memory <= 100:
             bad("lidar_memory", "must lie in [0, 100] control steps (0 = no memory image)")
+        if self.static_tracked > 32:
+            bad("static_tracked", "must lie in [0, 32] pillars (0 = no static entry)")
         for name in ("w_smooth", "w_height", "w_stall"):
             if getattr(self, name) < 0:
                 bad(name, "must be >= 0 (a penalty's weight; a negative one pays for it)")
@@ -337,12 +351,16 @@ def observation_shapes(cfg: EnvConfig | Mapping[str, Any]) -> dict[str, tuple[in
     """SafeNav's observation layout under ``cfg`` (an EnvConfig, or one as a dict, e.g. from
     a checkpoint): ``state`` (8,), ``lidar`` (elevations x (lidar_history + 1 if lidar_memory
     else lidar_history), beams), ``dynamic`` (tracked, 10). A dict without ``lidar_history`` or
-    ``lidar_memory`` (older checkpoints) has 1 and 0."""
+    ``lidar_memory`` (older checkpoints) has 1 and 0. With ``static_tracked`` K > 0 (beyond the
+    paper) a fourth entry, ``static`` (K, ``STATIC_FEATURES``)."""
     c = cfg if isinstance(cfg, Mapping) else dataclasses.asdict(cfg)
     images = int(c.get("lidar_history", 1)) + (1 if int(c.get("lidar_memory", 0)) else 0)
     rows = len(c["lidar_v_angles"]) * images
-    return {"state": (8,), "lidar": (rows, int(c["lidar_h_beams"])),
-            "dynamic": (int(c["num_tracked"]), 10)}  # fmt: skip
+    shapes = {"state": (8,), "lidar": (rows, int(c["lidar_h_beams"])),
+              "dynamic": (int(c["num_tracked"]), 10)}  # fmt: skip
+    if int(c.get("static_tracked", 0)):
+        shapes["static"] = (int(c["static_tracked"]), STATIC_FEATURES)
+    return shapes
 
 
 def make_config(preset: str = "paper", **overrides) -> EnvConfig:
@@ -373,4 +391,11 @@ def make_config(preset: str = "paper", **overrides) -> EnvConfig:
     return EnvConfig(**{**PRESETS[preset], **overrides})
 
 
-__all__ = ["COLLISION_RULES", "PRESETS", "EnvConfig", "make_config", "observation_shapes"]
+__all__ = [
+    "COLLISION_RULES",
+    "PRESETS",
+    "STATIC_FEATURES",
+    "EnvConfig",
+    "make_config",
+    "observation_shapes",
+]

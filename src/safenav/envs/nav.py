@@ -39,6 +39,7 @@ from safenav.envs.sensors import (
     quantize_heights,
     raycast_boxes_bruteforce,
     raycast_height_map,
+    static_obstacle_features,
 )
 from safenav.envs.world import (
     CUBOID_HEIGHT,
@@ -189,6 +190,10 @@ class SafeNavVectorEnv(VectorEnv):
     ``dynamic`` (5, 10): the 5 nearest moving obstacles within 4 m (zeros beyond), each: unit
     relative position in the goal frame (3), horizontal distance / 4 (1), z distance / 4 (1),
     velocity in the goal frame / v_max (3), width class / 3 (1), 1 for floating cuboids (1).
+    ``static`` (K, 7), only with ``static_tracked`` K > 0 (beyond the paper): the K pillars
+    nearest by clearance within 4 m (zeros beyond), each: nearest footprint point and centre
+    relative to the UAV in the goal frame / 4 (2 + 2), half side / 0.4 m (1), (top - altitude)
+    / 4 (1), 1 (1).
 
     ## Rewards
     NavRL's shaping: velocity toward the goal (m/s) + mean log(beam distance / range) + mean
@@ -322,6 +327,11 @@ class SafeNavVectorEnv(VectorEnv):
                 "state": spaces.Box(-np.inf, np.inf, shapes["state"], np.float32),
                 "lidar": spaces.Box(0.0, 1.0, shapes["lidar"], np.float32),
                 "dynamic": spaces.Box(-np.inf, np.inf, shapes["dynamic"], np.float32),
+                **(
+                    {"static": spaces.Box(-np.inf, np.inf, shapes["static"], np.float32)}
+                    if "static" in shapes
+                    else {}
+                ),
             }
         )
         self.single_action_space = spaces.Box(-1.0, 1.0, (3,), np.float32)
@@ -749,6 +759,10 @@ class SafeNavVectorEnv(VectorEnv):
             world_to_goal_frame(vel, cos_y, sin_y) / cfg.v_max,
         ], -1)  # fmt: skip
         obs = {"state": state, "lidar": (rng_ - ranges) / rng_, "dynamic": dynamic}
+        if cfg.static_tracked:  # beyond the paper: the nearest pillars' geometry
+            obs["static"] = flat(static_obstacle_features(
+                pos, p_xy, p_half, p_h, sel(self.cos_yaw), sel(self.sin_yaw), cfg.static_tracked,
+                rng_))  # fmt: skip
         aux = {"ranges": ranges, "static_clear": static_clear, "dyn_clear": dyn_clear,
                "tracked_clear": tracked_clear, "dist": dist, "unit_goal": unit_goal}  # fmt: skip
         return obs, aux

@@ -232,6 +232,56 @@ def pillar_clearance(
     return (dx * dx + dy * dy + dz * dz).sqrt().amin(-1)
 
 
+def static_obstacle_features(
+    pos: torch.Tensor,
+    pillar_xy: torch.Tensor,
+    pillar_half: torch.Tensor,
+    pillar_height: torch.Tensor,
+    cos_yaw: torch.Tensor,
+    sin_yaw: torch.Tensor,
+    num_tracked: int,
+    max_range: float,
+) -> torch.Tensor:
+    """The ``static`` observation ``(..., num_tracked, STATIC_FEATURES)`` (``EnvConfig.static_tracked``;
+    beyond the paper): the ``num_tracked`` pillars nearest ``pos`` by clearance (3-D distance to the
+    ground-standing box, as :func:`pillar_clearance`) within ``max_range``, nearest first, zero rows
+    beyond. Row layout (``safenav.envs.config.STATIC_FEATURES``): the footprint's nearest point
+    relative to the UAV in the goal frame / range (x, y), the centre likewise (x, y), half side /
+    0.4 m, (top - UAV altitude) / range, 1.
+
+    ``pos`` ``(..., 3)``; ``pillar_xy`` ``(..., P, 2)``, ``pillar_half`` and ``pillar_height``
+    ``(..., P)`` broadcastable against it (e.g. one map's pillars for many UAVs); ``cos_yaw``,
+    ``sin_yaw`` ``(...)`` the goal-frame yaw.
+    """
+    from safenav.envs.config import STATIC_FEATURES
+
+    lead = torch.broadcast_shapes(pos.shape[:-1], pillar_xy.shape[:-2])
+    out = torch.zeros(*lead, num_tracked, STATIC_FEATURES, dtype=pos.dtype, device=pos.device)
+    if pillar_xy.shape[-2] == 0 or num_tracked == 0:
+        return out
+    centre = pillar_xy - pos[..., None, :2]  # (..., P, 2)
+    half = pillar_half[..., None]
+    near = torch.clamp(torch.zeros_like(centre), min=centre - half, max=centre + half)
+    above = (pos[..., None, 2] - pillar_height).clamp(min=0)
+    clear = (near.pow(2).sum(-1) + above.pow(2)).sqrt()  # (..., P)
+    kk = min(num_tracked, clear.shape[-1])
+    d_sel, idx = torch.topk(clear, kk, dim=-1, largest=False)
+    pick = lambda t: torch.gather(t.expand(*clear.shape), -1, idx)  # noqa: E731  rows of (..., P)
+    c, s_ = cos_yaw[..., None], sin_yaw[..., None]
+
+    def goal_frame(v: torch.Tensor) -> list[torch.Tensor]:  # (..., P, 2) -> picked rows, goal frame
+        x, y = pick(v[..., 0]), pick(v[..., 1])
+        return [(c * x + s_ * y) / max_range, (-s_ * x + c * y) / max_range]
+
+    feats = torch.stack([
+        *goal_frame(near), *goal_frame(centre), pick(pillar_half.expand(*clear.shape)) / 0.4,
+        (pick(pillar_height.expand(*clear.shape)) - pos[..., None, 2]) / max_range,
+        torch.ones_like(d_sel),
+    ], -1)  # fmt: skip
+    out[..., :kk, :] = torch.where((d_sel <= max_range)[..., None], feats, 0.0)
+    return out
+
+
 def moving_obstacle_clearance(
     rel: torch.Tensor,
     width: torch.Tensor,
@@ -268,6 +318,7 @@ __all__ = [
     "pillar_clearance",
     "raycast_boxes_bruteforce",
     "raycast_height_map",
+    "static_obstacle_features",
 ]
 
 

@@ -51,7 +51,7 @@ def resolve_policy(checkpoint: Path | None, policy: str, device: str = "cpu", lo
 
 
 SENSOR_FIELDS = ("lidar_range", "lidar_h_beams", "lidar_v_angles", "lidar_history",
-                 "lidar_memory", "num_tracked")  # fmt: skip
+                 "lidar_memory", "num_tracked", "static_tracked")  # fmt: skip
 """The env config's fields that make a policy's observation: a preset's scenario keeps the
 policy's own (beams tilted otherwise give an image of the same shape, read wrongly)."""
 

@@ -31,7 +31,9 @@ class NavExtractor(nn.Module):
     strides 2/2/1: 36 -> 18 -> 9 columns, a receptive field of 29 columns = 290 degrees), then
     ``Linear(9 * 16 -> 128)``. Dynamic obstacles ``(5, 10)``: ``50 -> 128 -> 64``. ReLU throughout.
     A range-image history (``EnvConfig.lidar_history`` k) is ``k * R`` rows: ``k * R`` input
-    channels of the first convolution (frame stacking), nothing else changes.
+    channels of the first convolution (frame stacking), nothing else changes. With a ``static``
+    entry ``(P, G)`` (``static_shape``; ``EnvConfig.static_tracked``, beyond the paper) a second
+    MLP of the dynamic one's sizes embeds it, ``P * G -> 128 -> 64``, concatenated after it.
     """
 
     def __init__(
@@ -46,6 +48,7 @@ class NavExtractor(nn.Module):
         dynamic_hidden: int = 128,
         dynamic_embed: int = 64,
         ensemble_size: int = 1,
+        static_shape: tuple[int, int] | None = None,
     ) -> None:
         super().__init__()
         rows, length = lidar_shape
@@ -63,8 +66,12 @@ class NavExtractor(nn.Module):
         )
         self.dynamic_mlp = EnsembleMLP(math.prod(dynamic_shape), (dynamic_hidden,), dynamic_embed,
                                        ensemble_size, final_activation=True)  # fmt: skip
+        self.static_mlp = (EnsembleMLP(math.prod(static_shape), (dynamic_hidden,), dynamic_embed,
+                                       ensemble_size, final_activation=True)
+                           if static_shape else None)  # fmt: skip
         self.ensemble_size = ensemble_size
-        self.out_features = lidar_embed + dynamic_embed + state_dim
+        self.out_features = (lidar_embed + dynamic_embed * (2 if static_shape else 1)
+                             + state_dim)  # fmt: skip
 
     def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         lidar = obs["lidar"]
@@ -74,7 +81,9 @@ class NavExtractor(nn.Module):
         x = self.lidar_head(x)
         y = self.dynamic_mlp(obs["dynamic"].flatten(1))
         state = obs["state"].expand(self.ensemble_size, *obs["state"].shape)
-        return torch.cat([x, y, state], -1)
+        if self.static_mlp is None:
+            return torch.cat([x, y, state], -1)
+        return torch.cat([x, y, self.static_mlp(obs["static"].flatten(1)), state], -1)
 
 
 class FlattenExtractor(nn.Module):

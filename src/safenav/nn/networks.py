@@ -26,18 +26,25 @@ from safenav.nn.layers import EnsembleMLP
 
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
 NAV_KEYS = ("state", "lidar", "dynamic")
+STATIC_KEY = "static"
+"""The optional fourth SafeNav entry (``EnvConfig.static_tracked``; beyond the paper)."""
 
 
 def is_nav_layout(shapes: dict[str, tuple[int, ...]]) -> bool:
-    """True for the SafeNav observation (``state`` (S,), ``lidar`` (R, C), ``dynamic`` (K, F))."""
-    return (set(shapes) == set(NAV_KEYS) and len(shapes["state"]) == 1 and len(shapes["lidar"]) == 2
-            and len(shapes["dynamic"]) == 2)  # fmt: skip
+    """True for the SafeNav observation (``state`` (S,), ``lidar`` (R, C), ``dynamic`` (K, F),
+    optionally ``static`` (P, G))."""
+    keys = set(shapes) - {STATIC_KEY}
+    return (keys == set(NAV_KEYS) and len(shapes["state"]) == 1 and len(shapes["lidar"]) == 2
+            and len(shapes["dynamic"]) == 2
+            and len(shapes.get(STATIC_KEY, (0, 0))) == 2)  # fmt: skip
 
 
 def input_order(shapes: dict[str, tuple[int, ...]]) -> tuple[str, ...]:
     """Positional input order of :class:`DeterministicActor`: ``(state, lidar, dynamic)`` for the
-    SafeNav layout, else the sorted keys (``("obs",)`` for a Box)."""
-    return NAV_KEYS if is_nav_layout(shapes) else tuple(sorted(shapes))
+    SafeNav layout (then ``static`` if present), else the sorted keys (``("obs",)`` for a Box)."""
+    if not is_nav_layout(shapes):
+        return tuple(sorted(shapes))
+    return NAV_KEYS + ((STATIC_KEY,) if STATIC_KEY in shapes else ())
 
 
 def make_extractor(
@@ -47,7 +54,8 @@ def make_extractor(
     if is_nav_layout(shapes):
         return NavExtractor(shapes["lidar"], shapes["dynamic"], shapes["state"][0], net.lidar_channels,
                             net.lidar_strides, net.lidar_kernel, net.lidar_embed, net.dynamic_hidden,
-                            net.dynamic_embed, ensemble_size)  # fmt: skip
+                            net.dynamic_embed, ensemble_size,
+                            static_shape=shapes.get(STATIC_KEY))  # fmt: skip
     return FlattenExtractor(shapes, net.flatten_hidden, ensemble_size)
 
 

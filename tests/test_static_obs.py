@@ -1,0 +1,134 @@
+"""The ``static`` observation entry (``EnvConfig.static_tracked``; beyond the paper): the nearest
+pillars' geometry in the goal frame. Features on a hand-built map, the env's entry against them,
+the default's absence, the extractor, training, evaluation and the deployment refusal."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+from safenav.cli import main
+from safenav.envs.config import STATIC_FEATURES, make_config, observation_shapes
+from safenav.envs.nav import SafeNavVectorEnv
+from safenav.envs.sensors import pillar_clearance, static_obstacle_features
+from safenav.errors import SafenavError
+
+
+def _features(yaw: float, k: int = 3) -> torch.Tensor:
+    pos = torch.tensor([[0.0, 0.0, 1.0]])
+    xy = torch.tensor([[[2.0, 0.0], [0.0, 3.0], [10.0, 0.0]]])  # A, B, C (beyond range)
+    half = torch.tensor([[0.2, 0.4, 0.2]])
+    height = torch.tensor([[3.0, 0.5, 3.0]])
+    return static_obstacle_features(pos, xy, half, height, torch.tensor([math.cos(yaw)]),
+                                     torch.tensor([math.sin(yaw)]), k, 4.0)[0]  # fmt: skip
+
+
+def test_rows_are_the_nearest_pillars_in_the_goal_frame():
+    rows = _features(0.0)
+    assert rows.shape == (3, STATIC_FEATURES)
+    # A: 1.8 m ahead, 0.2 m half side, top 2 m above; B: its top 0.5 m below, 2.6 m to the left
+    torch.testing.assert_close(rows[0], torch.tensor([0.45, 0.0, 0.5, 0.0, 0.5, 0.5, 1.0]))
+    torch.testing.assert_close(rows[1], torch.tensor([0.0, 0.65, 0.0, 0.75, 1.0, -0.125, 1.0]))
+    assert rows[2].eq(0).all()  # C lies beyond the 4 m range: a zero row
+    # the goal frame: facing +y (yaw 90 degrees), A lies to the right (-y), B ahead
+    turned = _features(math.pi / 2)
+    torch.testing.assert_close(turned[0, :4], torch.tensor([0.0, -0.45, 0.0, -0.5]), atol=1e-6,
+                               rtol=0)  # fmt: skip
+    torch.testing.assert_close(turned[1, :4], torch.tensor([0.65, 0.0, 0.75, 0.0]), atol=1e-6,
+                               rtol=0)  # fmt: skip
+    assert _features(0.0, k=1).shape == (1, STATIC_FEATURES)  # fewer slots: the nearest only
+
+
+def test_no_pillars_give_zero_rows():
+    out = static_obstacle_features(torch.zeros(2, 3), torch.zeros(2, 0, 2), torch.zeros(2, 0),
+                                   torch.zeros(2, 0), torch.ones(2), torch.zeros(2), 4, 4.0)  # fmt: skip
+    assert out.shape == (2, 4, STATIC_FEATURES) and out.eq(0).all()
+
+
+def test_default_observation_has_no_static_entry_and_bad_counts_are_refused():
+    assert "static" not in observation_shapes(make_config("paper"))
+    assert observation_shapes(make_config("paper", static_tracked=6))["static"] == (6, 7)
+    for bad in (-1, 33, 2.5):
+        with pytest.raises(ValueError, match="static_tracked"):
+            make_config("paper", static_tracked=bad)
+
+
+def test_env_entry_matches_the_pillars_of_its_map():
+    cfg = make_config("paper", static_tracked=8)
+    env = SafeNavVectorEnv(8, config=cfg, output="torch")
+    obs, _ = env.reset(seed=12345)
+    for _ in range(3):  # autoresets and moves included
+        obs, *_ = env.step(torch.rand(8, 3) * 2 - 1)
+    assert env.single_observation_space["static"].shape == (8, 7)
+    static = obs["static"]
+    assert static.shape == (8, 8, 7) and torch.isfinite(static).all()
+    w, ps = env.world_idx, env.n_static
+    for i in range(8):
+        pos = env.pos[i]
+        xy, half, h = (
+            env.pillar_xy[w[i], :ps],
+            env.pillar_half[w[i], :ps],
+            env.pillar_height[w[i], :ps],
+        )
+        want = static_obstacle_features(pos, xy, half, h, env.cos_yaw[i], env.sin_yaw[i], 8, 4.0)
+        torch.testing.assert_close(static[i], want)
+        present = static[i, :, 6] == 1
+        # as many rows as pillars within range (up to 8), nearest first
+        clear = torch.stack([pillar_clearance(pos, xy[j : j + 1], half[j : j + 1], h[j : j + 1])
+                             for j in range(ps)])  # fmt: skip
+        assert int(present.sum()) == min(8, int((clear <= 4.0).sum()))
+        near = static[i, present, :2].norm(dim=-1)  # horizontal part of each clearance
+        assert (near <= 1.0 + 1e-6).all()
+    plain = SafeNavVectorEnv(8, preset="paper", output="torch")
+    assert set(plain.reset(seed=12345)[0]) == {"state", "lidar", "dynamic"}
+
+
+def test_extractor_embeds_the_static_entry():
+    from safenav.nn.config import NetConfig
+    from safenav.nn.networks import input_order, is_nav_layout, make_extractor
+
+    shapes = observation_shapes(make_config("paper", static_tracked=10))
+    assert is_nav_layout(shapes) and input_order(shapes) == ("state", "lidar", "dynamic", "static")
+    plain = make_extractor(observation_shapes(make_config("paper")), NetConfig())
+    ex = make_extractor(shapes, NetConfig(), ensemble_size=2)
+    assert ex.out_features == plain.out_features + 64
+    obs = {k: torch.rand(5, *s) for k, s in shapes.items()}
+    out = ex(obs)
+    assert out.shape == (2, 5, ex.out_features)
+    obs2 = {**obs, "static": torch.rand(5, *shapes["static"])}
+    assert not torch.equal(ex(obs2), out)  # the entry reaches the features
+
+
+@pytest.fixture(scope="module")
+def static_run(tmp_path_factory) -> Path:
+    torch.set_num_threads(1)
+    run_dir = tmp_path_factory.mktemp("runs") / "static"
+    main(["train", "--algo", "csac", "--preset", "easy", "--seed", "1", "--num-envs", "4",
+          "--total-steps", "200", "--env-kwargs", "static_tracked", "4",
+          "--csac.learning-starts", "64", "--csac.batch-size", "16", "--csac.net.hidden", "32", "32",
+          "--eval-every", "0", "--no-progress", "--no-tensorboard", "--torch-threads", "1",
+          "--run-dir", str(run_dir)])  # fmt: skip
+    return run_dir
+
+
+def test_train_eval_and_deploy_refusal(static_run, tmp_path, capsys):
+    from safenav.algos.policy import load_policy
+    from safenav.deploy.export import check_deployable
+
+    assert json.loads((static_run / "config.json").read_text())["env_config"]["static_tracked"] == 4
+    policy = load_policy(static_run / "checkpoint.pt")
+    assert policy.obs_shapes["static"] == (4, 7)
+    for extra in ([], ["--preset", "paper"]):  # a preset keeps the policy's pillar list
+        out = tmp_path / f"eval{len(extra)}.json"
+        main(["eval", str(static_run), "--episodes", "2", "--json", str(out), *extra])
+        assert json.loads(out.read_text())["episodes"] == 2
+    with pytest.raises(SafenavError, match="static_tracked > 0 cannot be deployed yet"):
+        check_deployable(make_config("easy", static_tracked=4), "p")
+    with pytest.raises(SystemExit) as exit_:
+        main(["export", str(static_run / "checkpoint.pt"), "--onnx", str(tmp_path / "p.onnx")])
+    assert exit_.value.code == 2 and "cannot be deployed yet" in capsys.readouterr().err
+    assert not (tmp_path / "p.onnx").exists()
