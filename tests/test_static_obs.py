@@ -132,3 +132,17 @@ def test_train_eval_and_deploy_refusal(static_run, tmp_path, capsys):
         main(["export", str(static_run / "checkpoint.pt"), "--onnx", str(tmp_path / "p.onnx")])
     assert exit_.value.code == 2 and "cannot be deployed yet" in capsys.readouterr().err
     assert not (tmp_path / "p.onnx").exists()
+
+
+def test_pillars_recipe_is_the_memory_recipe_plus_the_list():
+    from safenav.recipes import load_recipe
+
+    base = load_recipe("csac-shielded-memory").section("run")
+    pillars = load_recipe("csac-shielded-memory-pillars").section("run")
+    assert pillars["env_kwargs"] == {**base["env_kwargs"], "static_tracked": 10}
+    assert {k: v for k, v in pillars.items() if k != "env_kwargs"} == {
+        k: v for k, v in base.items() if k != "env_kwargs"
+    }
+    assert load_recipe("csac-shielded-memory-pillars").section("csac") == load_recipe(
+        "csac-shielded-memory"
+    ).section("csac")
