@@ -93,3 +93,18 @@ def run_cli(capsys, argv: list[str]) -> tuple[int, str, str]:
         code = err.code if isinstance(err.code, int) else 1
     out, err = capsys.readouterr()
     return code, out, err
+
+
+def train_tiny_csac(run_dir, *env_kwargs: str):
+    """A 200-step CSAC run on the easy preset (4 envs, 32x32 networks, one torch thread) with
+    ``--env-kwargs ENV_KWARGS...``: a checkpoint of that observation layout, for the tests of
+    training, evaluating and deploying it (``from conftest import train_tiny_csac``). Returns
+    ``run_dir``."""
+    from safenav.cli import main
+
+    main(["train", "--algo", "csac", "--preset", "easy", "--seed", "1", "--num-envs", "4",
+          "--total-steps", "200", "--env-kwargs", *env_kwargs,
+          "--csac.learning-starts", "64", "--csac.batch-size", "16", "--csac.net.hidden", "32", "32",
+          "--eval-every", "0", "--no-progress", "--no-tensorboard", "--torch-threads", "1",
+          "--run-dir", str(run_dir)])  # fmt: skip
+    return run_dir

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import train_tiny_csac
 from safenav.cli import main
 from safenav.envs.config import EnvConfig, make_config, observation_shapes
 from safenav.envs.nav import SafeNavVectorEnv
@@ -155,12 +156,7 @@ def test_shield_reads_the_current_image():
 def history_run(tmp_path_factory) -> Path:
     torch.set_num_threads(1)
     run_dir = tmp_path_factory.mktemp("runs") / "history"
-    main(["train", "--algo", "csac", "--preset", "easy", "--seed", "1", "--num-envs", "4",
-          "--total-steps", "200", "--env-kwargs", "lidar_history", "2",
-          "--csac.learning-starts", "64", "--csac.batch-size", "16", "--csac.net.hidden", "32", "32",
-          "--eval-every", "0", "--no-progress", "--no-tensorboard", "--torch-threads", "1",
-          "--run-dir", str(run_dir)])  # fmt: skip
-    return run_dir
+    return train_tiny_csac(run_dir, "lidar_history", "2")
 
 
 def test_train_and_eval_with_history(history_run, tmp_path):

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import train_tiny_csac
 from safenav.cli import main
 from safenav.deploy.export import OnnxPolicy, check_deployable, load_sidecar
 from safenav.deploy.runtime import OnboardRuntime, RuntimeConfig
@@ -150,12 +151,7 @@ def test_fly_spans_the_memorys_seconds_at_its_setpoint_rate() -> None:
 
 def test_a_memory_policy_exports_and_its_sidecar_says_so(tmp_path) -> None:
     pytest.importorskip("onnxruntime")
-    run = tmp_path / "memory"
-    main(["train", "--algo", "csac", "--preset", "easy", "--seed", "1", "--num-envs", "4",
-          "--total-steps", "200", "--env-kwargs", "lidar_memory", "3",
-          "--csac.learning-starts", "64", "--csac.batch-size", "16", "--csac.net.hidden", "32", "32",
-          "--eval-every", "0", "--no-progress", "--no-tensorboard", "--torch-threads", "1",
-          "--run-dir", str(run)])  # fmt: skip
+    run = train_tiny_csac(tmp_path / "memory", "lidar_memory", "3")
     onnx = tmp_path / "policy.onnx"
     main(["export", str(run / "checkpoint.pt"), "--onnx", str(onnx)])
     meta, cfg = load_sidecar(onnx)

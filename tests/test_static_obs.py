@@ -11,10 +11,11 @@ from pathlib import Path
 import pytest
 import torch
 
+from conftest import train_tiny_csac
 from safenav.cli import main
 from safenav.envs.config import STATIC_FEATURES, make_config, observation_shapes
 from safenav.envs.nav import SafeNavVectorEnv
-from safenav.envs.sensors import pillar_clearance, static_obstacle_features
+from safenav.envs.sensors import pillar_clearance, pillar_clearances, static_obstacle_features
 from safenav.errors import SafenavError
 
 
@@ -78,8 +79,8 @@ def test_env_entry_matches_the_pillars_of_its_map():
         torch.testing.assert_close(static[i], want)
         present = static[i, :, 6] == 1
         # as many rows as pillars within range (up to 8), nearest first
-        clear = torch.stack([pillar_clearance(pos, xy[j : j + 1], half[j : j + 1], h[j : j + 1])
-                             for j in range(ps)])  # fmt: skip
+        clear = pillar_clearances(pos, xy, half, h)
+        assert torch.equal(clear.amin(), pillar_clearance(pos, xy, half, h))
         assert int(present.sum()) == min(8, int((clear <= 4.0).sum()))
         near = static[i, present, :2].norm(dim=-1)  # horizontal part of each clearance
         assert (near <= 1.0 + 1e-6).all()
@@ -107,12 +108,7 @@ def test_extractor_embeds_the_static_entry():
 def static_run(tmp_path_factory) -> Path:
     torch.set_num_threads(1)
     run_dir = tmp_path_factory.mktemp("runs") / "static"
-    main(["train", "--algo", "csac", "--preset", "easy", "--seed", "1", "--num-envs", "4",
-          "--total-steps", "200", "--env-kwargs", "static_tracked", "4",
-          "--csac.learning-starts", "64", "--csac.batch-size", "16", "--csac.net.hidden", "32", "32",
-          "--eval-every", "0", "--no-progress", "--no-tensorboard", "--torch-threads", "1",
-          "--run-dir", str(run_dir)])  # fmt: skip
-    return run_dir
+    return train_tiny_csac(run_dir, "static_tracked", "4")
 
 
 def test_train_eval_and_deploy_refusal(static_run, tmp_path, capsys):

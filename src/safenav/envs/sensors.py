@@ -214,6 +214,22 @@ def box_surface_distance(rel: torch.Tensor, half: torch.Tensor) -> torch.Tensor:
     return (rel.abs() - half).clamp(min=0).norm(dim=-1)
 
 
+def pillar_clearances(
+    pos: torch.Tensor,
+    pillar_xy: torch.Tensor,
+    pillar_half: torch.Tensor,
+    pillar_height: torch.Tensor,
+) -> torch.Tensor:
+    """Distance from each point to every pillar (ground-standing box), ``(..., P)``.
+
+    ``pos``: ``(..., 3)``; ``pillar_*``: ``(..., P, ...)`` broadcastable against it.
+    """
+    dx = ((pos[..., None, 0] - pillar_xy[..., 0]).abs() - pillar_half).clamp(min=0)
+    dy = ((pos[..., None, 1] - pillar_xy[..., 1]).abs() - pillar_half).clamp(min=0)
+    dz = (pos[..., None, 2] - pillar_height).clamp(min=0)
+    return (dx * dx + dy * dy + dz * dz).sqrt()
+
+
 def pillar_clearance(
     pos: torch.Tensor,
     pillar_xy: torch.Tensor,
@@ -226,10 +242,7 @@ def pillar_clearance(
     """
     if pillar_xy.shape[-2] == 0:
         return torch.full(pos.shape[:-1], math.inf, device=pos.device)
-    dx = ((pos[..., None, 0] - pillar_xy[..., 0]).abs() - pillar_half).clamp(min=0)
-    dy = ((pos[..., None, 1] - pillar_xy[..., 1]).abs() - pillar_half).clamp(min=0)
-    dz = (pos[..., None, 2] - pillar_height).clamp(min=0)
-    return (dx * dx + dy * dy + dz * dz).sqrt().amin(-1)
+    return pillar_clearances(pos, pillar_xy, pillar_half, pillar_height).amin(-1)
 
 
 def static_obstacle_features(
@@ -244,7 +257,7 @@ def static_obstacle_features(
 ) -> torch.Tensor:
     """The ``static`` observation ``(..., num_tracked, STATIC_FEATURES)`` (``EnvConfig.static_tracked``;
     beyond the paper): the ``num_tracked`` pillars nearest ``pos`` by clearance (3-D distance to the
-    ground-standing box, as :func:`pillar_clearance`) within ``max_range``, nearest first, zero rows
+    ground-standing box, :func:`pillar_clearances`) within ``max_range``, nearest first, zero rows
     beyond. Row layout (``safenav.envs.config.STATIC_FEATURES``): the footprint's nearest point
     relative to the UAV in the goal frame / range (x, y), the centre likewise (x, y), half side /
     0.4 m, (top - UAV altitude) / range, 1.
@@ -262,8 +275,7 @@ def static_obstacle_features(
     centre = pillar_xy - pos[..., None, :2]  # (..., P, 2)
     half = pillar_half[..., None]
     near = torch.clamp(torch.zeros_like(centre), min=centre - half, max=centre + half)
-    above = (pos[..., None, 2] - pillar_height).clamp(min=0)
-    clear = (near.pow(2).sum(-1) + above.pow(2)).sqrt()  # (..., P)
+    clear = pillar_clearances(pos, pillar_xy, pillar_half, pillar_height)  # (..., P)
     kk = min(num_tracked, clear.shape[-1])
     d_sel, idx = torch.topk(clear, kk, dim=-1, largest=False)
     pick = lambda t: torch.gather(t.expand(*clear.shape), -1, idx)  # noqa: E731  rows of (..., P)
@@ -274,8 +286,8 @@ def static_obstacle_features(
         return [(c * x + s_ * y) / max_range, (-s_ * x + c * y) / max_range]
 
     feats = torch.stack([
-        *goal_frame(near), *goal_frame(centre), pick(pillar_half.expand(*clear.shape)) / 0.4,
-        (pick(pillar_height.expand(*clear.shape)) - pos[..., None, 2]) / max_range,
+        *goal_frame(near), *goal_frame(centre), pick(pillar_half) / 0.4,
+        (pick(pillar_height) - pos[..., None, 2]) / max_range,
         torch.ones_like(d_sel),
     ], -1)  # fmt: skip
     out[..., :kk, :] = torch.where((d_sel <= max_range)[..., None], feats, 0.0)
@@ -316,6 +328,7 @@ __all__ = [
     "moving_obstacle_clearance",
     "pillar_boxes",
     "pillar_clearance",
+    "pillar_clearances",
     "raycast_boxes_bruteforce",
     "raycast_height_map",
     "static_obstacle_features",
