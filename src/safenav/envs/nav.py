@@ -748,6 +748,11 @@ class SafeNavVectorEnv(VectorEnv):
                 torch.where(in_range, torch.gather(clear_all, -1, idx), rng_)
             )
 
+        # Beyond the paper (static_tracked): the nearest pillars' geometry.
+        static = (flat(static_obstacle_features(pos, p_xy, p_half, p_h, cos_y, sin_y,
+                                                cfg.static_tracked, rng_))
+                  if cfg.static_tracked else None)  # fmt: skip
+
         to_goal = flat(goal - pos)
         vel, cos_y, sin_y = flat(vel), flat(cos_y), flat(sin_y)
         dist = to_goal.norm(dim=-1)
@@ -759,10 +764,8 @@ class SafeNavVectorEnv(VectorEnv):
             world_to_goal_frame(vel, cos_y, sin_y) / cfg.v_max,
         ], -1)  # fmt: skip
         obs = {"state": state, "lidar": (rng_ - ranges) / rng_, "dynamic": dynamic}
-        if cfg.static_tracked:  # beyond the paper: the nearest pillars' geometry
-            obs["static"] = flat(static_obstacle_features(
-                pos, p_xy, p_half, p_h, sel(self.cos_yaw), sel(self.sin_yaw), cfg.static_tracked,
-                rng_))  # fmt: skip
+        if static is not None:
+            obs["static"] = static
         aux = {"ranges": ranges, "static_clear": static_clear, "dyn_clear": dyn_clear,
                "tracked_clear": tracked_clear, "dist": dist, "unit_goal": unit_goal}  # fmt: skip
         return obs, aux
