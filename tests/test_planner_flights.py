@@ -4,6 +4,7 @@ the replay buffer and mixed into each minibatch at their share (``CSACLearner.sa
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 
 import pytest
@@ -14,12 +15,13 @@ from safenav.algos.csac import CSACLearner
 from safenav.cli import main
 from safenav.common.buffer import Batch
 from safenav.common.config import RunConfig
-from safenav.envs.planner import PLANNER_B, AutoresetPlanner
+from safenav.envs.planner import PLANNER_B, PLANNER_PILLARS, PLANNERS, AutoresetPlanner
 from safenav.envs.vector import TorchVecEnv, make_vec_env
 from safenav.experiments.selection import RESERVED_SEEDS, VALIDATION_SEEDS
 from safenav.training.planner_flights import fly_planner
 
 EASY = RunConfig(env="SafeNav-v1", preset="easy", seed=3)
+PAPER = RunConfig(env="SafeNav-v1", preset="paper", seed=3)
 
 
 @pytest.mark.long
@@ -47,6 +49,29 @@ def test_flights_are_the_planners_and_leave_the_rng_alone():
         action = planner(obs, nav)
         assert torch.allclose(action, flights[t][0].actions)
         obs = env.step(action).next_obs
+
+
+def test_the_pillar_planner_flies_them_with_the_pillar_list():
+    """``--csac.planner-view pillars``: the flights are the pillar-geometry planner's (kept in the
+    band when asked), with the observation's ``static`` entry stored like the others."""
+    assert PLANNERS == {"range": PLANNER_B, "pillars": PLANNER_PILLARS}
+    torch.set_num_threads(1)
+    flights, stats = fly_planner(PAPER, {"static_tracked": 4}, 12, 4, "cpu", progress=False,
+                                 keep_band=True, view="pillars")  # fmt: skip
+    assert len(flights) == 3 and stats["transitions"] == 12
+    assert flights[0][0].obs["static"].shape == (4, 4, 7)
+    env = TorchVecEnv(make_vec_env("SafeNav-v1", 4, "cpu", "paper", static_tracked=4), "cpu")
+    nav = env.envs.unwrapped
+    planner = AutoresetPlanner(dataclasses.replace(PLANNER_PILLARS, keep_band=True))
+    other = AutoresetPlanner(dataclasses.replace(PLANNER_B, keep_band=True))
+    obs = env.reset(seed=PAPER.planner_env_seed())
+    differs = False
+    for t in range(3):
+        action = planner(obs, nav)
+        assert torch.allclose(action, flights[t][0].actions)
+        differs |= not torch.allclose(other(obs, nav), action)
+        obs = env.step(action).next_obs
+    assert differs  # the view chose the planner: planner B would have flown otherwise
 
 
 def test_planner_maps_are_none_of_the_runs_or_the_reports():
@@ -114,7 +139,7 @@ def test_train_with_the_planners_flights_end_to_end(tmp_path):
           "--csac.planner-steps", "64", "--csac.planner-envs", "4", "--run-dir", str(run_dir), *args])  # fmt: skip
     config = json.loads((run_dir / "config.json").read_text())
     assert config["csac"]["planner_share"] == 0.25 and config["csac"]["planner_steps"] == 64
-    assert config["csac"]["planner_keep_band"] is True
+    assert config["csac"]["planner_keep_band"] is True and config["csac"]["planner_view"] == "range"
     events = [json.loads(line) for line in (run_dir / "events.jsonl").read_text().splitlines()]
     flown = [e for e in events if e["event"] == "planner_flights"]
     assert len(flown) == 1 and flown[0]["transitions"] == 64

@@ -114,6 +114,10 @@ class CSACConfig:
     planner_keep_band: bool = False
     """The planner keeps the altitude band of NavRL's height penalty (``OracleConfig.keep_band``),
     so that the reward the critic learns agrees with its flights."""
+    planner_view: Literal["range", "pillars"] = "range"
+    """What the replayed planner sees (``envs.planner.PLANNERS``): ``range``, planner B (the range
+    image's hits of the last second); ``pillars``, the pillars' exact geometry within 4 m (the
+    information of the env's ``static_tracked`` entry)."""
     net: NetConfig = field(default_factory=NetConfig)
     """Network sizes and extractor sharing."""
     curriculum: ConstraintCurriculumConfig = field(default_factory=ConstraintCurriculumConfig)

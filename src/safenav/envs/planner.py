@@ -521,5 +521,15 @@ PLANNER_B = OracleConfig(sense="lidar", memory=10, ignore_ground=True,
 hits ignored), five climb rates, the observation's moving obstacles; 0.861 success / 0.097
 collision on 144 validation episodes with the tilted beams of ``csac-shielded-memory``."""
 
-__all__ = ["FAR", "PLANNER_B", "PLANNER_B_BEAMS", "AutoresetPlanner", "OracleConfig", "OraclePlanner", "ScanFn",
+PLANNER_PILLARS = OracleConfig(sense="exact", privileged_range=4.0,
+                               climbs=(-0.75, -0.25, 0.0, 0.25, 0.75))  # fmt: skip
+"""The pillar-geometry planner of docs/csac-v1.md ("What the range image costs"): the exact
+footprints and tops of the pillars and the wall within 4 m (what ``static_tracked`` gives a
+policy), the moving obstacles within 4 m forecast at constant velocity, five climb rates; 0.951
+success / 0.021 collision on 144 validation episodes (with ``keep_band``: 0.896 / 0.000)."""
+
+PLANNERS = {"range": PLANNER_B, "pillars": PLANNER_PILLARS}
+"""The planners a learner may replay (``CSACConfig.planner_view``), by what they see."""
+
+__all__ = ["FAR", "PLANNERS", "PLANNER_B", "PLANNER_B_BEAMS", "PLANNER_PILLARS", "AutoresetPlanner", "OracleConfig", "OraclePlanner", "ScanFn",
            "beam_hits", "geodesic_fields", "mover_clearance", "sample_field", "to_action"]  # fmt: skip

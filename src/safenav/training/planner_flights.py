@@ -3,7 +3,7 @@ paper; docs/csac-v1.md, "The planner's flights in the replay").
 
 Before training, :func:`fly_planner` flies planner B (:data:`~safenav.envs.planner.PLANNER_B`:
 the range image's hits of the last second, the observation's moving obstacles, read from the
-simulator) on ``planner_envs`` envs of the run's own env config at the curriculum's final
+simulator; or, ``--csac.planner-view pillars``, the pillars' exact geometry within 4 m) on ``planner_envs`` envs of the run's own env config at the curriculum's final
 density, on maps of their own (:meth:`~safenav.common.config.RunConfig.planner_env_seed`: neither
 the training maps nor the validation, held-out or test ones), until ``planner_steps``
 transitions. The learner keeps them apart from its replay buffer and draws a fixed share of each
@@ -30,7 +30,7 @@ from safenav.common.buffer import Batch
 from safenav.common.checkpoint import rng_state, set_rng_state
 from safenav.common.config import RunConfig
 from safenav.common.progress import ProgressDisplay
-from safenav.envs.planner import PLANNER_B, AutoresetPlanner
+from safenav.envs.planner import PLANNERS, AutoresetPlanner
 from safenav.envs.vector import TorchVecEnv, make_vec_env
 
 Flight = tuple[Batch, torch.Tensor, torch.Tensor]
@@ -39,10 +39,11 @@ Flight = tuple[Batch, torch.Tensor, torch.Tensor]
 
 def fly_planner(run: RunConfig, env_kwargs: dict[str, Any], steps: int, num_envs: int,
                 device: torch.device | str, progress: bool = True,
-                keep_band: bool = False) -> tuple[list[Flight], dict[str, Any]]:  # fmt: skip
+                keep_band: bool = False, view: str = "range",
+                ) -> tuple[list[Flight], dict[str, Any]]:  # fmt: skip
     """``ceil(steps / num_envs)`` vector steps of the planner on the run's env (``env_kwargs``:
     its overrides, the density among them), keeping NavRL's altitude band when ``keep_band``
-    (``OracleConfig.keep_band``): the flights and their statistics (``transitions``,
+    (``OracleConfig.keep_band``), the planner of ``view`` (``PLANNERS``): the flights and their statistics (``transitions``,
     ``episodes``, ``success_rate``, ``collision_rate`` of the episodes that ended (None if
     none did), ``wall_s``)."""
     t0 = time.perf_counter()
@@ -50,7 +51,7 @@ def fly_planner(run: RunConfig, env_kwargs: dict[str, Any], steps: int, num_envs
     try:
         env = TorchVecEnv(make_vec_env(run.env, num_envs, device, run.preset, **env_kwargs), device)
         nav = env.envs.unwrapped
-        planner = AutoresetPlanner(dataclasses.replace(PLANNER_B, keep_band=keep_band))
+        planner = AutoresetPlanner(dataclasses.replace(PLANNERS[view], keep_band=keep_band))
         obs = env.reset(seed=run.planner_env_seed())
         flights: list[Flight] = []
         ended = {"success": [], "collision": []}

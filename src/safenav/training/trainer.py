@@ -218,7 +218,8 @@ class Trainer:
                                    "their raw observations (no --normalize-obs)")  # fmt: skip
             flights, self.planner_stats = fly_planner(
                 run, {**env_kwargs, "density": run.density.end}, cfg.planner_steps,
-                cfg.planner_envs, self.device, progress, cfg.planner_keep_band)  # fmt: skip
+                cfg.planner_envs, self.device, progress, cfg.planner_keep_band,
+                cfg.planner_view)  # fmt: skip
             self.learner.set_planner_flights(flights)
             del flights
         self.curriculum = ConstraintCurriculum(cfg.curriculum)
