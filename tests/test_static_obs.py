@@ -15,7 +15,16 @@ from conftest import train_tiny_csac
 from safenav.cli import main
 from safenav.envs.config import STATIC_FEATURES, make_config, observation_shapes
 from safenav.envs.nav import SafeNavVectorEnv
-from safenav.envs.sensors import pillar_clearance, pillar_clearances, static_obstacle_features
+from safenav.envs.sensors import (
+    FAR_FOOTPRINT,
+    HEIGHT_QUANTUM,
+    map_footprints,
+    pillar_clearance,
+    pillar_clearances,
+    quantize_heights,
+    static_obstacle_features,
+)
+from safenav.envs.world import GridSpec, border_walls, height_map, world_from_obstacles
 from safenav.errors import SafenavError
 
 
@@ -86,6 +95,74 @@ def test_env_entry_matches_the_pillars_of_its_map():
         assert (near <= 1.0 + 1e-6).all()
     plain = SafeNavVectorEnv(8, preset="paper", output="torch")
     assert set(plain.reset(seed=12345)[0]) == {"state", "lidar", "dynamic"}
+
+
+def _footprints(pillars, maps_like: int = 1):
+    cfg = make_config("easy", static_tracked=4)
+    grid = GridSpec.for_config(cfg)
+    walls = border_walls(grid, cfg.half)
+    world = world_from_obstacles(cfg, pillars)
+    tops = quantize_heights(height_map(world, len(pillars), walls)).float() * HEIGHT_QUANTUM
+    tops = tops.expand(maps_like, -1, -1)
+    return map_footprints(tops, (tops > 0) & ~walls, grid.origin, grid.resolution)
+
+
+def test_map_footprints_are_the_pillars_within_half_a_cell():
+    pillars = [(1.03, -2.47, 0.4, 2.3), (-3.21, 0.55, 0.8, 1.1), (2.5, 2.5, 0.4, 3.0)]
+    xy, half, top = _footprints(pillars, maps_like=2)  # a batch of two maps
+    assert xy.shape == (2, 3, 2) and half.shape == top.shape == (2, 3)
+    for x, y, side, height in pillars:
+        i = int((xy[0] - torch.tensor([x, y])).norm(dim=-1).argmin())
+        assert (xy[0, i] - torch.tensor([x, y])).abs().max() <= 0.05 + 1e-6  # half a cell
+        assert half[0, i] == pytest.approx(side / 2, abs=1e-6)  # the rasterised side is the side
+        assert top[0, i] == pytest.approx(height, abs=HEIGHT_QUANTUM / 2 + 1e-6)
+    assert torch.equal(xy[1], xy[0])
+    # the border wall is not a pillar; an empty map has none
+    xy, half, _ = _footprints([])
+    assert xy.shape == (1, 0, 2) and half.shape == (1, 0)
+
+
+def test_touching_pillars_make_one_footprint_over_both():
+    # two 0.4 m pillars side by side (their cells adjacent) and one apart
+    xy, half, top = _footprints(
+        [(0.0, 0.0, 0.4, 1.0), (0.4, 0.0, 0.4, 2.0), (-3.0, -3.0, 0.4, 1.5)]
+    )
+    real = half[0] > 0
+    assert int(real.sum()) == 2
+    merged = int((xy[0] - torch.tensor([0.2, 0.0])).norm(dim=-1).argmin())
+    assert half[0, merged] == pytest.approx(0.4, abs=1e-6)  # the square over the 0.8 x 0.4 pair
+    assert top[0, merged] == pytest.approx(2.0, abs=HEIGHT_QUANTUM)  # the taller one's top
+    # maps with fewer footprints are padded with ones of no size, far away (beyond any range)
+    pad = map_footprints(torch.zeros(1, 8, 8), torch.zeros(1, 8, 8, dtype=torch.bool), 0.0, 0.1)
+    assert pad[0].shape == (1, 0, 2)
+    two = torch.zeros(2, 8, 8)
+    two[0, 2, 2] = 1.0
+    xy2, half2, _ = map_footprints(two, two > 0, 0.0, 0.1)
+    assert xy2.shape == (2, 1, 2) and half2[1, 0] == 0 and xy2[1, 0, 0] == FAR_FOOTPRINT
+
+
+def test_env_entry_from_the_map_is_the_exact_one_within_half_a_cell():
+    with pytest.raises(ValueError, match="static_source"):
+        make_config("paper", static_tracked=4, static_source="lidar")
+    shared = {"static_tracked": 6, "num_worlds": 2}
+    exact = SafeNavVectorEnv(4, config=make_config("paper", **shared), output="torch")
+    mapped = SafeNavVectorEnv(4, config=make_config("paper", static_source="map", **shared),
+                              output="torch")  # fmt: skip
+    obs_e, _ = exact.reset(seed=12345)
+    obs_m, _ = mapped.reset(seed=12345)
+    for _ in range(3):
+        action = torch.rand(4, 3) * 2 - 1
+        (obs_e, *_), (obs_m, *_) = exact.step(action), mapped.step(action)
+    for k in ("state", "lidar", "dynamic"):  # nothing else changes
+        torch.testing.assert_close(obs_m[k], obs_e[k])
+    # the same pillars in range: rows within half a cell per axis (0.05 m, turned into the goal
+    # frame up to 0.05 * sqrt(2), / 4 m) and a height quantum, up to order among pillars at
+    # nearly the same clearance and the few touching ones
+    e, m = obs_e["static"], obs_m["static"]
+    assert e[..., 6].sum() > 0
+    close = (m[:, :, None, :6] - e[:, None, :, :6]).abs().amax(-1) <= 0.05 * 2**0.5 / 4 + 1e-4
+    matched = close.any(-1) & (m[..., 6] == 1)
+    assert matched.sum() >= 0.9 * (m[..., 6] == 1).sum()
 
 
 def test_extractor_embeds_the_static_entry():

@@ -112,8 +112,14 @@ class EnvConfig:
     ``lidar_range``, one row of ``STATIC_FEATURES`` each in the goal frame, as the ``dynamic``
     rows (:func:`safenav.envs.sensors.static_obstacle_features`): the pillars' geometry where the
     range image shows a few hit points. A planner with this view passes every pillar on the
-    validation episodes (docs/csac-v1.md, "What the range image costs"). Not deployable yet
-    (``safenav export`` / ``fly`` refuse it: the onboard runtime builds no pillar list)."""
+    validation episodes (docs/csac-v1.md, "What the range image costs"). ``static_source``
+    says where the list comes from."""
+    static_source: str = "exact"
+    """Where the ``static`` rows come from (with ``static_tracked`` > 0): ``exact``, the pillars'
+    footprints as drawn; ``map``, the footprints the height map shows
+    (:func:`safenav.envs.sensors.map_footprints`: each group of occupied cells, its box within half
+    a cell of the pillar's, touching pillars one footprint), the list the onboard runtime builds
+    from its own map, so that what trains is what flies (``safenav export`` / ``fly``)."""
     dyn_speed_range: tuple[float, float] = (0.5, 1.5)
     """Speed range of moving obstacles in m/s, resampled every ``dyn_speed_period`` (NavRL)."""
     dyn_speed_period: float = 2.0
@@ -270,6 +276,11 @@ class EnvConfig:
             bad("lidar_memory", "must lie in [0, 100] control steps (0 = no memory image)")
         if self.static_tracked > 32:
             bad("static_tracked", "must lie in [0, 32] pillars (0 = no static entry)")
+        if self.static_source not in ("exact", "map"):
+            bad(
+                "static_source",
+                "must be 'exact' (the drawn footprints) or 'map' (the height map's)",
+            )
         for name in ("w_smooth", "w_height", "w_stall"):
             if getattr(self, name) < 0:
                 bad(name, "must be >= 0 (a penalty's weight; a negative one pays for it)")

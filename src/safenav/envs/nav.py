@@ -29,9 +29,11 @@ from safenav.envs.dynamics import (
 )
 from safenav.envs.sensors import (
     FAR_POINT,
+    HEIGHT_QUANTUM,
     RangeImageSpec,
     beam_hit_points,
     dynamic_obstacle_features,
+    map_footprints,
     memory_image,
     moving_obstacle_clearance,
     pillar_boxes,
@@ -414,6 +416,12 @@ class SafeNavVectorEnv(VectorEnv):
         self.n_static, self.n_dynamic = self.cfg.active_static, self.cfg.active_dynamic
         maps = torch.stack([height_map(w, self.n_static, self._walls) for w in self.worlds])
         self.heights = quantize_heights(maps).to(self.device).reshape(-1)
+        if self.cfg.static_tracked and self.cfg.static_source == "map":
+            # the static rows from the map, as the onboard runtime builds them from its own
+            tops = quantize_heights(maps).float() * HEIGHT_QUANTUM
+            footprints = map_footprints(tops, (tops > 0) & ~self._walls, self.grid.origin,
+                                        self.grid.resolution)  # fmt: skip
+            self.map_pillars = tuple(t.to(self.device) for t in footprints)
 
     def set_density(self, density: float) -> None:
         """Set the fraction of active obstacles (density curriculum, paper Fig. 2); maps are kept."""
@@ -749,9 +757,12 @@ class SafeNavVectorEnv(VectorEnv):
             )
 
         # Beyond the paper (static_tracked): the nearest pillars' geometry.
-        static = (flat(static_obstacle_features(pos, p_xy, p_half, p_h, cos_y, sin_y,
-                                                cfg.static_tracked, rng_))
-                  if cfg.static_tracked else None)  # fmt: skip
+        static = None
+        if cfg.static_tracked:
+            if cfg.static_source == "map":
+                p_xy, p_half, p_h = (per_map(t, t.shape[1]) for t in self.map_pillars)
+            static = flat(static_obstacle_features(pos, p_xy, p_half, p_h, cos_y, sin_y,
+                                                   cfg.static_tracked, rng_))  # fmt: skip
 
         to_goal = flat(goal - pos)
         vel, cos_y, sin_y = flat(vel), flat(cos_y), flat(sin_y)

@@ -294,6 +294,71 @@ def static_obstacle_features(
     return out
 
 
+FAR_FOOTPRINT = 1.0e4
+"""Centre coordinate (m) of a padding footprint of :func:`map_footprints`: never within range."""
+
+
+def map_footprints(
+    heights: torch.Tensor,
+    occupied: torch.Tensor,
+    origin: float,
+    resolution: float,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The pillar list as a height map shows it: each 4-connected group of ``occupied`` cells one
+    footprint (its bounding box in the grid, as a square of the larger half side, and the tallest
+    column in it), so that the onboard runtime builds from its map what the env's ``static``
+    entry holds (``EnvConfig.static_source = "map"``; beyond the paper).
+
+    ``heights`` ``(..., G, G)`` column tops (m; first index x, as :class:`~safenav.envs.world.GridSpec`),
+    ``occupied`` ``(..., G, G)`` bool (the columns that are obstacles: above the ground, not the
+    border wall). Returns ``(xy (..., P, 2), half (..., P), top (..., P))`` for the inputs of
+    :func:`static_obstacle_features`, ``P`` the most footprints of any map, the others padded
+    with footprints of no size at ``FAR_FOOTPRINT``. A pillar's footprint is its rasterised cells'
+    box, within half a cell of the true one per side; touching pillars make one footprint that
+    covers both (conservative).
+    """
+    lead, g = heights.shape[:-2], heights.shape[-1]
+    hs = heights.reshape(-1, g, g).float()
+    occ = occupied.reshape(-1, g, g)
+    none = g * g  # larger than any cell index: "no label"
+    flat_index = torch.arange(g * g, dtype=torch.int32, device=hs.device).reshape(g, g)
+    labels = torch.where(occ, flat_index, none)
+    while True:  # each cell takes the least label of its group (at most the group's diameter)
+        padded = torch.nn.functional.pad(labels, (1, 1, 1, 1), value=none)
+        least = torch.minimum(torch.minimum(labels, padded[:, :-2, 1:-1]), padded[:, 2:, 1:-1])
+        least = torch.minimum(torch.minimum(least, padded[:, 1:-1, :-2]), padded[:, 1:-1, 2:])
+        least = torch.where(occ, least, none)
+        if torch.equal(least, labels):
+            break
+        labels = least
+    boxes = []
+    for m in range(hs.shape[0]):
+        ix, iy = torch.nonzero(occ[m], as_tuple=True)
+        groups, member = torch.unique(labels[m, ix, iy], return_inverse=True)
+        n = groups.numel()
+
+        def reduce(values: torch.Tensor, how: str, n: int = n, member: torch.Tensor = member):
+            out = torch.zeros(n, dtype=values.dtype, device=values.device)
+            return out.scatter_reduce(0, member, values, how, include_self=False)
+
+        x0, x1, y0, y1 = (
+            reduce(ix, "amin"),
+            reduce(ix, "amax"),
+            reduce(iy, "amin"),
+            reduce(iy, "amax"),
+        )
+        top = reduce(hs[m, ix, iy], "amax")
+        centre = torch.stack([x0 + x1 + 1, y0 + y1 + 1], -1).float() * (resolution / 2) + origin
+        half = torch.maximum(x1 - x0 + 1, y1 - y0 + 1).float() * (resolution / 2)
+        boxes.append((centre, half, top))
+    p = max([b[1].numel() for b in boxes], default=0)
+    xy = hs.new_full((hs.shape[0], p, 2), FAR_FOOTPRINT)
+    half, top = hs.new_zeros((hs.shape[0], p)), hs.new_zeros((hs.shape[0], p))
+    for m, (c, h, t) in enumerate(boxes):
+        xy[m, : h.numel()], half[m, : h.numel()], top[m, : h.numel()] = c, h, t
+    return xy.reshape(*lead, p, 2), half.reshape(*lead, p), top.reshape(*lead, p)
+
+
 def moving_obstacle_clearance(
     rel: torch.Tensor,
     width: torch.Tensor,
@@ -323,6 +388,8 @@ __all__ = [
     "beam_hit_points",
     "dynamic_obstacle_features",
     "memory_image",
+    "map_footprints",
+    "FAR_FOOTPRINT",
     "quantize_heights",
     "box_surface_distance",
     "moving_obstacle_clearance",
