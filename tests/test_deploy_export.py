@@ -17,6 +17,7 @@ from safenav.deploy.export import (
     OnnxPolicy,
     TorchPolicy,
     export_onnx,
+    input_names,
     load_actor,
     load_sidecar,
     random_observations,
@@ -40,7 +41,7 @@ def assert_onnx_equals_torch(actor, cfg, path: Path, real) -> np.ndarray:
     """Export ``actor``, run the ONNX file on the observations ``real`` and check it against the
     torch actor (within 1e-5); returns the torch actions."""
     export_onnx(actor, cfg, path, check_observations=real)
-    got = OnnxPolicy(path)(real["state"], real["lidar"], real["dynamic"])
+    got = OnnxPolicy(path)(*(real[k] for k in input_names(cfg)))
     with torch.no_grad():
         ref = actor(*(torch.as_tensor(real[k]) for k in actor.input_names)).numpy()
     np.testing.assert_allclose(got, ref, atol=1e-5, rtol=0)
@@ -84,6 +85,7 @@ def test_sidecar_describes_the_conventions(tmp_path: Path) -> None:
     assert obs["lidar"]["rows_elevation_deg"] == [-10.0, 0.0, 10.0, 20.0]
     assert meta["action"]["scale_m_s"] == 1.5 and meta["action"]["frame"] == "goal"
     assert len(meta["sha256"]) == 64
+    assert meta["inputs"] == ["state", "lidar", "dynamic"] and "static" not in obs
 
 
 def test_cli_export_scripted_and_errors(tmp_path: Path, capsys) -> None:
@@ -147,3 +149,36 @@ def test_the_trainers_actor_exports_with_its_own_input_order(tmp_path: Path) -> 
     np.testing.assert_allclose(
         TorchPolicy(actor)(real["state"], real["lidar"], real["dynamic"]), ref, atol=1e-6
     )
+
+
+def test_a_policy_with_a_pillar_list_exports_with_a_static_input(tmp_path: Path) -> None:
+    """``static_tracked`` K > 0: a fourth ONNX input ``static (N, K, 7)``, in the actor's order,
+    ONNX Runtime equal to torch on the env's observations (pillar lists from its map) and random
+    ones; the sidecar describes it; the policy refuses to run without it."""
+    from safenav.algos.policy import build_actor
+    from safenav.nn.networks import NetConfig
+
+    cfg = make_config("easy", static_tracked=4, static_source="map")
+    torch.manual_seed(0)
+    shapes = {"dynamic": [5, 10], "lidar": [4, 36], "state": [8], "static": [4, 7]}
+    meta = {"net": dataclasses.asdict(NetConfig()), "action_dim": 3, "obs_shapes": shapes}
+    actor = build_actor(meta).eval()
+    assert tuple(actor.input_names) == input_names(cfg) == ("state", "lidar", "dynamic", "static")
+    real = real_observations(cfg, steps=5)
+    assert real["static"].shape[1:] == (4, 7) and real["static"][..., 6].sum() > 0
+    path = tmp_path / "static.onnx"
+    ref = assert_onnx_equals_torch(actor, cfg, path, real)
+    policy, torch_policy = OnnxPolicy(path), TorchPolicy(actor)
+    assert policy.input_names == ("state", "lidar", "dynamic", "static")
+    np.testing.assert_allclose(torch_policy(*(real[k] for k in input_names(cfg))), ref, atol=1e-6)
+    rand = {k: v.numpy() for k, v in random_observations(cfg, 17, seed=3).items()}
+    np.testing.assert_allclose(policy(*rand.values()), torch_policy(*rand.values()), atol=1e-5,
+                               rtol=0)  # fmt: skip
+    # the list reaches the action
+    moved = policy(rand["state"], rand["lidar"], rand["dynamic"], rand["static"] * 0.5)
+    assert np.abs(moved - policy(*rand.values())).max() > 1e-4
+    sidecar, back = load_sidecar(path)
+    assert back == cfg and sidecar["inputs"] == ["state", "lidar", "dynamic", "static"]
+    assert sidecar["observation"]["static"]["shape"] == [4, 7]
+    with pytest.raises(ValueError, match="static"):
+        policy(rand["state"], rand["lidar"], rand["dynamic"])

@@ -12,6 +12,7 @@ run (fixed seeds; hypothesis derandomized, with a fixed number of examples):
 |---|---|---|
 | ``OnboardRuntime`` (hypothesis) | sequences of 10-30 updates: state, depth images, point clouds, obstacle tracks and goals that are NaN / Inf / huge, empty, wrong-shaped (1-D or 3-D depth, 2x2 ``R``, ``(P, 4)`` clouds, 2-vectors), wrong-dtyped (int of NaN, float16, complex, object, strings); stamps NaN / Inf / future / backwards / duplicated / stale; garbage policy outputs (NaN, 1e30, wrong shapes, None); no shield, the shield, the memory shield | 120 sequences (~2,300 updates) |
 | ``OnboardRuntime`` (seeded) | the same generator, each on the Numba kernels and on the batched NumPy / torch paths | 40 x 60 = 2,400 updates per path |
+| ``OnboardRuntime``, a pillar list (seeded) | the same generator for a policy with ``static_tracked``: the list built from the map the garbage fills, passed as the fourth array, finite whenever the policy runs | 12 x 60 = 720 updates |
 | ``OnboardRuntime`` + shield | tracks next to the vehicle with huge finite heights, widths, velocities; per path | 500 steps per path |
 | ``OnboardRuntime``, threads | 3 sensor threads x 200 garbage updates against >= 300 control steps | 600 updates |
 | ``decode_frame`` | random bytes: raw, length-prefixed, random JSON headers, nesting to depth 3,000 | 10,000 bodies |
@@ -81,6 +82,8 @@ V_MAX = CFG.v_max
 RUNTIME_SEQUENCES = 120
 SHIELD_CASES = 500
 SEEDED_SEQUENCES, SEEDED_UPDATES = 40, 60
+STATIC_SEQUENCES = 12
+CFG_STATIC = make_config("easy", static_tracked=4, static_source="map")
 THREADS, THREAD_UPDATES, THREAD_STEPS = 3, 200, 300
 DECODE_RANDOM = 10_000
 DECODE_MUTATED = 3_000
@@ -311,17 +314,20 @@ class Stats:
     """Hover reasons seen, by their first two words ("map stamp", "stale map", ...)."""
 
 
-def run_sequence(shield: int, require_tracker: bool, policy_seed: int, ops, stats: Stats) -> None:
+def run_sequence(shield: int, require_tracker: bool, policy_seed: int, ops, stats: Stats,
+                 cfg=CFG, wrap=None) -> None:  # fmt: skip
     """A ready runtime (good state, goal, map, tracker; ``shield``: 0 none, 1 the shield, N the
     memory shield of N images), then ``ops`` ``(kind, seed, good, stamp_offset)``, one control
-    step after each; every setpoint is checked."""
+    step after each; every setpoint is checked. ``cfg``: the policy's env configuration;
+    ``wrap``: a wrapper around the garbage policy (to check what it is given)."""
     config = RuntimeConfig(
         require_tracker=require_tracker,
-        shield=ShieldConfig.for_env(CFG) if shield else None,
+        shield=ShieldConfig.for_env(cfg) if shield else None,
         shield_memory=max(1, shield),
     )
     clock = [100.0]
-    rt = OnboardRuntime(Garbage(policy_seed, 0.7).policy(), CFG, config, clock=lambda: clock[0])
+    policy = Garbage(policy_seed, 0.7).policy()
+    rt = OnboardRuntime(wrap(policy) if wrap else policy, cfg, config, clock=lambda: clock[0])
     oracle = Oracle(config)
     rt.update_state([0.0, 0.0, 1.5], [0.0, 0.0, 0.0])
     oracle.fed("state", None, clock[0])
@@ -393,14 +399,20 @@ def test_runtime_sequences_give_bounded_setpoints(
     run_sequence(shield, require_tracker, policy_seed, ops, Stats())
 
 
+def seeded_ops(rng) -> list:
+    """``SEEDED_UPDATES`` ops for :func:`run_sequence`, mostly good updates, so that the runtime
+    flies between the bad ones."""
+    pick = lambda options: options[int(rng.integers(len(options)))]  # noqa: E731
+    return [(pick(KINDS), int(rng.integers(2**32)), bool(rng.random() < 0.7),
+             None if rng.random() < 0.6 else pick(STAMP_OFFSETS))
+            for _ in range(SEEDED_UPDATES)]  # fmt: skip
+
+
 def test_runtime_seeded_garbage(kernel_path) -> None:
     rng = np.random.default_rng(2024)
     stats = Stats()
     for i in range(SEEDED_SEQUENCES):
-        # Mostly good updates, so that the runtime flies between the bad ones.
-        ops = [(KINDS[int(rng.integers(len(KINDS)))], int(rng.integers(2**32)), bool(rng.random() < 0.7),
-                None if rng.random() < 0.6 else STAMP_OFFSETS[int(rng.integers(len(STAMP_OFFSETS)))])
-               for _ in range(SEEDED_UPDATES)]  # fmt: skip
+        ops = seeded_ops(rng)
         run_sequence((0, 1, 5)[i % 3], i % 4 < 2, int(rng.integers(2**32)), ops, stats)
     assert stats.updates == SEEDED_SEQUENCES * SEEDED_UPDATES
     # The fuzz reached both paths, and many guards.
@@ -409,6 +421,32 @@ def test_runtime_seeded_garbage(kernel_path) -> None:
                             "depth image", "point cloud", "map stamp", "stale map", "tracked obstacles",
                             "non-finite or", "tracker stamp", "stale obstacle", "policy output",
                             "non-finite observation"}, stats.guards  # fmt: skip
+
+
+def test_runtime_seeded_garbage_with_a_pillar_list() -> None:
+    """A policy with a pillar list (``static_tracked``): whenever it runs, it gets the ``static``
+    rows as its fourth array, finite and of its shape, built from whatever the garbage put in the
+    map (pillars of the good clouds among them); the setpoints stay bounded."""
+    rng = np.random.default_rng(77)
+    stats, lists = Stats(), []
+    k = CFG_STATIC.static_tracked
+
+    def wrap(policy):
+        def checked(state, lidar, dynamic, static):
+            assert static.shape == (1, k, 7) and static.dtype == np.float32
+            assert np.isfinite(static).all() and set(np.unique(static[0, :, 6])) <= {0.0, 1.0}
+            lists.append(int(static[0, :, 6].sum()))
+            return policy(state, lidar, dynamic)
+
+        return checked
+
+    for i in range(STATIC_SEQUENCES):
+        ops = seeded_ops(rng)
+        run_sequence((0, 1, 5)[i % 3], i % 4 < 2, int(rng.integers(2**32)), ops, stats,
+                     cfg=CFG_STATIC, wrap=wrap)  # fmt: skip
+    assert stats.updates == STATIC_SEQUENCES * SEEDED_UPDATES
+    assert stats.flew > 0.1 * stats.steps and len(lists) >= stats.flew
+    assert sum(n > 0 for n in lists) > 0.3 * len(lists)  # the map held pillars near the vehicle
 
 
 def test_runtime_absurd_but_finite_tracks_with_the_shield(kernel_path) -> None:
@@ -1033,7 +1071,8 @@ def test_flight_controller_rejects_garbage_goal_or_origin(name, value) -> None:
 
 def test_docstring_counts_match_the_tests() -> None:
     doc = __doc__ or ""
-    for n in (RUNTIME_SEQUENCES, SHIELD_CASES, SEEDED_SEQUENCES * SEEDED_UPDATES, THREADS * THREAD_UPDATES,
+    for n in (RUNTIME_SEQUENCES, SHIELD_CASES, SEEDED_SEQUENCES * SEEDED_UPDATES,
+              STATIC_SEQUENCES * SEEDED_UPDATES, THREADS * THREAD_UPDATES,
               DECODE_RANDOM, DECODE_MUTATED, DECODE_HEADERS, CLIENT_GARBAGE_FRAMES, SIM_DATAGRAMS,
               SIM_MESSAGES, MAVSDK_DATAGRAMS, FLIGHTS, MIN_FLIGHT_TICKS):  # fmt: skip
         assert f"{n:,}" in doc, n

@@ -94,6 +94,103 @@ def test_observation_equals_the_envs_given_its_map_and_obstacles() -> None:
     assert nonzero_dynamic > 0
 
 
+def _static_rows_checked(env, obs, ids, where: str) -> int:
+    """For each env ``i`` in ``ids``: a runtime given the env's map, position and goal frame
+    builds the env's ``static`` rows (the same to float precision: its footprints' centres are
+    offset from its window's corner, the env's from its map's); returns the rows of pillars."""
+    g2 = env.grid.size**2
+    rows = 0
+    for i in ids:
+        w = int(env.world_idx[i])
+        rt = OnboardRuntime(const_policy(), env.cfg, RuntimeConfig(require_tracker=False))
+        rt.map.cast_map = env.heights[w * g2 : (w + 1) * g2].clone()
+        rt.update_state(env.pos[i].numpy(), env.vel[i].numpy())
+        rt.set_goal(env.goal[i].numpy(), start=env.start[i].numpy())
+        mine, _ = rt.observation()
+        assert mine["static"].shape == (1, env.cfg.static_tracked, 7)
+        torch.testing.assert_close(mine["static"][0], obs["static"][i], atol=2e-6, rtol=0,
+                                   msg=lambda m, i=i: f"{where}, env {i}: {m}")  # fmt: skip
+        rows += int(obs["static"][i, :, 6].sum())
+    return rows
+
+
+def test_static_rows_equal_the_envs_from_the_map() -> None:
+    """A policy with a pillar list (``static_tracked``): the runtime's rows, built from a window
+    of its map, are those the env builds from its whole map with ``static_source="map"``, when
+    its map is the env's: anywhere in the dense paper arena (starts drawn over all of it, up to
+    the wall, some in or against pillars), over steps (the goal frame fixed at the start)."""
+    cfg = make_config("paper", static_tracked=8, static_source="map")
+    n = 16
+    env = SafeNavVectorEnv(n, config=cfg, output="torch", num_worlds=2)
+    env.reset(seed=7)
+    rng = np.random.default_rng(1)
+    lim = cfg.half - 0.2
+    starts = np.c_[rng.uniform(-lim, lim, (n, 2)), rng.uniform(0.3, 3.5, n)]
+    goals = np.c_[rng.uniform(-lim, lim, (n, 2)), rng.uniform(0.5, 2.5, n)]
+    obs, _ = env.reset(options={"starts": starts, "goals": goals})
+    rows = _static_rows_checked(env, obs, range(n), "at the start")
+    gen = torch.Generator().manual_seed(0)
+    for step in range(3):
+        obs, _, term, trunc, _ = env.step(torch.rand(n, 3, generator=gen) * 2 - 1)
+        live = [i for i in range(n) if not bool(term[i] | trunc[i])]
+        rows += _static_rows_checked(env, obs, live, f"step {step}")
+    assert rows >= 100  # dense: most rows hold a pillar
+
+
+def test_static_rows_of_touching_pillars_and_by_the_wall() -> None:
+    """Touching pillars are one footprint for both (env and runtime); the geofence wall is none,
+    and a pillar against it is one; an empty neighbourhood gives zero rows."""
+    from safenav.envs.world import world_from_obstacles
+
+    cfg = make_config("easy", static_tracked=4, static_source="map")
+    env = SafeNavVectorEnv(3, config=cfg, output="torch", num_worlds=1)
+    pillars = [(1.0, 0.0, 0.8, 2.0), (1.8, 0.0, 0.8, 3.0), (1.4, 0.6, 0.4, 1.0),  # one group
+               (-1.5, 1.0, 0.4, 1.5), (9.7, 9.0, 0.6, 2.5), (9.0, 9.7, 0.6, 2.5)]  # fmt: skip
+    env.set_worlds([world_from_obstacles(cfg, pillars)])
+    starts = [[0.0, 0.0, 1.5], [8.8, 8.7, 1.0], [-7.0, -7.0, 1.0]]
+    goals = [[5.0, 3.0, 1.5], [0.0, 8.0, 1.5], [7.0, -7.0, 1.5]]
+    obs, _ = env.reset(options={"starts": starts, "goals": goals})
+    assert _static_rows_checked(env, obs, range(3), "hand-made") == 2 + 2
+    # the group of three: one footprint of half side 0.8 (its 1.6 m box), its tallest top
+    merged = obs["static"][0, :, 4].argmax()
+    assert obs["static"][0, merged, 4] * 0.4 == pytest.approx(0.8, abs=1e-6)
+    assert obs["static"][0, merged, 5] * 4.0 == pytest.approx(3.0 - 1.5, abs=0.03)
+    assert obs["static"][2].eq(0).all()
+
+
+def test_runtime_passes_the_pillar_list_to_the_policy() -> None:
+    """The policy gets ``static`` as its fourth array (a policy without it, three: every other
+    test); a pillar the depth / points put in the map is a row; the observation guard covers it."""
+    cfg = make_config("easy", static_tracked=3, static_source="map")
+    seen = []
+
+    def policy(*arrays):
+        seen.append([a.copy() for a in arrays])
+        return np.zeros((1, 3), dtype=np.float32)
+
+    rt = OnboardRuntime(policy, cfg, RuntimeConfig(require_tracker=False))
+    rt.update_state([0.0, 0.0, 1.0], [0.0, 0.0, 0.0])
+    rt.set_goal([0.0, 5.0, 1.0])  # goal frame: x north (world +y), y west (world -x)
+    # points on the faces of a 0.4 m pillar 2 m east, 1.5 m tall (just inside: its 4 x 4 cells)
+    s = np.linspace(-0.19, 0.19, 9)
+    face = [[2.0 + a, b, z] for a in s for b in (-0.19, 0.19) for z in (0.5, 1.0, 1.5)]
+    face += [[2.0 + a, b, z] for a in (-0.19, 0.19) for b in s for z in (0.5, 1.0, 1.5)]
+    rt.update_points(np.array(face))
+    sp = rt.step()
+    assert not sp.hover and len(seen) == 1 and len(seen[0]) == 4
+    static = seen[0][3]
+    assert static.shape == (1, 3, 7) and static.dtype == np.float32
+    np.testing.assert_array_equal(sp.observation["static"], static[0])
+    row = static[0, 0]
+    assert row[6] == 1 and static[0, 1:].sum() == 0  # one pillar, the other rows empty
+    # 2 m east = 2 m to the goal frame's right (-y): its near face 1.8 m away, half side 0.2 m
+    np.testing.assert_allclose(row[:6] * [4, 4, 4, 4, 0.4, 4], [0.0, -1.8, 0.0, -2.0, 0.2, 0.5],
+                               atol=1e-5)  # fmt: skip
+    rt._static_rows = lambda pos, yaw: torch.full((1, 3, 7), math.nan)  # a bad list: hover
+    sp = rt.step()
+    assert sp.hover and "non-finite observation" in sp.reason and len(seen) == 1
+
+
 def _bracket_maps(env):
     """The true height map grown and shrunk by one cell (and raised/lowered by one cell height):
     a range image within the map resolution of the truth lies between their range images."""

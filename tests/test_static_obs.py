@@ -1,6 +1,7 @@
 """The ``static`` observation entry (``EnvConfig.static_tracked``; beyond the paper): the nearest
 pillars' geometry in the goal frame. Features on a hand-built map, the env's entry against them,
-the default's absence, the extractor, training, evaluation and the deployment refusal."""
+the default's absence, the extractor, training, evaluation and deployment (export, a runtime
+step; the runtime's rows against the env's: tests/test_deploy_runtime.py)."""
 
 from __future__ import annotations
 
@@ -25,7 +26,6 @@ from safenav.envs.sensors import (
     static_obstacle_features,
 )
 from safenav.envs.world import GridSpec, border_walls, height_map, world_from_obstacles
-from safenav.errors import SafenavError
 
 
 def _features(yaw: float, k: int = 3) -> torch.Tensor:
@@ -185,26 +185,44 @@ def test_extractor_embeds_the_static_entry():
 def static_run(tmp_path_factory) -> Path:
     torch.set_num_threads(1)
     run_dir = tmp_path_factory.mktemp("runs") / "static"
-    return train_tiny_csac(run_dir, "static_tracked", "4")
+    return train_tiny_csac(run_dir, "static_tracked", "4", "static_source", "map")
 
 
-def test_train_eval_and_deploy_refusal(static_run, tmp_path, capsys):
+def test_train_eval_export_and_a_runtime_step(static_run, tmp_path):
+    import numpy as np
+
     from safenav.algos.policy import load_policy
-    from safenav.deploy.export import check_deployable
+    from safenav.deploy.export import OnnxPolicy, TorchPolicy, check_deployable, load_sidecar
+    from safenav.deploy.runtime import OnboardRuntime, RuntimeConfig
 
-    assert json.loads((static_run / "config.json").read_text())["env_config"]["static_tracked"] == 4
+    env_config = json.loads((static_run / "config.json").read_text())["env_config"]
+    assert env_config["static_tracked"] == 4 and env_config["static_source"] == "map"
     policy = load_policy(static_run / "checkpoint.pt")
     assert policy.obs_shapes["static"] == (4, 7)
     for extra in ([], ["--preset", "paper"]):  # a preset keeps the policy's pillar list
         out = tmp_path / f"eval{len(extra)}.json"
         main(["eval", str(static_run), "--episodes", "2", "--json", str(out), *extra])
         assert json.loads(out.read_text())["episodes"] == 2
-    with pytest.raises(SafenavError, match="static_tracked > 0 cannot be deployed yet"):
-        check_deployable(make_config("easy", static_tracked=4), "p")
-    with pytest.raises(SystemExit) as exit_:
-        main(["export", str(static_run / "checkpoint.pt"), "--onnx", str(tmp_path / "p.onnx")])
-    assert exit_.value.code == 2 and "cannot be deployed yet" in capsys.readouterr().err
-    assert not (tmp_path / "p.onnx").exists()
+    check_deployable(make_config("easy", static_tracked=4), "p")  # either source deploys
+    onnx = tmp_path / "p.onnx"
+    main(["export", str(static_run / "checkpoint.pt"), "--onnx", str(onnx)])
+    meta, cfg = load_sidecar(onnx)
+    assert cfg.static_tracked == 4 and meta["inputs"][-1] == "static"
+    # the onboard runtime flies it: a pillar 1.5 m ahead in its map is the first row
+    runtime = OnboardRuntime(OnnxPolicy(onnx), cfg, RuntimeConfig(require_tracker=False))
+    runtime.update_state([0.0, -6.0, 1.5], [0.0, 0.0, 0.0])
+    side = np.linspace(-0.19, 0.19, 5)
+    pillar = [[x, -4.3 + y, z] for x in side for y in side for z in (0.5, 1.0, 2.0)]
+    runtime.update_points(np.array(pillar))
+    runtime.set_goal([0.0, 6.0, 1.5])
+    setpoint = runtime.step()
+    assert not setpoint.hover, setpoint.reason
+    static = setpoint.observation["static"]
+    assert static.shape == (4, 7) and static[0, 6] == 1 and static[1:].sum() == 0
+    assert static[0, 0] == pytest.approx(1.5 / 4, abs=1e-5)  # near face 1.5 m ahead (goal-frame x)
+    obs = [setpoint.observation[k][None] for k in ("state", "lidar", "dynamic", "static")]
+    np.testing.assert_allclose(setpoint.policy_action, TorchPolicy(policy.actor)(*obs)[0],
+                               atol=1e-5)  # fmt: skip
 
 
 def test_pillars_recipe_is_the_memory_recipe_plus_the_list():

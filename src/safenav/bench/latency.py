@@ -168,21 +168,19 @@ def bench_latency(
     quiet: bool = False,
 ) -> dict[str, Any]:
     """Measure and return (and write to ``json_out``) p50/p99 latencies in milliseconds."""
-    from safenav.deploy.export import NamedInputActor, OnnxPolicy, export_onnx
+    from safenav.deploy.export import NamedInputActor, OnnxPolicy, export_onnx, input_names
     from safenav.deploy.runtime import OnboardRuntime, RuntimeConfig
     from safenav.deploy.shield import ShieldConfig
+    from safenav.envs.config import observation_shapes
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
         actor, cfg, source = _actor(checkpoint)
-        actor = NamedInputActor(
-            actor
-        ).eval()  # (state, lidar, dynamic) whatever the actor's own input order
-        obs = {k: torch.as_tensor(v) for k, v in {
-            "state": np.zeros((1, 8), np.float32), "lidar": np.zeros((1, len(cfg.lidar_v_angles), cfg.lidar_h_beams), np.float32),
-            "dynamic": np.zeros((1, cfg.num_tracked, 10), np.float32)}.items()}  # fmt: skip
-        args = (obs["state"], obs["lidar"], obs["dynamic"])
+        # (state, lidar, dynamic[, static]) whatever the actor's own input order
+        actor = NamedInputActor(actor).eval()
+        shapes = observation_shapes(cfg)  # a memory image's rows and a pillar list included
+        args = tuple(torch.zeros(1, *shapes[k]) for k in input_names(cfg))
         out: dict[str, Any] = {}
         with torch.inference_mode():
             out["torch_p50_ms"], out["torch_p99_ms"] = _time(

@@ -5,7 +5,9 @@ the network: the observation layout and scaling, the action scaling and frame, `
 rate the policy was trained at, and the full env configuration (:class:`EnvConfig`).
 
 Inputs of the ONNX graph (batch dimension ``N`` dynamic, float32): ``state (N, 8)``, ``lidar (N, 4,
-36)`` (``(N, 8, 36)`` with a memory image, ``lidar_memory``), ``dynamic (N, 5, 10)``; output ``action (N, 3)`` in ``[-1, 1]``, the goal-frame velocity
+36)`` (``(N, 8, 36)`` with a memory image, ``lidar_memory``), ``dynamic (N, 5, 10)``, and
+``static (N, K, 7)`` only for a policy with a pillar list (``static_tracked`` K > 0; the others
+keep their three inputs); output ``action (N, 3)`` in ``[-1, 1]``, the goal-frame velocity
 divided by ``v_max``. Exported with the TorchScript-based exporter (``dynamo=False``): one static
 graph, no onnxscript rewriting, identical on every torch version that still ships it; the dynamo
 exporter is the fallback.
@@ -32,10 +34,20 @@ from safenav.common.jsonout import write_json
 from safenav.envs.config import EnvConfig, observation_shapes
 from safenav.envs.nav import DIST_SCALE, Z_SCALE
 from safenav.errors import SafenavError, one_line
+from safenav.nn.networks import STATIC_KEY, input_order
 
 SIDECAR_FORMAT = "safenav-policy/1"
 INPUT_NAMES = ("state", "lidar", "dynamic")
+"""The inputs of every exported policy; one with a pillar list has ``static`` after them
+(:func:`input_names`)."""
 OUTPUT_NAME = "action"
+
+
+def input_names(cfg: EnvConfig) -> tuple[str, ...]:
+    """The ONNX inputs of a policy of env configuration ``cfg``, in the actor's positional order
+    (:func:`safenav.nn.networks.input_order`): :data:`INPUT_NAMES`, then ``static`` with
+    ``static_tracked`` > 0."""
+    return input_order(observation_shapes(cfg))
 
 
 def sidecar_path(onnx_path: str | Path) -> Path:
@@ -83,6 +95,22 @@ def policy_conventions(cfg: EnvConfig) -> dict[str, Any]:
                 "rows": f"the {cfg.num_tracked} horizontally nearest moving obstacles within "
                         f"{cfg.lidar_range} m, nearest first; zero rows beyond",
             },
+            **({"static": {
+                "shape": [cfg.static_tracked, 7],
+                "layout": ["near_rel_x", "near_rel_y", "centre_rel_x", "centre_rel_y",
+                           "half_side", "top_minus_altitude", "present"],
+                "frame": "goal",
+                "scale": {"rel_m": cfg.lidar_range, "half_side_m": 0.4,
+                          "top_minus_altitude_m": cfg.lidar_range},
+                "rows": f"the {cfg.static_tracked} pillars nearest by clearance (3-D distance to "
+                        f"the ground-standing box) within {cfg.lidar_range} m, nearest first; "
+                        "zero rows beyond",
+                "source": "the onboard height map: each 4-connected group of occupied cells "
+                          "(above the ground, not the geofence wall) one footprint, its bounding "
+                          "box as a square of the larger half side, its tallest column "
+                          "(safenav.envs.sensors.map_footprints; static_source "
+                          f"{cfg.static_source!r} in training)",
+            }} if cfg.static_tracked else {}),
         },
         "action": {
             "shape": [3], "range": [-1.0, 1.0], "frame": "goal", "scale_m_s": cfg.v_max,
@@ -96,30 +124,38 @@ def policy_conventions(cfg: EnvConfig) -> dict[str, Any]:
 
 def check_deployable(cfg: EnvConfig, where: str | Path) -> None:
     """``SafenavError`` unless the onboard runtime can build the observations of a policy of env
-    configuration ``cfg`` (``where`` names it): not for a range-image history or a pillar list
-    (``static_tracked``) yet (a memory image, ``lidar_memory``, it builds)."""
+    configuration ``cfg`` (``where`` names it): not for a range-image history yet (a memory image,
+    ``lidar_memory``, it builds; a pillar list, ``static_tracked``, it builds from its map as the
+    env's ``static_source="map"`` does)."""
     if cfg.lidar_history > 1:
         raise SafenavError(f"{where}: policies trained with lidar_history > 1 cannot be deployed "
                            f"yet: this one reads the range images of the last {cfg.lidar_history} "
                            "control steps, and the onboard runtime (safenav export / fly) builds "
                            "the current one only; evaluate it in simulation (safenav eval)")  # fmt: skip
-    if getattr(cfg, "static_tracked", 0):
-        raise SafenavError(f"{where}: policies trained with static_tracked > 0 cannot be deployed "
-                           f"yet: this one reads a list of the {cfg.static_tracked} nearest pillars, "
-                           "which the onboard runtime (safenav export / fly) does not build; "
-                           "evaluate it in simulation (safenav eval)")  # fmt: skip
 
 
 def call_actor(
-    actor: nn.Module, state: torch.Tensor, lidar: torch.Tensor, dynamic: torch.Tensor
+    actor: nn.Module,
+    state: torch.Tensor,
+    lidar: torch.Tensor,
+    dynamic: torch.Tensor,
+    static: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Call an actor with the observation tensors in its own positional order: the trainer's
-    ``DeterministicActor`` names it in ``input_names``; otherwise ``(state, lidar, dynamic)``."""
+    ``DeterministicActor`` names it in ``input_names``; otherwise ``(state, lidar, dynamic)``,
+    then ``static`` when given (a policy with a pillar list, ``static_tracked``)."""
     names = getattr(actor, "input_names", None)
     if names is None:
-        return actor(state, lidar, dynamic)
+        return (
+            actor(state, lidar, dynamic) if static is None else actor(state, lidar, dynamic, static)
+        )
     named = {"state": state, "lidar": lidar, "dynamic": dynamic}
+    if static is not None:
+        named[STATIC_KEY] = static
     unknown = sorted(set(names) - set(named))
+    if unknown == [STATIC_KEY]:
+        raise SafenavError("the actor reads a pillar list (static), but none was given: its env "
+                           "configuration has static_tracked 0")  # fmt: skip
     if unknown:
         raise SafenavError(
             f"the actor reads observation entries {unknown}: not a SafeNav-v1 policy"
@@ -128,26 +164,37 @@ def call_actor(
 
 
 class NamedInputActor(nn.Module):
-    """Named-input wrapper: ``forward(state, lidar, dynamic) -> action`` clamped to [-1, 1]."""
+    """Named-input wrapper: ``forward(state, lidar, dynamic[, static]) -> action`` clamped to
+    [-1, 1] (``static`` for a policy with a pillar list only)."""
 
     def __init__(self, actor: nn.Module) -> None:
         super().__init__()
         self.actor = actor
 
     def forward(
-        self, state: torch.Tensor, lidar: torch.Tensor, dynamic: torch.Tensor
+        self,
+        state: torch.Tensor,
+        lidar: torch.Tensor,
+        dynamic: torch.Tensor,
+        static: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        return torch.clamp(call_actor(self.actor, state, lidar, dynamic), -1.0, 1.0)
+        return torch.clamp(call_actor(self.actor, state, lidar, dynamic, static), -1.0, 1.0)
 
 
 def random_observations(cfg: EnvConfig, n: int, seed: int = 0) -> dict[str, torch.Tensor]:
-    """Random observations spanning the env's value ranges (for export checks)."""
+    """Random observations spanning the env's value ranges (for export checks); ``static`` too
+    for a policy with a pillar list (drawn last: the other entries are those of any policy)."""
     g = torch.Generator().manual_seed(seed)
     shapes = observation_shapes(cfg)
     state = torch.rand(n, *shapes["state"], generator=g) * 2 - 1
     lidar = torch.rand(n, *shapes["lidar"], generator=g)
     dynamic = torch.rand(n, *shapes["dynamic"], generator=g) * 2 - 1
-    return {"state": state, "lidar": lidar, "dynamic": dynamic}
+    obs = {"state": state, "lidar": lidar, "dynamic": dynamic}
+    if STATIC_KEY in shapes:  # positions, sizes and tops in [-1, 1]; the presence flag 0 or 1
+        static = torch.rand(n, *shapes[STATIC_KEY], generator=g) * 2 - 1
+        static[..., -1] = (static[..., -1] > 0).float()
+        obs[STATIC_KEY] = static
+    return obs
 
 
 def export_onnx(
@@ -195,7 +242,7 @@ def export_onnx(
             "format": SIDECAR_FORMAT,
             "onnx": onnx_path.name,
             "sha256": hashlib.sha256(tmp.read_bytes()).hexdigest(),
-            "inputs": list(INPUT_NAMES),
+            "inputs": list(input_names(cfg)),
             "output": OUTPUT_NAME,
             "opset": written,
             "exporter": exporter,
@@ -216,14 +263,15 @@ def _export(actor: nn.Module, cfg: EnvConfig, path: Path, opset: int) -> str:
     exporter first; the dynamo exporter only when that one is gone, never as a silent way around
     an opset the TorchScript exporter refused."""
     model = NamedInputActor(actor).eval().to("cpu")
+    names = input_names(cfg)
     example = random_observations(cfg, 2)
-    args = tuple(example[k] for k in INPUT_NAMES)
-    axes = {k: {0: "batch"} for k in (*INPUT_NAMES, OUTPUT_NAME)}
+    args = tuple(example[k] for k in names)
+    axes = {k: {0: "batch"} for k in (*names, OUTPUT_NAME)}
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:
             with _stdout_silenced():  # a failing TorchScript export prints its graph (C++)
-                torch.onnx.export(model, args, str(path), input_names=list(INPUT_NAMES),
+                torch.onnx.export(model, args, str(path), input_names=list(names),
                                   output_names=[OUTPUT_NAME], dynamic_axes=axes,
                                   opset_version=opset, dynamo=False)  # fmt: skip
             return "torchscript"
@@ -234,9 +282,9 @@ def _export(actor: nn.Module, cfg: EnvConfig, path: Path, opset: int) -> str:
                                    f"{opset} ({reason}); the default is 17") from None  # fmt: skip
         batch = torch.export.Dim("batch", min=1)
         try:
-            torch.onnx.export(model, args, str(path), input_names=list(INPUT_NAMES),
+            torch.onnx.export(model, args, str(path), input_names=list(names),
                               output_names=[OUTPUT_NAME], opset_version=opset, dynamo=True,
-                              dynamic_shapes={k: {0: batch} for k in INPUT_NAMES},
+                              dynamic_shapes={k: {0: batch} for k in names},
                               external_data=False)  # fmt: skip
         except Exception as err:  # noqa: BLE001 -- one line, naming the opset
             raise SafenavError(f"--opset {opset}: the ONNX export failed "
@@ -272,11 +320,12 @@ def _check_onnx_runtime(actor: nn.Module, cfg: EnvConfig, path: Path,
         sets.append(
             {k: torch.as_tensor(v, dtype=torch.float32) for k, v in check_observations.items()}
         )
+    names = input_names(cfg)
     worst = 0.0
     for obs in sets:
         with torch.no_grad():
-            ref = model(*(obs[k] for k in INPUT_NAMES)).numpy()
-        got = runner(*(obs[k].numpy() for k in INPUT_NAMES))
+            ref = model(*(obs[k] for k in names)).numpy()
+        got = runner(*(obs[k].numpy() for k in names))
         worst = max(worst, float(np.abs(got - ref).max()))
     return worst
 
@@ -317,7 +366,9 @@ def env_config_from_dict(d: dict[str, Any]) -> EnvConfig:
 
 
 class OnnxPolicy:
-    """ONNX Runtime inference of an exported actor on the CPU (``threads`` intra-op threads)."""
+    """ONNX Runtime inference of an exported actor on the CPU (``threads`` intra-op threads):
+    ``(state, lidar, dynamic[, static]) -> action``, ``static`` for (and only for) a policy with a
+    pillar list (its graph has that input; ``input_names``)."""
 
     def __init__(self, onnx_path: str | Path, threads: int = 1) -> None:
         import onnxruntime as ort
@@ -332,11 +383,18 @@ class OnnxPolicy:
             str(onnx_path), sess_options=opts, providers=["CPUExecutionProvider"]
         )
         self.path = Path(onnx_path)
+        self.input_names = tuple(i.name for i in self.session.get_inputs())
 
-    def __call__(self, state: np.ndarray, lidar: np.ndarray, dynamic: np.ndarray) -> np.ndarray:
+    def __call__(self, state: np.ndarray, lidar: np.ndarray, dynamic: np.ndarray,
+                 static: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
         feeds = {"state": np.ascontiguousarray(state, dtype=np.float32),
                  "lidar": np.ascontiguousarray(lidar, dtype=np.float32),
                  "dynamic": np.ascontiguousarray(dynamic, dtype=np.float32)}  # fmt: skip
+        if static is not None:
+            feeds[STATIC_KEY] = np.ascontiguousarray(static, dtype=np.float32)
+        if set(feeds) != set(self.input_names):  # ONNX Runtime's own message names no fix
+            raise ValueError(f"{self.path} takes the inputs {list(self.input_names)}, given "
+                             f"{list(feeds)}")  # fmt: skip
         return self.session.run(None, feeds)[0]
 
 
@@ -346,11 +404,12 @@ class TorchPolicy:
     def __init__(self, actor: nn.Module) -> None:
         self.actor = actor.eval()
 
-    def __call__(self, state: np.ndarray, lidar: np.ndarray, dynamic: np.ndarray) -> np.ndarray:
+    def __call__(self, state: np.ndarray, lidar: np.ndarray, dynamic: np.ndarray,
+                 static: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+        as_tensor = lambda a: torch.from_numpy(np.asarray(a, dtype=np.float32))  # noqa: E731
         with torch.inference_mode():
-            out = call_actor(self.actor, torch.from_numpy(np.asarray(state, dtype=np.float32)),
-                             torch.from_numpy(np.asarray(lidar, dtype=np.float32)),
-                             torch.from_numpy(np.asarray(dynamic, dtype=np.float32)))  # fmt: skip
+            out = call_actor(self.actor, as_tensor(state), as_tensor(lidar), as_tensor(dynamic),
+                             None if static is None else as_tensor(static))  # fmt: skip
         return torch.clamp(out, -1.0, 1.0).numpy()
 
 
@@ -408,6 +467,7 @@ __all__ = [
     "TorchPolicy",
     "env_config_from_dict",
     "export_onnx",
+    "input_names",
     "is_torch_file",
     "load_actor",
     "load_sidecar",

@@ -8,6 +8,11 @@ has instead of the simulator's ground truth:
   very same :func:`safenav.envs.sensors.raycast_height_map`;
 - **dynamic**: tracked moving obstacles (centre, velocity, width, height) turned into the env's
   features by the very same :func:`safenav.envs.sensors.dynamic_obstacle_features`;
+- **static** (only for a policy with a pillar list, ``EnvConfig.static_tracked`` K > 0): the
+  pillars as the map shows them, as the env builds them with ``static_source="map"``: in a window
+  of the map around the vehicle, each group of occupied cells one footprint
+  (:func:`safenav.envs.sensors.map_footprints`), the K nearest by the very same
+  :func:`safenav.envs.sensors.static_obstacle_features`;
 - **state**: the vehicle's position and velocity (world ENU) and the goal.
 
 :meth:`OnboardRuntime.step` returns a :class:`Setpoint`: a world-frame (ENU) velocity, clamped to
@@ -38,7 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from safenav.deploy.export import check_deployable
+from safenav.deploy.export import check_deployable, input_names
 from safenav.deploy.frames import enu_to_ned, goal_frame_yaw, yaw_enu_to_ned
 from safenav.deploy.mapping import HeightMap
 from safenav.deploy.perception_link import DepthImage, PerceptionFrame, TrackedObstacle
@@ -47,17 +52,22 @@ from safenav.envs.config import EnvConfig
 from safenav.envs.nav import DIST_SCALE, Z_SCALE
 from safenav.envs.sensors import (
     FAR_POINT,
+    HEIGHT_QUANTUM,
     RangeImageSpec,
     beam_hit_points,
     dynamic_obstacle_features,
+    map_footprints,
     memory_image,
     raycast_height_map,
+    static_obstacle_features,
 )
 from safenav.envs.world import GridSpec
 
 log = logging.getLogger("safenav.deploy.runtime")
 
-PolicyFn = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+PolicyFn = Callable[..., np.ndarray]
+"""``(state, lidar, dynamic) -> action``, NumPy float32 batches of 1; ``(state, lidar, dynamic,
+static)`` for a policy with a pillar list (``EnvConfig.static_tracked`` > 0)."""
 
 
 @dataclass
@@ -104,7 +114,8 @@ class RuntimeConfig:
     fly`` converts the env's 10 Hz images to its setpoint rate (:meth:`for_flight`)."""
     geofence: bool = True
     """Mark the env's arena border as a wall in the onboard map, as the simulator does (SafeNav-v1
-    trains policies in a closed arena): the flight area is a geofence the policy sees coming."""
+    trains policies in a closed arena): the flight area is a geofence the policy sees coming. As
+    in the env, the wall is no pillar of the ``static`` list (a policy with ``static_tracked``)."""
 
     @classmethod
     def for_flight(cls, env_config: EnvConfig, shield_memory: int, rate_hz: float,
@@ -164,7 +175,8 @@ class OnboardRuntime:
     Args:
         policy: ``(state (1, 8), lidar (1, 4, 36), dynamic (1, 5, 10)) -> action (1, 3)`` NumPy
             float32, e.g. :class:`~safenav.deploy.export.OnnxPolicy` (``lidar (1, 8, 36)`` with
-            a memory image).
+            a memory image; a fourth argument ``static (1, K, 7)`` with a pillar list,
+            ``static_tracked`` K > 0).
         env_config: the policy's env configuration (beam layout, scales, v_max, grid).
         config: guards and perception settings.
         grid: the map's extent (default: the env's map plus padding, world-fixed).
@@ -209,6 +221,12 @@ class OnboardRuntime:
             grid or GridSpec.for_config(env_config),
             geofence=env_config.half if self.config.geofence else None,
         )
+        self._inputs = input_names(env_config)  # the policy's arguments: static last, if any
+        # The pillar list's window: cells either side of the vehicle's, so that every pillar
+        # (of the env's sides) whose clearance is within range lies wholly in it, with two cells
+        # to spare (a pillar cut by the window's edge is then out of range, cut or not).
+        reach = env_config.lidar_range + max(env_config.pillar_sides)
+        self._static_reach = math.ceil(reach / self.map.grid.resolution - 1e-6) + 2
         self._lock = threading.Lock()
         self._goal: np.ndarray | None = None
         self._yaw = 0.0
@@ -423,7 +441,45 @@ class OnboardRuntime:
         if self._mem_slots:
             lidar = torch.cat([lidar, self._memory_image(ranges, pos, yaw, remember)], 1)
         obs = {"state": torch.from_numpy(state)[None], "lidar": lidar, "dynamic": dynamic}
+        if cfg.static_tracked:
+            obs["static"] = self._static_rows(pos, yaw)
         return obs, ranges
+
+    def _static_rows(self, pos: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
+        """The ``static`` entry ``(1, K, 7)``, as the env builds it with ``static_source="map"``
+        from its whole map: the footprints (:func:`~safenav.envs.sensors.map_footprints`) of the
+        occupied columns in a window of ``2 * _static_reach + 1`` cells a side around the
+        vehicle's cell (the whole map takes ~0.2 s), then the K nearest within range.
+
+        Occupied: a column above the ground (sensor data raises only columns of points above the
+        map's ground band) that is not the geofence wall (the map's ``floor``); its top as the
+        ray caster reads it (the quantized ``cast_map``, as the env's). The part of the window
+        beyond the map is free. A group of touching pillars that reaches beyond the window is cut
+        at its edge where the env takes it whole: the one difference from the env's list."""
+        cfg, grid, m = self.cfg, self.map.grid, self.map
+        g, res, r = grid.size, grid.resolution, self._static_reach
+        side = 2 * r + 1
+        # The vehicle's cell, clamped first (a finite position far away would overflow a cell
+        # index): beyond the map by more than the window, the window holds no map cell.
+        corner = []
+        for x in self._pos[:2]:
+            cell = min(max((float(x) - grid.origin) / res, -side), g + side)
+            corner.append(math.floor(cell) - r)
+        (x0, y0), tops = corner, torch.zeros(side, side)
+        occupied = torch.zeros(side, side, dtype=torch.bool)
+        ax, bx = max(x0, 0), min(x0 + side, g)
+        ay, by = max(y0, 0), min(y0 + side, g)
+        if ax < bx and ay < by:
+            cast = m.cast_map.view(g, g)[ax:bx, ay:by]
+            col = cast.float() * HEIGHT_QUANTUM if cast.dtype == torch.uint8 else cast.float()
+            wall = m.floor.view(g, g)[ax:bx, ay:by] > 0
+            tops[ax - x0 : bx - x0, ay - y0 : by - y0] = col
+            occupied[ax - x0 : bx - x0, ay - y0 : by - y0] = (col > 0) & ~wall
+        xy, half, top = map_footprints(tops, occupied, 0.0, res)
+        xy = xy + torch.tensor([grid.origin + x0 * res, grid.origin + y0 * res])
+        cos_y, sin_y = torch.cos(yaw), torch.sin(yaw)
+        return static_obstacle_features(pos, xy[None], half[None], top[None], cos_y, sin_y,
+                                        cfg.static_tracked, cfg.lidar_range)  # fmt: skip
 
     def _memory_image(self, ranges: torch.Tensor, pos: torch.Tensor, yaw: torch.Tensor,
                       remember: bool) -> torch.Tensor:  # fmt: skip
@@ -462,9 +518,7 @@ class OnboardRuntime:
             np_obs = {k: v.numpy() for k, v in obs.items()}
             if not all(np.isfinite(v).all() for v in np_obs.values()):
                 return self._hover("non-finite observation")
-            raw = np.asarray(
-                self.policy(np_obs["state"], np_obs["lidar"], np_obs["dynamic"]), dtype=np.float32
-            )
+            raw = np.asarray(self.policy(*(np_obs[k] for k in self._inputs)), dtype=np.float32)
             t2 = time.perf_counter()
             if raw.shape != (1, 3) or not np.isfinite(raw).all():
                 return self._hover(
