@@ -237,3 +237,27 @@ def test_pillars_recipe_is_the_memory_recipe_plus_the_list():
     assert load_recipe("csac-shielded-memory-pillars").section("csac") == load_recipe(
         "csac-shielded-memory"
     ).section("csac")
+
+
+def test_static_source_script_flies_both_lists_on_validation_only(static_run, tmp_path):
+    """experiments/static_source.py (docs/csac-v1.md, "The pillar list from the map"): the same
+    episodes with the drawn list and the map's, paired; the test and held-out maps refused."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "experiments" / "static_source.py"
+    spec = importlib.util.spec_from_file_location("static_source", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    out = tmp_path / "s.json"
+    assert script.main([str(static_run / "checkpoint.pt"), "--env-seeds", "12345",
+                        "--episodes", "3", "--json", str(out)]) == 0  # fmt: skip
+    data = json.loads(out.read_text())
+    (row,) = data["policies"]
+    assert row["trained_with"] == "map"
+    assert len(row["exact"]["success"]) == len(row["map"]["collision"]) == 3
+    for key in ("success", "collision"):
+        s = data["summary"][key]
+        assert s["episodes"] == 3 and s["diff"] == pytest.approx(s["map"] - s["exact"])
+        assert s["ci95"][0] <= s["diff"] <= s["ci95"][1]
+    with pytest.raises(SystemExit):
+        script.main([str(static_run / "checkpoint.pt"), "--env-seeds", "1"])
