@@ -3,10 +3,10 @@ paper; docs/csac-v1.md, "The planner's flights in the replay").
 
 Before training, :func:`fly_planner` flies planner B (:data:`~safenav.envs.planner.PLANNER_B`:
 the range image's hits of the last second, the observation's moving obstacles, read from the
-simulator; or, ``--csac.planner-view pillars``, the pillars' exact geometry within 4 m) on ``planner_envs`` envs of the run's own env config at the curriculum's final
-density, on maps of their own (:meth:`~safenav.common.config.RunConfig.planner_env_seed`: neither
-the training maps nor the validation, held-out or test ones), until ``planner_steps``
-transitions. The learner keeps them apart from its replay buffer and draws a fixed share of each
+simulator; or, ``--csac.planner-view pillars``, the pillars' exact geometry within 4 m) on
+``planner_envs`` envs of the run's own env config at the curriculum's final density, on maps
+of their own (:meth:`~safenav.common.config.RunConfig.planner_env_seed`: neither the training
+maps nor the validation, held-out or test ones), until ``planner_steps`` transitions. The learner keeps them apart from its replay buffer and draws a fixed share of each
 minibatch from them (RLPD's symmetric sampling, Ball et al. 2023, "Efficient Online
 Reinforcement Learning with Offline Data", there with a share of 0.5). The policy never sees the
 planner at flight time; the planner's transitions are not counted in the run's env steps (they
@@ -43,9 +43,9 @@ def fly_planner(run: RunConfig, env_kwargs: dict[str, Any], steps: int, num_envs
                 ) -> tuple[list[Flight], dict[str, Any]]:  # fmt: skip
     """``ceil(steps / num_envs)`` vector steps of the planner on the run's env (``env_kwargs``:
     its overrides, the density among them), keeping NavRL's altitude band when ``keep_band``
-    (``OracleConfig.keep_band``), the planner of ``view`` (``PLANNERS``): the flights and their statistics (``transitions``,
-    ``episodes``, ``success_rate``, ``collision_rate`` of the episodes that ended (None if
-    none did), ``wall_s``)."""
+    (``OracleConfig.keep_band``), the planner of ``view`` (``PLANNERS``): the flights and their
+    statistics (``transitions``, ``episodes``, ``success_rate``, ``collision_rate`` of the
+    episodes that ended (None if none did), ``wall_s``)."""
     t0 = time.perf_counter()
     rng = rng_state()  # Python, NumPy and torch: restored below
     try:
