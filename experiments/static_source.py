@@ -5,7 +5,7 @@ Policies with a ``static`` entry (``EnvConfig.static_tracked``) trained with the
 the list the height map shows (``static_source = "map"``: :func:`safenav.envs.sensors.map_footprints`,
 what the onboard runtime builds). Each flies behind its own flight shield, as it is chosen and
 reported. Per policy and pooled: success / collision / timeout of both, and the paired difference
-(map − exact) with a 95 % bootstrap interval over episodes (scipy). Validation maps only: the test
+(map − exact) with a 95 % bootstrap interval over episodes (``experiments.stats.bootstrap_ci``). Validation maps only: the test
 and held-out scenarios are refused.
 
     .venv/bin/python experiments/static_source.py results/csac-v1/levers/policies/static10-s1/step_001000192.pt \
@@ -20,11 +20,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from scipy import stats
 
 from safenav.experiments.evaluate import evaluate
 from safenav.experiments.flight import resolve_policy
 from safenav.experiments.selection import RESERVED_SEEDS, VALIDATION_SEEDS, own_shield
+from safenav.experiments.stats import bootstrap_ci
 
 SOURCES = ("exact", "map")
 
@@ -50,11 +50,9 @@ def paired(rows: list[dict], key: str) -> dict:
     exact = np.concatenate([np.asarray(r["exact"][key], float) for r in rows])
     mapped = np.concatenate([np.asarray(r["map"][key], float) for r in rows])
     diff = mapped - exact
-    ci = (0.0, 0.0)  # every episode the same both ways
-    if diff.std() > 0:
-        ci = stats.bootstrap((diff,), np.mean, n_resamples=9999, random_state=0).confidence_interval
     return {"exact": float(exact.mean()), "map": float(mapped.mean()), "diff": float(diff.mean()),
-            "ci95": [float(ci[0]), float(ci[1])], "episodes": int(diff.size)}  # fmt: skip
+            "ci95": bootstrap_ci(lambda x, axis: x.mean(axis=axis), diff),
+            "episodes": int(diff.size)}  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:
