@@ -414,11 +414,13 @@ class SafeNavVectorEnv(VectorEnv):
 
     def _apply_density(self) -> None:
         self.n_static, self.n_dynamic = self.cfg.active_static, self.cfg.active_dynamic
-        maps = torch.stack([height_map(w, self.n_static, self._walls) for w in self.worlds])
-        self.heights = quantize_heights(maps).to(self.device).reshape(-1)
+        maps = quantize_heights(
+            torch.stack([height_map(w, self.n_static, self._walls) for w in self.worlds])
+        )
+        self.heights = maps.to(self.device).reshape(-1)
         if self.cfg.static_tracked and self.cfg.static_source == "map":
             # the static rows from the map, as the onboard runtime builds them from its own
-            tops = quantize_heights(maps).float() * HEIGHT_QUANTUM
+            tops = maps.float() * HEIGHT_QUANTUM
             footprints = map_footprints(tops, (tops > 0) & ~self._walls, self.grid.origin,
                                         self.grid.resolution)  # fmt: skip
             self.map_pillars = tuple(t.to(self.device) for t in footprints)

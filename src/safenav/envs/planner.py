@@ -532,4 +532,5 @@ PLANNERS = {"range": PLANNER_B, "pillars": PLANNER_PILLARS}
 """The planners a learner may replay (``CSACConfig.planner_view``), by what they see."""
 
 __all__ = ["FAR", "PLANNERS", "PLANNER_B", "PLANNER_B_BEAMS", "PLANNER_PILLARS", "AutoresetPlanner",
-           "OracleConfig", "OraclePlanner", "ScanFn", "beam_hits", "geodesic_fields", "mover_clearance", "sample_field", "to_action"]  # fmt: skip
+           "OracleConfig", "OraclePlanner", "ScanFn", "beam_hits", "geodesic_fields",
+           "mover_clearance", "sample_field", "to_action"]  # fmt: skip

@@ -311,11 +311,11 @@ def map_footprints(
 
     ``heights`` ``(..., G, G)`` column tops (m; first index x, as
     :class:`~safenav.envs.world.GridSpec`), ``occupied`` ``(..., G, G)`` bool (the columns that
-    are obstacles: above the ground, not the border wall). Returns ``(xy (..., P, 2), half (..., P), top (..., P))`` for the inputs of
-    :func:`static_obstacle_features`, ``P`` the most footprints of any map, the others padded
-    with footprints of no size at ``FAR_FOOTPRINT``. A pillar's footprint is its rasterised cells'
-    box, within half a cell of the true one per side; touching pillars make one footprint that
-    covers both (conservative).
+    are obstacles: above the ground, not the border wall). Returns ``(xy (..., P, 2), half (...,
+    P), top (..., P))`` for the inputs of :func:`static_obstacle_features`, ``P`` the most
+    footprints of any map, the others padded with footprints of no size at ``FAR_FOOTPRINT``. A
+    pillar's footprint is its rasterised cells' box, within half a cell of the true one per side;
+    touching pillars make one footprint that covers both (conservative).
     """
     lead, g = heights.shape[:-2], heights.shape[-1]
     hs = heights.reshape(-1, g, g).float()
