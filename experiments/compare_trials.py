@@ -4,7 +4,7 @@ bootstrap CI (scipy) and McNemar's exact test on the paired test episodes of the
 (``safenav.experiments.stats.compare``, the statistics of the paper comparison's results.json).
 
     .venv/bin/python experiments/compare_trials.py results/csac_shielded/trials/csac_shielded \\
-        results/csac/trials/csac [--json OUT]
+        results/csac-maxcost-crashloss/trials/csac [--json OUT]
 
 Each argument is a trial-file prefix: ``PREFIX-s<seed>.json`` are that label's trials, or, for
 runs ended by ``experiments/finish_runs.py``, ``PREFIX-s<seed>-final.json`` (e.g.
@@ -66,7 +66,9 @@ def table(a_label: str, b_label: str, result: dict) -> list[str]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("a", help="trial-file prefix of label A, e.g. results/csac/trials/csac")
+    parser.add_argument(
+        "a", help="trial-file prefix of label A, e.g. results/csac-maxcost-crashloss/trials/csac"
+    )
     parser.add_argument("b", help="trial-file prefix of label B")
     parser.add_argument("--json", type=Path, default=None, help="write the comparison here too")
     parser.add_argument("--seeds", type=int, nargs="+", default=None,

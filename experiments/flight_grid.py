@@ -11,7 +11,7 @@ with it, and writes
   the first episode given.
 
     .venv/bin/python experiments/flight_grid.py results/paper --labels csac sac ppo sac_lag \\
-        ppo_lag --also results/csac --env-seed 12345 --episodes 0 1 2 3 \\
+        ppo_lag --also results/csac-maxcost-crashloss --env-seed 12345 --episodes 0 1 2 3 \\
         --out results/paper/figures/flights-val.png --gif results/paper/figures/flights-val.gif
 
 ``--shield-memory 0 1 10`` flies each label three times: without the shield, behind it, and
@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> None:
                              "the shield with the range images of the last N steps")  # fmt: skip
     parser.add_argument("--also", type=Path, nargs="*", default=[],
                         help="other reproduce outputs whose runs/ may hold a label's run "
-                             "(e.g. results/csac, whose trials results/paper copied)")  # fmt: skip
+                             "(e.g. results/csac-maxcost-crashloss, whose trials results/paper copied)")  # fmt: skip
     args = parser.parse_args(argv)
     if args.env_seed in RESERVED_SEEDS:
         raise SystemExit(f"env seed {args.env_seed} is a test or held-out map: look at the "

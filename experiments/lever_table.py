@@ -8,7 +8,7 @@ seed-paired difference from the first at the last evaluation (mean and 95 % boot
 seeds both ran: training seeds are shared, so the pairing removes the seed's own luck)::
 
     .venv/bin/python experiments/lever_table.py \
-        recipe=results/csac/trials/csac-s{1,2,3,4,5}.json \
+        recipe=results/csac-maxcost-crashloss/trials/csac-s{1,2,3,4,5}.json \
         rc50=results/csac-v1/levers/rc50-s{1,2,3,4,5}-events.jsonl --upto 510000
 
 ``LABEL=FILE [FILE ...]``: the files of one lever (one per seed; the seed is read from the

@@ -102,7 +102,7 @@ def train_tiny_csac(run_dir, *env_kwargs: str):
     ``run_dir``."""
     from safenav.cli import main
 
-    main(["train", "--algo", "csac", "--preset", "easy", "--seed", "1", "--num-envs", "4",
+    main(["train", "--config", "csac-maxcost-crashloss", "--preset", "easy", "--seed", "1", "--num-envs", "4",
           "--total-steps", "200", "--env-kwargs", *env_kwargs,
           "--csac.learning-starts", "64", "--csac.batch-size", "16", "--csac.net.hidden", "32", "32",
           "--eval-every", "0", "--no-progress", "--no-tensorboard", "--torch-threads", "1",

@@ -24,7 +24,7 @@ def kept(tmp_path_factory) -> Path:
     from tests.test_train_cli import FAST
 
     run_dir = tmp_path_factory.mktemp("runs") / "csac"
-    main(["train", "--algo", "csac", "--preset", "easy", "--seed", "4", "--total-steps", "400",
+    main(["train", "--config", "csac-maxcost-crashloss", "--preset", "easy", "--seed", "4", "--total-steps", "400",
           "--keep-policies", "--run-dir", str(run_dir), *FAST])  # fmt: skip
     return run_dir / "policies"
 

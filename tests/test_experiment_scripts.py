@@ -35,7 +35,7 @@ def tiny_run(tmp_path_factory) -> Path:
     from tests.test_train_cli import FAST
 
     run_dir = tmp_path_factory.mktemp("runs") / "csac"
-    main(["train", "--algo", "csac", "--preset", "easy", "--seed", "2", "--total-steps", "400",
+    main(["train", "--config", "csac-maxcost-crashloss", "--preset", "easy", "--seed", "2", "--total-steps", "400",
           "--keep-policies", "--run-dir", str(run_dir), *FAST])  # fmt: skip
     return run_dir
 
@@ -119,7 +119,7 @@ def test_train_profile_splits_a_run_into_disjoint_parts(tmp_path):
     from tests.test_train_cli import FAST
 
     prof = script("train_profile")
-    total, parts = prof.profile(["--algo", "csac", "--preset", "easy", "--seed", "2", "--total-steps",
+    total, parts = prof.profile(["--config", "csac-maxcost-crashloss", "--preset", "easy", "--seed", "2", "--total-steps",
                                  "400", "--run-dir", str(tmp_path / "run"), *FAST])  # fmt: skip
     assert (tmp_path / "run" / "checkpoint.pt").exists()
     disjoint = sum(v for k, v in parts.items() if k != "of which sensing")

@@ -12,7 +12,7 @@ from safenav.envs.nav import SafeNavVectorEnv
 
 def test_policy_only_checkpoint_matches_the_full_one(tmp_path):
     run = tmp_path / "run"
-    main(["train", "--algo", "csac", "--preset", "easy", "--num-envs", "4", "--total-steps", "200",
+    main(["train", "--config", "csac-maxcost-crashloss", "--preset", "easy", "--num-envs", "4", "--total-steps", "200",
           "--csac.learning-starts", "100", "--run-dir", str(run), "--no-progress", "--eval-every", "0",
           "--no-tensorboard", "--torch-threads", "1"])  # fmt: skip
     slim = tmp_path / "policy.pt"

@@ -192,14 +192,19 @@ def test_env_kwargs_from_the_command_line_and_a_recipe(tmp_path, capsys):
     from safenav.cli import main
     from safenav.commands.train import parse_train_args
 
-    parsed = parse_train_args(["--algo", "csac", "--env-kwargs", "reward_collision", "-100"])
+    crash = ["--config", "csac-maxcost-crashloss"]
+    parsed = parse_train_args([*crash, "--env-kwargs", "reward_collision", "-100"])
     assert parsed["run"].env_kwargs == {"reward_collision": -100.0}
-    # The command line's env kwargs add to the recipe's (csac: reward_collision = -100), key by
-    # key, and win where both name one.
-    added = parse_train_args(["--algo", "csac", "--env-kwargs", "lidar_memory", "10"])
+    # The command line's env kwargs add to the recipe's (csac-maxcost-crashloss:
+    # reward_collision = -100), key by key, and win where both name one.
+    added = parse_train_args([*crash, "--env-kwargs", "lidar_memory", "10"])
     assert added["run"].env_kwargs == {"reward_collision": -100, "lidar_memory": 10}
-    mine = parse_train_args(["--config", "csac", "--env-kwargs", "reward_collision", "-50"])
+    mine = parse_train_args([*crash, "--env-kwargs", "reward_collision", "-50"])
     assert mine["run"].env_kwargs == {"reward_collision": -50.0}
+    # --algo csac takes the csac recipe's kwargs (its bases' merged), the command line's on top
+    default = parse_train_args(["--algo", "csac", "--env-kwargs", "reward_collision", "-50"])
+    assert default["run"].env_kwargs["reward_collision"] == -50.0
+    assert default["run"].env_kwargs["static_tracked"] == 10
     path = tmp_path / "mine.toml"
     path.write_text(
         '[recipe]\nalgo = "sac"\nbase = "sac"\n[run.env_kwargs]\nreward_collision = -50.0\n'
@@ -225,13 +230,15 @@ def test_env_kwargs_from_the_command_line_and_a_recipe(tmp_path, capsys):
 
 
 def test_the_comparison_recipes_share_one_env_reward():
-    """csac, sac, sac-lag, ppo and ppo-lag train on the same env reward (issue 21 compares them);
-    csac-paper keeps the env's own."""
+    """csac-maxcost-crashloss, sac, sac-lag, ppo and ppo-lag train on the same env reward (issue 21
+    compares them), and so does csac (with its observation's kwargs beside it); csac-paper keeps
+    the env's own."""
     from safenav.commands.train import parse_train_args
 
     kwargs = {name: parse_train_args(["--config", name])["run"].env_kwargs
-              for name in ("csac", "sac", "sac-lag", "ppo", "ppo-lag")}  # fmt: skip
+              for name in ("csac-maxcost-crashloss", "sac", "sac-lag", "ppo", "ppo-lag")}  # fmt: skip
     assert all(k == {"reward_collision": -100} for k in kwargs.values()), kwargs
+    assert parse_train_args(["--config", "csac"])["run"].env_kwargs["reward_collision"] == -100
     assert parse_train_args(["--config", "csac-paper"])["run"].env_kwargs == {}
     mine = parse_train_args(["--algo", "csac", "--env-kwargs", "reward_collision", "0"])
-    assert mine["run"].env_kwargs == {"reward_collision": 0}
+    assert mine["run"].env_kwargs["reward_collision"] == 0

@@ -35,8 +35,10 @@ def read_csv(path: Path) -> list[dict[str, str]]:
 @pytest.fixture(scope="module")
 def csac_run(tmp_path_factory) -> Path:
     run_dir = tmp_path_factory.mktemp("runs") / "csac"
-    main(["train", "--algo", "csac", "--env", "SafeNav-v1", "--preset", "easy", "--seed", "3",
-          "--total-steps", "300", "--keep-policies", "--run-dir", str(run_dir), *FAST])  # fmt: skip
+    # the paper's observation (the csac recipe adds the memory image and the pillar list)
+    main(["train", "--config", "csac-maxcost-crashloss", "--env", "SafeNav-v1", "--preset", "easy",
+          "--seed", "3", "--total-steps", "300", "--keep-policies", "--run-dir", str(run_dir),
+          *FAST])  # fmt: skip
     return run_dir
 
 
@@ -54,11 +56,14 @@ def test_cli_smoke_run_directory(csac_run):
     assert math.isfinite(float(last["losses/qc"]))
     config = json.loads((csac_run / "config.json").read_text())
     assert config["algo"] == "csac" and config["run"]["preset"] == "easy"
-    # no --config: --algo csac on SafeNav takes the shipped csac recipe; options given win
+    # the shipped recipe's values are recorded; options given win
     from safenav.recipes import load_recipe
 
-    recipe = load_recipe("csac")
-    assert config["recipe"]["name"] == "csac" and config["env_config"]["map_size"] == 20.0
+    recipe = load_recipe("csac-maxcost-crashloss")
+    assert (
+        config["recipe"]["name"] == "csac-maxcost-crashloss"
+        and config["env_config"]["map_size"] == 20.0
+    )
     assert config["csac"]["actor_lr"] == pytest.approx(recipe.section("csac")["actor_lr"])
     assert config["run"]["num_envs"] == 4 != recipe.section("run")["num_envs"]
     state = load_checkpoint(csac_run / "checkpoint.pt")

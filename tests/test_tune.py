@@ -21,7 +21,8 @@ SHIPPED = ("sac", "sac-lag", "csac", "ppo", "ppo-lag")
 @pytest.mark.parametrize("name", SHIPPED)
 def test_each_shipped_space_loads_and_its_options_are_real(name):
     space = load_space(name)
-    assert space.recipe == name and space.params
+    # csac's space tuned the recipe that was csac until 2026-12-05
+    assert space.recipe == {"csac": "csac-maxcost-crashloss"}.get(name, name) and space.params
     recipe = load_recipe(space.recipe)
     assert space.algo in recipe.algos
     for config in space.configurations(6)[1:]:  # every value applies to its config class

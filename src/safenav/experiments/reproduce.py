@@ -743,17 +743,24 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
 #: CPU-seconds per env step of a whole trial (training with its periodic evaluations, the
 #: validation selection and the test evaluation) on the 2-core development machine, 2 CPUs per
 #: trial; :func:`estimate_cpu_seconds` prefers the rate of the sweep's own finished trials.
-#: csac: results/csac seed 2, 1M steps in 18 min (913 s of training); sac: 599 s of training for
-#: 1M (results/csac-v1/sac1m-s2) plus the same 170 s of evaluation; sac_lag as csac; ppo and
-#: ppo_lag: 2M steps in 741 s on one CPU (results/paper, SafeNav-v0), rounded up.
-CPU_S_PER_STEP: dict[str, float] = {"csac": 2.2e-3, "sac": 1.5e-3, "sac_lag": 2.2e-3,
+#: csac (since 2026-12-05 the csac-shielded-memory-pillars recipe): 1M steps in 1,390 s of
+#: training alone on 2 CPUs (results/csac-v1, staticmap-s1) plus about 300 s of selection and
+#: evaluation behind the shield; sac: 599 s of training for 1M (results/csac-v1/sac1m-s2) plus 170 s
+#: of evaluation; sac_lag as the csac-maxcost-crashloss recipe (results/csac-maxcost-crashloss
+#: seed 2, 1M steps in 18 min); ppo and ppo_lag: 2M steps in 741 s on one CPU (results/paper,
+#: SafeNav-v0), rounded up.
+CPU_S_PER_STEP: dict[str, float] = {"csac": 3.4e-3, "sac": 1.5e-3, "sac_lag": 2.2e-3,
                                     "ppo": 4.0e-4, "ppo_lag": 4.0e-4}  # fmt: skip
 
 #: The same for trials that train from another recipe (``--config NAME`` in their arguments),
 #: where it costs otherwise than its algorithm's default. csac-paper: 16 envs and 0.25 updates
-#: per env step (8 x the csac recipe's updates per env step): 68-73 env steps/s on 2 CPUs alone
-#: (csac_paper seed 1, 10k-50k steps, 2026-11-27), where the estimate by algorithm said 1/13 of it.
-CPU_S_PER_STEP_BY_RECIPE: dict[str, float] = {"csac-paper": 2.9e-2}
+#: per env step (8 x csac-maxcost-crashloss's updates per env step): 68-73 env steps/s on 2 CPUs
+#: alone (csac_paper seed 1, 10k-50k steps, 2026-11-27), where that recipe's rate says 1/13 of it.
+#: csac-maxcost-crashloss: the csac recipe until 2026-12-05 (its rate above then).
+CPU_S_PER_STEP_BY_RECIPE: dict[str, float] = {
+    "csac-paper": 2.9e-2,
+    "csac-maxcost-crashloss": 2.2e-3,
+}
 
 
 def trial_recipe(trial: Trial) -> str | None:
