@@ -19,6 +19,7 @@ from safenav.envs.nav import SafeNavVectorEnv
 from safenav.envs.sensors import (
     FAR_FOOTPRINT,
     HEIGHT_QUANTUM,
+    dequantize_heights,
     map_footprints,
     pillar_clearance,
     pillar_clearances,
@@ -102,7 +103,7 @@ def _footprints(pillars, maps_like: int = 1):
     grid = GridSpec.for_config(cfg)
     walls = border_walls(grid, cfg.half)
     world = world_from_obstacles(cfg, pillars)
-    tops = quantize_heights(height_map(world, len(pillars), walls)).float() * HEIGHT_QUANTUM
+    tops = dequantize_heights(quantize_heights(height_map(world, len(pillars), walls)))
     tops = tops.expand(maps_like, -1, -1)
     return map_footprints(tops, (tops > 0) & ~walls, grid.origin, grid.resolution)
 
@@ -261,3 +262,13 @@ def test_static_source_script_flies_both_lists_on_validation_only(static_run, tm
         assert s["ci95"][0] <= s["diff"] <= s["ci95"][1]
     with pytest.raises(SystemExit):
         script.main([str(static_run / "checkpoint.pt"), "--env-seeds", "1"])
+
+
+def test_dequantize_heights_inverts_the_map_quantum():
+    heights = torch.tensor([0.0, 0.01, 1.2345, 6.0, 9.0])
+    back = dequantize_heights(quantize_heights(heights))
+    assert back.dtype == torch.float32
+    torch.testing.assert_close(back[:4], heights[:4], atol=HEIGHT_QUANTUM / 2 + 1e-6, rtol=0)
+    assert back[4] == pytest.approx(255 * HEIGHT_QUANTUM)  # clipped at 6.375 m
+    metres = torch.tensor([0.5, 2.0], dtype=torch.float64)  # an onboard float map passes through
+    torch.testing.assert_close(dequantize_heights(metres), metres.float())

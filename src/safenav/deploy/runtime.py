@@ -52,9 +52,9 @@ from safenav.envs.config import EnvConfig
 from safenav.envs.nav import DIST_SCALE, Z_SCALE
 from safenav.envs.sensors import (
     FAR_POINT,
-    HEIGHT_QUANTUM,
     RangeImageSpec,
     beam_hit_points,
+    dequantize_heights,
     dynamic_obstacle_features,
     map_footprints,
     memory_image,
@@ -471,7 +471,7 @@ class OnboardRuntime:
         ay, by = max(y0, 0), min(y0 + side, g)
         if ax < bx and ay < by:
             cast = m.cast_map.view(g, g)[ax:bx, ay:by]
-            col = cast.float() * HEIGHT_QUANTUM if cast.dtype == torch.uint8 else cast.float()
+            col = dequantize_heights(cast)
             wall = m.floor.view(g, g)[ax:bx, ay:by] > 0
             tops[ax - x0 : bx - x0, ay - y0 : by - y0] = col
             occupied[ax - x0 : bx - x0, ay - y0 : by - y0] = (col > 0) & ~wall

@@ -29,9 +29,9 @@ from safenav.envs.dynamics import (
 )
 from safenav.envs.sensors import (
     FAR_POINT,
-    HEIGHT_QUANTUM,
     RangeImageSpec,
     beam_hit_points,
+    dequantize_heights,
     dynamic_obstacle_features,
     map_footprints,
     memory_image,
@@ -420,7 +420,7 @@ class SafeNavVectorEnv(VectorEnv):
         self.heights = maps.to(self.device).reshape(-1)
         if self.cfg.static_tracked and self.cfg.static_source == "map":
             # the static rows from the map, as the onboard runtime builds them from its own
-            tops = maps.float() * HEIGHT_QUANTUM
+            tops = dequantize_heights(maps)
             footprints = map_footprints(tops, (tops > 0) & ~self._walls, self.grid.origin,
                                         self.grid.resolution)  # fmt: skip
             self.map_pillars = tuple(t.to(self.device) for t in footprints)

@@ -30,6 +30,14 @@ def quantize_heights(heights: torch.Tensor) -> torch.Tensor:
     return torch.round(heights / HEIGHT_QUANTUM).clamp(0, 255).to(torch.uint8)
 
 
+def dequantize_heights(heights: torch.Tensor) -> torch.Tensor:
+    """The uint8 map of :func:`quantize_heights` -> float32 heights (m); a float map is returned as
+    float32, already in metres (the onboard map may hold either)."""
+    if heights.dtype == torch.uint8:
+        return heights.to(torch.float32) * HEIGHT_QUANTUM
+    return heights.to(torch.float32)
+
+
 @dataclass(frozen=True)
 class RangeImageSpec:
     """Beam layout of the range image: ``len(v_angles) x h_beams`` beams of ``max_range`` m."""
@@ -108,7 +116,7 @@ def raycast_height_map(
     # Sample k blocks beam e iff the column rises above it: (h_k - z) / r_k > tan e.
     occ = torch.nonzero(h).squeeze(-1)
     row, kk = occ // k, occ % k
-    top = h[occ].to(torch.float32) * HEIGHT_QUANTUM
+    top = dequantize_heights(h[occ])
     slope = (top - pos[row // nh, 2]) / ((kk.to(torch.float32) + 0.5) * res)
     blocked = torch.bucketize(slope, tans)  # beams e < blocked are hit at kk
     first = torch.full((n * nh * (nv + 1),), k, dtype=torch.int64, device=dev)
@@ -391,6 +399,7 @@ __all__ = [
     "map_footprints",
     "FAR_FOOTPRINT",
     "quantize_heights",
+    "dequantize_heights",
     "box_surface_distance",
     "moving_obstacle_clearance",
     "pillar_boxes",
