@@ -286,6 +286,13 @@ def test_no_flags_plan_the_papers_comparison(tmp_path, monkeypatch):
     # one evaluation protocol for all, whatever the recipe: every 250k, 400 validation episodes
     assert all(t.train_args[:6] == rep.PAPER_TRAIN_ARGS for t in trials)
     assert by["csac_fixed_d-seed2"].train_args[-1] == "--csac.curriculum.no-enabled"
+    # every CSAC label but csac_paper on the baselines' observation and env (their recipes' base),
+    # not the default csac recipe's shield, memory and pillar list
+    crash = ("--config", "csac-maxcost-crashloss")
+    for label in ("csac", "csac_min", "csac_fixed_d", "csac_3m"):
+        assert by[f"{label}-seed1"].train_args[6:8] == crash, label
+        assert rep.trial_recipe(by[f"{label}-seed1"]) == "csac-maxcost-crashloss"
+    assert rep.REPORT_LABELS[:3] == ("csac", "sac", "ppo") and rep.REPORT_LABELS.count("csac") == 1
     # the tuned baselines: each its packaged recipe, found from any working directory
     assert by["sac_lag_tuned_3m-seed3"].train_args[-2:] == ("--config", "sac-lag-tuned")
     assert by["ppo_tuned_3m-seed5"].algo == "ppo"
