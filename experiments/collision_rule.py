@@ -5,7 +5,7 @@ it). Validation maps first (100 episodes each), then the test scenario (200, a r
 Each flight is one ``safenav eval --collision-rule RULE --json`` file in OUT, reused on a rerun;
 the summary goes to OUT/summary.json and a markdown table to stdout.
 
-    .venv/bin/python experiments/collision_rule.py checkpoints/csac.pt checkpoints/csac-v1-rc100-s2.pt
+    .venv/bin/python experiments/collision_rule.py checkpoints/csac-maxcost-crashloss-s1.pt checkpoints/csac-v1-rc100-s2.pt
     # ~7 min on one thread; OUT = results/csac-v1/collision-rule
 """
 

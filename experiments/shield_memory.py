@@ -3,7 +3,7 @@ collision with no shield, the memoryless shield (N = 1) and shields that remembe
 images of the last N steps, on the validation maps (the choice of N is made there), then on the
 test scenario and the held-out maps for the N chosen.
 
-    .venv/bin/python experiments/shield_memory.py --policies checkpoints/csac.pt ... \\
+    .venv/bin/python experiments/shield_memory.py --policies checkpoints/csac-maxcost-crashloss-s1.pt ... \\
         --memory 0 1 5 10 20                       # validation: maps 12345-12348 x 100 episodes
     .venv/bin/python experiments/shield_memory.py --policies ... --memory 0 1 10 --maps test
     .venv/bin/python experiments/shield_memory.py --policies ... --memory 0 1 10 --maps heldout
