@@ -6,6 +6,9 @@ its wall-clock into disjoint parts (a timed call inside another one counts for t
 - ``env step``: ``TorchVecEnv.step`` while collecting (physics, moving obstacles, sensing, reward,
   autoreset); ``of which sensing``: ``SafeNavVectorEnv._sense`` inside it (range image, tracked
   obstacles);
+- ``shield (training)``: ``MemoryShield.__call__`` while collecting, the velocity-obstacle
+  shield's correction of each action when the run trains behind it (``--shield``, the default
+  ``csac`` recipe); its own evaluations' shield counts in ``periodic evaluation``;
 - ``actor forward``: ``CSAC.act`` while collecting; ``replay add``: ``ReplayBuffer.add``;
 - ``gradient updates``: ``CSAC.update`` (Algorithm 1, lines 12-15); ``replay sample``:
   ``ReplayBuffer.sample``;
@@ -33,6 +36,7 @@ from pathlib import Path
 from safenav.algos.csac import CSAC
 from safenav.cli import main as safenav_main
 from safenav.common.buffer import ReplayBuffer
+from safenav.deploy.shield import MemoryShield
 from safenav.envs.nav import SafeNavVectorEnv
 from safenav.envs.vector import TorchVecEnv
 from safenav.experiments import selection
@@ -40,6 +44,7 @@ from safenav.training.trainer import Trainer
 
 PARTS = {
     "env step": (TorchVecEnv, "step"),
+    "shield (training)": (MemoryShield, "__call__"),
     "actor forward": (CSAC, "act"),
     "replay add": (ReplayBuffer, "add"),
     "gradient updates": (CSAC, "update"),

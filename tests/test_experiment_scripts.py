@@ -119,13 +119,16 @@ def test_train_profile_splits_a_run_into_disjoint_parts(tmp_path):
     from tests.test_train_cli import FAST
 
     prof = script("train_profile")
-    total, parts = prof.profile(["--config", "csac-maxcost-crashloss", "--preset", "easy", "--seed", "2", "--total-steps",
-                                 "400", "--run-dir", str(tmp_path / "run"), *FAST])  # fmt: skip
+    # the default csac recipe: trained behind the shield
+    total, parts = prof.profile(["--algo", "csac", "--preset", "easy", "--seed", "2",
+                                 "--total-steps", "400", "--run-dir", str(tmp_path / "run"),
+                                 *FAST])  # fmt: skip
     assert (tmp_path / "run" / "checkpoint.pt").exists()
     disjoint = sum(v for k, v in parts.items() if k != "of which sensing")
     assert disjoint == pytest.approx(total) and all(v >= 0 for v in parts.values())
     for part in (
         "env step",
+        "shield (training)",
         "actor forward",
         "gradient updates",
         "periodic evaluation",
