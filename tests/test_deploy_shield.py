@@ -109,6 +109,36 @@ def test_batched_rows_are_independent() -> None:
     assert bool((out.abs() <= cfg.v_max + 1e-6).all())
 
 
+def test_the_fallback_for_envs_with_nothing_admissible_is_row_by_row_the_same() -> None:
+    """Where no candidate is admissible the shield takes the latest time to collision; those times
+    are computed for those envs only, and the batch gives each env, bit for bit, what it alone
+    gets from the same (uncompiled) code."""
+    cfg = ShieldConfig()
+    gen = torch.Generator().manual_seed(1)
+    n, m = 10, 26
+    v = (torch.rand(n, 3, generator=gen) * 2 - 1) * 2
+    rel = (torch.rand(n, m, 3, generator=gen) * 2 - 1) * 1.5  # dense: some need a correction
+    vel = torch.rand(n, m, 3, generator=gen) - 0.5
+    rad = torch.rand(n, m, generator=gen) * 0.5 + 0.3
+    valid = torch.rand(n, m, generator=gen) > 0.3
+    planar = torch.zeros(n, m, dtype=torch.bool)
+    # envs 2 and 7: closed in by 26 obstacles 1 m away, all converging on the vehicle (env 7's
+    # slower the further down the list, so that its latest collision lies elsewhere)
+    dirs = torch.tensor([(x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1)
+                         if (x, y, z) != (0, 0, 0)], dtype=torch.float32)  # fmt: skip
+    dirs = dirs / dirs.norm(dim=-1, keepdim=True)
+    for i, speed in ((2, torch.full((m, 1), 1.5)), (7, torch.linspace(2.0, 0.8, m)[:, None])):
+        rel[i], vel[i], rad[i], valid[i] = dirs, -speed * dirs, 0.6, True
+    out, corrected = velocity_obstacle_shield(v, rel, vel, rad, valid, planar, cfg, compiled=False)
+    for i in range(n):
+        oi, ci = velocity_obstacle_shield(v[i : i + 1], rel[i : i + 1], vel[i : i + 1], rad[i : i + 1],
+                                          valid[i : i + 1], planar[i : i + 1], cfg, compiled=False)  # fmt: skip
+        assert bool(ci[0]) == bool(corrected[i]) and torch.equal(oi[0], out[i]), i
+    ok = admissible(out, rel, vel, rad, valid, planar, cfg)
+    assert corrected[[2, 7]].all() and not ok[[2, 7]].any()  # the fallback: nothing admissible
+    assert (corrected & ok).any()  # and envs corrected to an admissible velocity beside them
+
+
 def test_shield_action_on_the_vector_env_cuts_collisions() -> None:
     """The batched API on the env's own tensors: a straight-to-goal policy collides far less."""
     cfg = make_config("easy")

@@ -258,8 +258,10 @@ def altitude_cap(v: torch.Tensor, altitude: torch.Tensor,
 
 def _vo_test(v: torch.Tensor, rel: torch.Tensor, ovel: torch.Tensor, radius: torch.Tensor,
              valid: torch.Tensor, planar: torch.Tensor, tau: float,
-             offset: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
-    """For candidates ``v`` ``(N, C, 3)``: inside-any-VO ``(N, C)`` and min time to collision.
+             offset: torch.Tensor | None = None,
+             need_ttc: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:  # fmt: skip
+    """For candidates ``v`` ``(N, C, 3)``: inside-any-VO ``(N, C)`` and min time to collision
+    (None with ``need_ttc=False``: a third of the work, where only the first is used).
 
     ``offset`` ``(N, C, 3)``: how far each candidate leaves the vehicle from its straight path
     (:func:`response_offset`). The candidate is then tested from the shifted start, and the drift
@@ -291,6 +293,8 @@ def _vo_test(v: torch.Tensor, rel: torch.Tensor, ovel: torch.Tensor, radius: tor
         now_in = pp0 < r2
         leaving = (p0 * w * vr).sum(-1) <= 0
         inside = torch.where(now_in, ~leaving, drift_hit | (d2 < r2)) & valid[:, None, :]
+    if not need_ttc:
+        return inside.any(-1), None
     # Time to collision: smallest t >= 0 with |p - vr t| = R (inf if none / receding).
     disc = pv * pv - vv * (pp - r2)
     ttc = (pv - disc.clamp(min=0).sqrt()) / vv
@@ -401,7 +405,8 @@ def velocity_obstacle_shield(
     if _kernel_for(n, dev, compiled) and not lagged and not cfg.keep_moving:
         return _shield_one_compiled(v_des, rel, obs_vel, radius, valid, planar, cfg, dist)
     offset = response_offset(v_now, v_des[:, None, :], cfg) if lagged else None
-    inside_des, _ = _vo_test(v_des[:, None, :], rel, obs_vel, radius, valid, planar, tau, offset)
+    inside_des, _ = _vo_test(v_des[:, None, :], rel, obs_vel, radius, valid, planar, tau, offset,
+                             need_ttc=False)  # fmt: skip
     corrected = inside_des[:, 0]
     out = v_des.clone()
     if not bool(corrected.any()):
@@ -418,15 +423,22 @@ def velocity_obstacle_shield(
         _fan(cfg, dev, dt)[None].expand(rows.shape[0], -1, -1),
         _boundary_candidates(v_des, rel, obs_vel, radius, valid, planar, tau, cfg.projected, dist),
     ], dim=1).clamp(-vm, vm)  # fmt: skip
-    inside, ttc = _vo_test(cands, rel, obs_vel, radius, valid, planar, tau,
-                           response_offset(v_now, cands, cfg) if lagged else None)  # fmt: skip
+    offsets = response_offset(v_now, cands, cfg) if lagged else None
+    inside, _ = _vo_test(cands, rel, obs_vel, radius, valid, planar, tau, offsets, need_ttc=False)
     cost = (cands - v_des[:, None, :]).square().sum(-1)
     best = torch.argmin(torch.where(inside, math.inf, cost), dim=-1)
     if cfg.keep_moving > 0:
         best = _keep_moving(best, cands, v_des, inside, cost, cfg.keep_moving)
-    # Nothing admissible: latest time to collision, then nearest to v_des.
-    fallback = torch.argmax(ttc.clamp(max=1e6) - 1e-3 * cost, dim=-1)
-    choice = torch.where(inside.all(-1), fallback, best)
+    # Nothing admissible: latest time to collision, then nearest to v_des. The times are computed
+    # for those envs only (row by row the same arithmetic as for all of them).
+    choice = best
+    stuck = inside.all(-1).nonzero().squeeze(1)
+    if stuck.numel():
+        _, ttc = _vo_test(cands[stuck], rel[stuck], obs_vel[stuck], radius[stuck], valid[stuck],
+                          planar[stuck], tau, offsets[stuck] if lagged else None)  # fmt: skip
+        fallback = torch.argmax(ttc.clamp(max=1e6) - 1e-3 * cost[stuck], dim=-1)
+        choice = best.clone()
+        choice[stuck] = fallback
     out[rows] = torch.gather(cands, 1, choice[:, None, None].expand(-1, 1, 3))[:, 0]
     return out, corrected
 
@@ -577,10 +589,12 @@ def _shield_static_and_tracked(rel, valid, planar, dist, dyn, action, cfg: Shiel
         slow, capped = braking_cap(v, rel[:, :m], valid[:, :m], planar[:, :m], radius[:, :m], cfg)
         if cfg.brake_slide:  # slide along the pillar where that enters no velocity obstacle
             slid, _ = braking_slide(v, rel[:, :m], valid[:, :m], planar[:, :m], radius[:, :m], cfg)
-            into, _ = _vo_test(slid[:, None], rel, vel, radius, valid, planar, cfg.time_horizon)
+            into, _ = _vo_test(slid[:, None], rel, vel, radius, valid, planar, cfg.time_horizon,
+                               need_ttc=False)  # fmt: skip
             slow = torch.where((capped & ~into[:, 0])[:, None], slid, slow)
         # Slowing down may leave a moving obstacle's path too late: there, the velocity stays.
-        into, _ = _vo_test(slow[:, None], rel, vel, radius, valid, planar, cfg.time_horizon)
+        into, _ = _vo_test(slow[:, None], rel, vel, radius, valid, planar, cfg.time_horizon,
+                           need_ttc=False)  # fmt: skip
         capped = capped & ~into[:, 0]
         v = torch.where(capped[:, None], slow, v)
         corrected = corrected | capped
