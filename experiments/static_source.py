@@ -2,11 +2,12 @@
 
 Policies with a ``static`` entry (``EnvConfig.static_tracked``) trained with the drawn footprints
 (``static_source = "exact"``) fly the same validation episodes twice: with the drawn list and with
-the list the height map shows (``static_source = "map"``: :func:`safenav.envs.sensors.map_footprints`,
-what the onboard runtime builds). Each flies behind its own flight shield, as it is chosen and
-reported. Per policy and pooled: success / collision / timeout of both, and the paired difference
-(map − exact) with a 95 % bootstrap interval over episodes (``experiments.stats.bootstrap_ci``). Validation maps only: the test
-and held-out scenarios are refused.
+the list the height map shows (``static_source = "map"``:
+:func:`safenav.envs.sensors.map_footprints`, what the onboard runtime builds). Each flies behind its
+own flight shield, as it is chosen and reported. Per policy and pooled: success / collision /
+timeout of both, and the paired difference (map − exact) with a 95 % bootstrap interval over
+episodes (``experiments.stats.bootstrap_ci``). Validation maps only: the test and held-out scenarios
+are refused.
 
     .venv/bin/python experiments/static_source.py results/csac-v1/levers/policies/static10-s1/step_001000192.pt \
         ... --json results/csac-v1/levers/static-source.json

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from conftest import PAPER_OBSERVATION
 from safenav.algos.averaging import average_policies, average_policy_states
 from safenav.algos.policy import load_policy
 from safenav.cli import main
@@ -24,7 +25,7 @@ def kept(tmp_path_factory) -> Path:
     from tests.test_train_cli import FAST
 
     run_dir = tmp_path_factory.mktemp("runs") / "csac"
-    main(["train", "--config", "csac-maxcost-crashloss", "--preset", "easy", "--seed", "4", "--total-steps", "400",
+    main(["train", *PAPER_OBSERVATION, "--preset", "easy", "--seed", "4", "--total-steps", "400",
           "--keep-policies", "--run-dir", str(run_dir), *FAST])  # fmt: skip
     return run_dir / "policies"
 

@@ -131,8 +131,8 @@ def test_the_fallback_for_envs_with_nothing_admissible_is_row_by_row_the_same() 
         rel[i], vel[i], rad[i], valid[i] = dirs, -speed * dirs, 0.6, True
     out, corrected = velocity_obstacle_shield(v, rel, vel, rad, valid, planar, cfg, compiled=False)
     for i in range(n):
-        oi, ci = velocity_obstacle_shield(v[i : i + 1], rel[i : i + 1], vel[i : i + 1], rad[i : i + 1],
-                                          valid[i : i + 1], planar[i : i + 1], cfg, compiled=False)  # fmt: skip
+        alone = [t[i : i + 1] for t in (v, rel, vel, rad, valid, planar)]
+        oi, ci = velocity_obstacle_shield(*alone, cfg, compiled=False)
         assert bool(ci[0]) == bool(corrected[i]) and torch.equal(oi[0], out[i]), i
     ok = admissible(out, rel, vel, rad, valid, planar, cfg)
     assert corrected[[2, 7]].all() and not ok[[2, 7]].any()  # the fallback: nothing admissible

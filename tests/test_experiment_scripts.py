@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import PAPER_OBSERVATION
 from safenav.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -35,7 +36,7 @@ def tiny_run(tmp_path_factory) -> Path:
     from tests.test_train_cli import FAST
 
     run_dir = tmp_path_factory.mktemp("runs") / "csac"
-    main(["train", "--config", "csac-maxcost-crashloss", "--preset", "easy", "--seed", "2", "--total-steps", "400",
+    main(["train", *PAPER_OBSERVATION, "--preset", "easy", "--seed", "2", "--total-steps", "400",
           "--keep-policies", "--run-dir", str(run_dir), *FAST])  # fmt: skip
     return run_dir
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from conftest import PAPER_OBSERVATION
 from safenav.algos.policy import load_policy
 from safenav.cli import main
 from safenav.envs.nav import SafeNavVectorEnv
@@ -12,9 +13,9 @@ from safenav.envs.nav import SafeNavVectorEnv
 
 def test_policy_only_checkpoint_matches_the_full_one(tmp_path):
     run = tmp_path / "run"
-    main(["train", "--config", "csac-maxcost-crashloss", "--preset", "easy", "--num-envs", "4", "--total-steps", "200",
-          "--csac.learning-starts", "100", "--run-dir", str(run), "--no-progress", "--eval-every", "0",
-          "--no-tensorboard", "--torch-threads", "1"])  # fmt: skip
+    main(["train", *PAPER_OBSERVATION, "--preset", "easy", "--num-envs", "4", "--total-steps",
+          "200", "--csac.learning-starts", "100", "--run-dir", str(run), "--no-progress",
+          "--eval-every", "0", "--no-tensorboard", "--torch-threads", "1"])  # fmt: skip
     slim = tmp_path / "policy.pt"
     main(["export", str(run / "checkpoint.pt"), "--policy-only", str(slim)])
     assert slim.stat().st_size < (run / "checkpoint.pt").stat().st_size

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pytest
 
+from conftest import PAPER_OBSERVATION
 from safenav.algos.config import CSACConfig
 from safenav.algos.ppo_config import PPOConfig
 from safenav.common.config import RunConfig
@@ -192,7 +193,7 @@ def test_env_kwargs_from_the_command_line_and_a_recipe(tmp_path, capsys):
     from safenav.cli import main
     from safenav.commands.train import parse_train_args
 
-    crash = ["--config", "csac-maxcost-crashloss"]
+    crash = list(PAPER_OBSERVATION)
     parsed = parse_train_args([*crash, "--env-kwargs", "reward_collision", "-100"])
     assert parsed["run"].env_kwargs == {"reward_collision": -100.0}
     # The command line's env kwargs add to the recipe's (csac-maxcost-crashloss:

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from conftest import PAPER_OBSERVATION
 from safenav.cli import main
 from safenav.common.checkpoint import load_checkpoint
 from safenav.experiments import selection
@@ -125,7 +126,7 @@ def test_train_select_ends_with_a_validation_choice_and_its_report(tmp_path, mon
     run_dir = tmp_path / "run"
     # the paper's observation without the shield: the default recipe's flights behind it made
     # this test 121 s instead of 15 (its selection behind the shield: test_shielded_training)
-    main(["train", "--config", "csac-maxcost-crashloss", "--preset", "easy", "--seed", "4",
+    main(["train", *PAPER_OBSERVATION, "--preset", "easy", "--seed", "4",
           "--total-steps", "400", "--select", "--run-dir", str(run_dir), *FAST])  # fmt: skip
     config = json.loads((run_dir / "config.json").read_text())
     assert config["run"]["select"] and config["run"]["keep_policies"]  # --select keeps them

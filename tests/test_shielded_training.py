@@ -9,6 +9,7 @@ import json
 import pytest
 import torch
 
+from conftest import PAPER_OBSERVATION
 from safenav.algos.config import CSACConfig
 from safenav.algos.csac import CSACLearner
 from safenav.algos.policy import load_policy
@@ -132,7 +133,7 @@ def test_the_spec_rebuilds_the_shield():
 
 def test_train_behind_the_shield_end_to_end(tmp_path):
     run_dir = tmp_path / "run"
-    main(["train", "--config", "csac-maxcost-crashloss", "--env", "SafeNav-v1", "--preset", "easy", "--seed", "3",
+    main(["train", *PAPER_OBSERVATION, "--env", "SafeNav-v1", "--preset", "easy", "--seed", "3",
           "--total-steps", "400", "--shield", "--shield-map", "--shield-mover-margin", "0.3",
           "--shield-flight-brake", "--shield-penalty", "0.2", "--keep-policies", "--run-dir", str(run_dir), *FAST])  # fmt: skip
     config = json.loads((run_dir / "config.json").read_text())
@@ -164,6 +165,6 @@ def test_train_behind_the_shield_end_to_end(tmp_path):
     assert load_policy(run_dir / "best.pt").meta["shield"]["mover_margin"] == 0.3
     # a policy trained without one flies alone
     plain = tmp_path / "plain"
-    main(["train", "--config", "csac-maxcost-crashloss", "--env", "SafeNav-v1", "--preset", "easy", "--seed", "3",
+    main(["train", *PAPER_OBSERVATION, "--env", "SafeNav-v1", "--preset", "easy", "--seed", "3",
           "--total-steps", "200", "--run-dir", str(plain), *FAST])  # fmt: skip
     assert own_shield(load_policy(plain / "checkpoint.pt")) is None

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import PAPER_OBSERVATION
 from safenav.algos.policy import load_policy, save_policy_only
 from safenav.cli import main
 from safenav.common.checkpoint import load_checkpoint, save_checkpoint
@@ -36,9 +37,8 @@ def read_csv(path: Path) -> list[dict[str, str]]:
 def csac_run(tmp_path_factory) -> Path:
     run_dir = tmp_path_factory.mktemp("runs") / "csac"
     # the paper's observation (the csac recipe adds the memory image and the pillar list)
-    main(["train", "--config", "csac-maxcost-crashloss", "--env", "SafeNav-v1", "--preset", "easy",
-          "--seed", "3", "--total-steps", "300", "--keep-policies", "--run-dir", str(run_dir),
-          *FAST])  # fmt: skip
+    main(["train", *PAPER_OBSERVATION, "--env", "SafeNav-v1", "--preset", "easy", "--seed", "3",
+          "--total-steps", "300", "--keep-policies", "--run-dir", str(run_dir), *FAST])  # fmt: skip
     return run_dir
 
 

@@ -9,6 +9,7 @@ import json
 import pytest
 import torch
 
+from conftest import PAPER_OBSERVATION
 from safenav.algos.config import CSACConfig
 from safenav.algos.csac import CSAC
 from safenav.algos.policy import load_policy
@@ -200,8 +201,7 @@ def test_csac_measured_cost_scale_logs_its_threshold_and_resumes(tmp_path, monke
     small = ["--csac.cost-scale", "measured", "--csac.learning-starts", "128", "--csac.batch-size", "32",
              "--csac.net.hidden", "32", "32", "--csac.updates-per-step", "0.0625", "--preset", "paper"]  # fmt: skip
     # the paper's observation, no shield: random flights crash often enough
-    run_dir = train(tmp_path, "csac", "--config", "csac-maxcost-crashloss", *small, steps=8192,
-                    envs=64)  # fmt: skip
+    run_dir = train(tmp_path, "csac", *PAPER_OBSERVATION, *small, steps=8192, envs=64)
     ckpt = load_checkpoint(run_dir)
     scale = ckpt["cost_scale"]
     assert scale["cost_n"] >= 20 and scale["q_n"] > 0  # random flights crash: enough episodes

@@ -5,12 +5,12 @@ Before training, :func:`fly_planner` flies planner B (:data:`~safenav.envs.plann
 the range image's hits of the last second, the observation's moving obstacles, read from the
 simulator; or, ``--csac.planner-view pillars``, the pillars' exact geometry within 4 m) on
 ``planner_envs`` envs of the run's own env config at the curriculum's final density, on maps
-of their own (:meth:`~safenav.common.config.RunConfig.planner_env_seed`: neither the training
-maps nor the validation, held-out or test ones), until ``planner_steps`` transitions. The learner keeps them apart from its replay buffer and draws a fixed share of each
-minibatch from them (RLPD's symmetric sampling, Ball et al. 2023, "Efficient Online
-Reinforcement Learning with Offline Data", there with a share of 0.5). The policy never sees the
-planner at flight time; the planner's transitions are not counted in the run's env steps (they
-are reported beside them).
+of their own (:meth:`~safenav.common.config.RunConfig.planner_env_seed`: neither the training maps
+nor the validation, held-out or test ones), until ``planner_steps`` transitions. The learner keeps
+them apart from its replay buffer and draws a fixed share of each minibatch from them (RLPD's
+symmetric sampling, Ball et al. 2023, "Efficient Online Reinforcement Learning with Offline Data",
+there with a share of 0.5). The policy never sees the planner at flight time; the planner's
+transitions are not counted in the run's env steps (they are reported beside them).
 
 The global RNG is left as a run without the flights would find it, so that both start from
 the same initial weights and the same random warm-up.
