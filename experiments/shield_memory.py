@@ -16,8 +16,10 @@ candidates tested from where the vehicle really goes), e.g. ``1map-mover0.3-lag`
 the braking cap (``--shield-brake``: ``ShieldConfig.brake_time``), e.g. ``1map-mover0.3-brake``,
 or ``-slide`` its sliding form (``ShieldConfig.brake_slide``), e.g. ``1map-mover0.3-slide``,
 and ``-keepK`` the candidate choice that keeps moving (``ShieldConfig.keep_moving`` = K, a
-fraction of the policy's horizontal speed), e.g. ``1map-mover0.3-brake-keep0.5``.
-One JSON per
+fraction of the policy's horizontal speed), e.g. ``1map-mover0.3-brake-keep0.5``, and a last
+``-filter`` the model-predictive safety filter after that shield
+(:class:`safenav.envs.planner.PlannerFilter`, the pillar planner's view), e.g.
+``1map-mover0.3-brake-filter``. One JSON per
 (policy, setting, map) in OUT
 (a rerun skips those that exist), then a table of the mean over maps per (policy, setting) on
 stdout and in OUT/table-MAPS.md.
@@ -28,6 +30,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import time
 from pathlib import Path
 
 import torch
@@ -35,6 +38,7 @@ import torch
 from safenav.algos.policy import load_policy
 from safenav.common.jsonout import write_json
 from safenav.deploy.shield import shield_for_memory
+from safenav.envs.planner import PlannerFilter
 from safenav.experiments.evaluate import evaluate
 from safenav.experiments.selection import HELDOUT_SEEDS, TEST_SEED, VALIDATION_SEEDS
 
@@ -53,24 +57,33 @@ def _mean(values: list) -> float:
     return sum(values) / len(values) if values else float("nan")
 
 
-def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str, float]:
-    """``"20"`` -> (20, False, 0.0, False, False, 0.0); ``"20map"`` -> (20, True, 0.0, False,
-    False, 0.0); ``"1map-mover0.3-lag"`` -> (1, True, 0.3, True, False, 0.0) (``-lag``: the
-    shield models the env's velocity tracker, ``ShieldConfig.response_time``);
-    ``"1map-mover0.3-brake"`` -> (1, True, 0.3, False, True, 0.0) (the braking cap); ``-slide``:
-    its sliding form, ``"slide"`` there; ``-keep0.5``: ``ShieldConfig.keep_moving`` 0.5, last."""
+def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str, float, bool]:
+    """``"20"`` -> (20, False, 0.0, False, False, 0.0, False); ``"20map"`` -> (20, True, 0.0,
+    False, False, 0.0, False); ``"1map-mover0.3-lag"`` -> (1, True, 0.3, True, False, 0.0, False)
+    (``-lag``: the shield models the env's velocity tracker, ``ShieldConfig.response_time``);
+    ``"1map-mover0.3-brake"`` -> (1, True, 0.3, False, True, 0.0, False) (the braking cap);
+    ``-slide``: its sliding form, ``"slide"`` there; ``-keep0.5``: ``ShieldConfig.keep_moving``
+    0.5; ``-filter``, last: the planner filter after the shield (True last)."""
     found = re.fullmatch(
-        r"(\d+)(map)?(?:-mover([0-9.]+))?(-lag)?(-brake|-slide)?(?:-keep([0-9.]+))?", setting
+        r"(\d+)(map)?(?:-mover([0-9.]+))?(-lag)?(-brake|-slide)?(?:-keep([0-9.]+))?(-filter)?",
+        setting,
     )
     if found is None:
         raise SystemExit(f"shield setting {setting!r}: N, Nmap or either with -moverX, -lag, "
-                         "-brake or -slide, -keepK")  # fmt: skip
+                         "-brake or -slide, -keepK, -filter")  # fmt: skip
     brake = {None: False, "-brake": True, "-slide": "slide"}[found[5]]
     keep = float(found[6] or 0.0)
     if not 0.0 <= keep <= 1.0:
         raise SystemExit(f"shield setting {setting!r}: -keepK takes K in [0, 1]")
     return (int(found[1]), found[2] is not None, float(found[3] or 0.0), found[4] is not None,
-            brake, keep)  # fmt: skip
+            brake, keep, found[7] is not None)  # fmt: skip
+
+
+def with_filter(shield, planner_filter):
+    """``shield`` (None: none), then ``planner_filter`` on its output."""
+    if shield is None:
+        return planner_filter
+    return lambda env, obs, action: planner_filter(env, obs, shield(env, obs, action))
 
 
 def run(
@@ -86,14 +99,23 @@ def run(
             for seed, episodes in maps:
                 f = out / f"{label(path)}-m{m}-seed{seed}-{episodes}.json"
                 if not f.exists():
-                    memory, scan, mover, lag, brake, keep = parse_setting(m)
+                    memory, scan, mover, lag, brake, keep, filtered = parse_setting(m)
                     shield = shield_for_memory(memory, scan, mover, lag, brake, keep)
+                    extra = {"keep_moving": keep} if keep else {}
+                    if filtered:
+                        planner_filter = PlannerFilter()
+                        shield = with_filter(shield, planner_filter)
+                    started = time.perf_counter()
                     r = evaluate(fn, cfg, env_seed=seed, episodes=episodes, shield=shield)
                     r.pop("per_episode", None)
+                    if filtered:  # the share of the flown steps where the planner flew
+                        extra["filter_override_share"] = planner_filter.overrides / max(
+                            planner_filter.steps, 1)  # fmt: skip
                     write_json(f, {**r, "policy": str(path), "shield_memory": memory,
                                    "shield_map": scan, "mover_margin": mover,
-                                   "response": lag, "brake": brake,
-                                   **({"keep_moving": keep} if keep else {})})  # fmt: skip
+                                   "response": lag, "brake": brake, **extra,
+                                   "eval_wall_clock_s": round(time.perf_counter() - started, 1),
+                                   })  # fmt: skip
                 per_map.append(json.loads(f.read_text()))
             mean = {k: _mean([r[k] for r in per_map]) for k in KEYS}
             rows.append({"policy": label(path), "memory": m, **mean})

@@ -356,16 +356,30 @@ class OraclePlanner:
 
     @torch.no_grad()
     def __call__(self, obs: dict[str, torch.Tensor], env: SafeNavVectorEnv) -> torch.Tensor:
+        ids = self._step_start(obs, env)
+        actions = torch.zeros(env.num_envs, 3, device=env.device)
+        if len(ids) == 0:
+            return actions
+        cmds = self.candidates(obs, env, ids)  # (n, K, 3)
+        scene = self.scene(obs, env, ids)
+        chosen = self.choose(scene, cmds)
+        self.prev_cmd[ids] = chosen
+        actions[ids] = to_action(chosen, env.cos_yaw[ids], env.sin_yaw[ids], env.cfg.v_max)
+        return actions
+
+    def _step_start(self, obs: dict[str, torch.Tensor], env: SafeNavVectorEnv) -> torch.Tensor:
+        """Per-evaluation bookkeeping at each step; the episodes still to plan for."""
         if env is not self._env or not torch.equal(env.goal, self._goals):
             self._start(env)
         self._update_finished(env)
-        actions = torch.zeros(env.num_envs, 3, device=env.device)
-        ids = (~self.finished).nonzero().squeeze(-1)
-        if len(ids) == 0:
-            return actions
+        return (~self.finished).nonzero().squeeze(-1)
+
+    def scene(self, obs: dict[str, torch.Tensor], env: SafeNavVectorEnv, ids: torch.Tensor) -> dict:
+        """What the planner knows of episodes ``ids`` now (pillars, moving obstacles and their
+        forecast, wall, range-image hits), for :meth:`simulate`. With ``sense="lidar"`` it also
+        remembers this step's range image: call it once per step."""
         c, ec = self.cfg, env.cfg
-        cmds = self.candidates(obs, env, ids)  # (n, K, 3)
-        n, k = cmds.shape[:2]
+        n = len(ids)
         pos0, goal = env.pos[ids], env.goal[ids]
         w = env.world_idx[ids]
         rng = ec.lidar_range if c.sense == "lidar" else c.privileged_range
@@ -384,6 +398,7 @@ class OraclePlanner:
         # Moving obstacles: the nearest (with a limited view: the observation's nearest in range).
         nd = env.n_dynamic
         future = self.forecast(env)[:, w, :nd] if nd else None  # (H, n, D, 3)
+        width = cuboid = None
         if nd:
             centre = (env.dyn_pos[w, :nd, :2] - pos0[:, None, :2]).norm(dim=-1)
             width, cuboid = env.dyn_width[w, :nd], env.dyn_is_cuboid[w, :nd]
@@ -398,10 +413,8 @@ class OraclePlanner:
                 torch.gather(cuboid, 1, m_idx)[:, None],
             )
         # The wall: each side seen within range.
-        sides = lambda p: torch.stack([ec.half - p[..., 0], ec.half + p[..., 0],  # noqa: E731
-                                       ec.half - p[..., 1], ec.half + p[..., 1]], -1)  # fmt: skip
-        wall_seen = (sides(pos0) <= rng)[:, None]  # (n, 1, 4)
-        hits = columns = None
+        wall_seen = (_sides(pos0, ec.half) <= rng)[:, None]  # (n, 1, 4)
+        hits = columns = hit_r = None
         if c.sense == "lidar":
             now = beam_hits(obs["lidar"], env.pos, env.yaw, ec)  # every env: the memory is per env
             if c.ignore_ground:
@@ -417,20 +430,38 @@ class OraclePlanner:
             hits = self.seen[ids]
             if c.map_scan:
                 columns = self.scan(env, ids)
-            hit_r = None
             if c.fill_gaps:  # the gap to the next beam at each hit's range
                 d = (hits - pos0[:, None]).norm(dim=-1).clamp(max=ec.lidar_range)
                 hit_r = d * math.sin(math.pi / ec.lidar_h_beams)
+        return {"env": env, "ids": ids, "pos": pos0, "vel": env.vel[ids], "goal": goal,
+                "pxy": pxy, "phalf": phalf, "ph": ph, "nd": nd, "future": future,
+                "width": width, "cuboid": cuboid, "wall_seen": wall_seen, "hits": hits,
+                "columns": columns, "hit_r": hit_r,
+                "band": (env.band[ids, 0, None], env.band[ids, 1, None])}  # fmt: skip
 
-        p = pos0[:, None].expand(n, k, 3).contiguous()
-        v = env.vel[ids, None].expand(n, k, 3).contiguous()
+    def simulate(self, scene: dict, cmds: torch.Tensor, p: torch.Tensor, v: torch.Tensor,
+                 t0: int = 0, steps: int | None = None) -> dict[str, torch.Tensor]:  # fmt: skip
+        """Roll the commands ``cmds`` ``(n, K, 3)`` (world frame, each held) through the env's
+        velocity tracker from positions ``p`` and velocities ``v`` ``(n, K, 3)``, steps ``t0 + 1``
+        to ``t0 + steps`` of the horizon (default: to its end), against ``scene``. Returns
+        ``first_hit`` (the first step in a collision, ``horizon + 1`` if none), ``reach`` (the
+        first at the goal, likewise), ``intrude`` (deepest intrusion into the margins, m),
+        ``least`` (least clearance, m), each ``(n, K)``, and the end state ``p``, ``v``."""
+        c, ec = self.cfg, scene["env"].cfg
+        n, k = cmds.shape[:2]
+        dev = cmds.device
+        steps = c.horizon - t0 if steps is None else steps
+        pxy, phalf, ph, nd = scene["pxy"], scene["phalf"], scene["ph"], scene["nd"]
+        hits, columns, hit_r, wall_seen = (scene["hits"], scene["columns"], scene["hit_r"],
+                                           scene["wall_seen"])  # fmt: skip
+        lo, hi = scene["band"]  # NavRL's altitude band
+        goal = scene["goal"]
         never = c.horizon + 1
-        lo, hi = env.band[ids, 0, None], env.band[ids, 1, None]  # NavRL's altitude band
-        first_hit = torch.full((n, k), never, device=env.device)  # first step in a collision
-        reach = torch.full((n, k), never, device=env.device)  # first step at the goal
-        intrude = torch.zeros(n, k, device=env.device)  # deepest intrusion into the margins (m)
-        least = torch.full((n, k), math.inf, device=env.device)  # least clearance (m)
-        for t in range(c.horizon):
+        first_hit = torch.full((n, k), never, device=dev)  # first step in a collision
+        reach = torch.full((n, k), never, device=dev)  # first step at the goal
+        intrude = torch.zeros(n, k, device=dev)  # deepest intrusion into the margins (m)
+        least = torch.full((n, k), math.inf, device=dev)  # least clearance (m)
+        for t in range(t0, t0 + steps):
             p, v = velocity_tracker(p, v, cmds, ec.dt, ec.physics_substeps,
                                     ec.velocity_time_constant, ec.max_acceleration)  # fmt: skip
             if hits is None:
@@ -438,7 +469,9 @@ class OraclePlanner:
                 dy = ((p[..., None, 1] - pxy[:, None, :, 1]).abs() - phalf[:, None]).clamp(min=0)
                 dz = (p[..., None, 2] - ph[:, None]).clamp(min=0)
                 static = (dx * dx + dy * dy + dz * dz).sqrt().amin(-1)
-                static = torch.minimum(static, torch.where(wall_seen, sides(p), math.inf).amin(-1))
+                static = torch.minimum(
+                    static, torch.where(wall_seen, _sides(p, ec.half), math.inf).amin(-1)
+                )
             else:  # the beams' hit points: what the range image shows, nothing between beams
                 dist = torch.cdist(p, hits)
                 static = (dist if hit_r is None else dist - hit_r[:, None]).amin(-1)
@@ -447,7 +480,8 @@ class OraclePlanner:
             static = static - ec.uav_radius
             mover = torch.full_like(static, math.inf)
             if nd:
-                mover = mover_clearance(future[t], width, cuboid, p).amin(-1) - ec.uav_radius
+                mover = (mover_clearance(scene["future"][t], scene["width"], scene["cuboid"], p)
+                         .amin(-1) - ec.uav_radius)  # fmt: skip
             band = torch.minimum(p[..., 2] - ec.z_min, ec.z_max - p[..., 2])
             clear = torch.minimum(static, mover)
             going = reach == never  # not at the goal before this step
@@ -461,6 +495,24 @@ class OraclePlanner:
             least = torch.where(going, torch.minimum(least, clear), least)
             at_goal = ((p - goal[:, None]) ** 2).sum(-1) < (0.9 * ec.goal_tolerance) ** 2
             reach = torch.where(going & at_goal, t + 1, reach)
+        return {"first_hit": first_hit, "reach": reach, "intrude": intrude, "least": least,
+                "p": p, "v": v}  # fmt: skip
+
+    def choose(self, scene: dict, cmds: torch.Tensor) -> torch.Tensor:
+        """The planner's command ``(n, 3)`` among ``cmds`` ``(n, K, 3)``, each held from now for
+        the horizon: the lowest score (module docstring)."""
+        c, env = self.cfg, scene["env"]
+        ec, ids = env.cfg, scene["ids"]
+        n, k = cmds.shape[:2]
+        p = scene["pos"][:, None].expand(n, k, 3).contiguous()
+        v = scene["vel"][:, None].expand(n, k, 3).contiguous()
+        roll = self.simulate(scene, cmds, p, v)
+        first_hit, reach, intrude, least = (
+            roll[x] for x in ("first_hit", "reach", "intrude", "least")
+        )
+        p = roll["p"]
+        goal = scene["goal"]
+        never = c.horizon + 1
 
         # Cost-to-go at the horizon's end; minus the time left for those that reach the goal.
         delta = goal[:, None] - p
@@ -485,10 +537,12 @@ class OraclePlanner:
             first_hit < never, 1e6 - 1e3 * first_hit + score.clamp(-1e2, 9e2), score
         )
         best = score.argmin(-1)
-        chosen = cmds[torch.arange(n, device=env.device), best]
-        self.prev_cmd[ids] = chosen
-        actions[ids] = to_action(chosen, env.cos_yaw[ids], env.sin_yaw[ids], ec.v_max)
-        return actions
+        return cmds[torch.arange(n, device=env.device), best]
+
+
+def _sides(p: torch.Tensor, half: float) -> torch.Tensor:
+    """Distances ``(..., 4)`` from points ``p`` ``(..., 3)`` to the four sides of the wall."""
+    return torch.stack([half - p[..., 0], half + p[..., 0], half - p[..., 1], half + p[..., 1]], -1)
 
 
 class AutoresetPlanner(OraclePlanner):
@@ -512,6 +566,90 @@ class AutoresetPlanner(OraclePlanner):
         pass
 
 
+class PlannerFilter(OraclePlanner):
+    """A model-predictive safety filter over a policy (beyond the paper and NavRL): the
+    Simplex architecture (Sha, 2001; with a learned controller, Phan et al., 2020, "Neural
+    Simplex Architecture") with the planner as its safe controller, and a predictive safety
+    filter's test (Wabersich & Zeilinger, 2021) of each action.
+
+    Called as a shield, ``action = filter(env, obs, action)``. Each step, for each unfinished
+    episode, the policy's command is held for ``hold`` control steps and then each of the
+    planner's candidates (:meth:`~OraclePlanner.candidates`) for the rest of the horizon, all
+    through the env's velocity tracker against what the planner's config lets it see. The
+    policy's action flies unchanged (bit for bit) if its own steps and at least one continuation
+    (the policy's command itself held on, or a candidate) neither collide nor enter the margins
+    (``margin`` from pillars, wall and altitude limits, ``margin + mover_margin`` from moving
+    obstacles forecast at constant velocity): a way out is left after it. Otherwise the
+    planner's own choice flies (:meth:`~OraclePlanner.choose`).
+    ``overrides`` counts the steps where it did, ``steps`` all filtered steps.
+
+    What it sees is its config's: with ``PLANNER_PILLARS`` the pillars, wall and moving
+    obstacles within 4 m, read from the simulator (a diagnostic of what the ``static`` entry's
+    geometry allows, not yet the onboard runtime's; docs/csac-v1.md)."""
+
+    def __init__(self, config: OracleConfig | None = None, hold: int = 1,
+                 scan: ScanFn | None = None) -> None:  # fmt: skip
+        super().__init__(config or PLANNER_PILLARS, scan)
+        if not 1 <= hold < self.cfg.horizon:
+            raise ValueError(f"hold={hold}: between 1 and the horizon - 1 ({self.cfg.horizon - 1})")
+        self.hold = int(hold)
+        self.overrides = self.steps = 0
+
+    @torch.no_grad()
+    def __call__(  # type: ignore[override]  (a shield's signature, not a policy's)
+        self, env: SafeNavVectorEnv, obs: dict[str, torch.Tensor], action: torch.Tensor
+    ) -> torch.Tensor:
+        ids = self._step_start(obs, env)
+        out = action.clone()
+        if len(ids) == 0:
+            return out
+        ec, never = env.cfg, self.cfg.horizon + 1
+        cos_y, sin_y = env.cos_yaw[ids], env.sin_yaw[ids]
+        # The command the env will apply for the policy's action (goal frame, clipped per axis).
+        proposal = goal_frame_to_world(action[ids].clamp(-1.0, 1.0) * ec.v_max, cos_y, sin_y)
+        cmds = self.candidates(obs, env, ids)  # (n, K, 3)
+        scene = self.scene(obs, env, ids)
+        n, k = cmds.shape[:2]
+        clean = lambda r: (r["first_hit"] == never) & (r["intrude"] <= 0)  # noqa: E731
+        start = lambda sc: (sc["pos"][:, None], sc["vel"][:, None])  # noqa: E731  one rollout each
+        # Held for the whole horizon, the policy's command is its own way out (one rollout);
+        # only where it is not are the candidates tried after it.
+        safe = clean(self.simulate(scene, proposal[:, None], *start(scene)))[:, 0]
+        rest = (~safe).nonzero().squeeze(-1)
+        if len(rest):
+            sub = _scene_rows(scene, rest)
+            head = self.simulate(sub, proposal[rest, None], *start(sub), 0, self.hold)
+            tail = self.simulate(sub, cmds[rest], head["p"].expand(-1, k, 3).contiguous(),
+                                 head["v"].expand(-1, k, 3).contiguous(), self.hold)  # fmt: skip
+            safe[rest] = clean(head)[:, 0] & clean(tail).any(-1)
+        flown = proposal
+        self.steps += n
+        bad = (~safe).nonzero().squeeze(-1)
+        if len(bad):  # the planner's choice (its smoothness term against the last flown command)
+            self.overrides += len(bad)
+            chosen = self.choose(_scene_rows(scene, bad), cmds[bad])
+            flown = proposal.clone()
+            flown[bad] = chosen
+            out[ids[bad]] = to_action(chosen, cos_y[bad], sin_y[bad], ec.v_max).to(out.dtype)
+        self.prev_cmd[ids] = flown
+        return out
+
+
+def _scene_rows(scene: dict, rows: torch.Tensor) -> dict:
+    """The :meth:`OraclePlanner.scene` of the episodes ``rows`` of it (indices into its ``ids``)."""
+    out = dict(scene)
+    for key, value in scene.items():
+        if key in ("env", "nd"):
+            continue
+        if key == "future":
+            out[key] = None if value is None else value[:, rows]
+        elif key == "band":
+            out[key] = tuple(b[rows] for b in value)
+        elif value is not None:
+            out[key] = value[rows]
+    return out
+
+
 PLANNER_B_BEAMS = (-30.0, -15.0, 0.0, 15.0)
 """The beam elevations (degrees) planner B was measured with (``csac-shielded-memory``'s)."""
 
@@ -532,5 +670,5 @@ PLANNERS = {"range": PLANNER_B, "pillars": PLANNER_PILLARS}
 """The planners a learner may replay (``CSACConfig.planner_view``), by what they see."""
 
 __all__ = ["FAR", "PLANNERS", "PLANNER_B", "PLANNER_B_BEAMS", "PLANNER_PILLARS", "AutoresetPlanner",
-           "OracleConfig", "OraclePlanner", "ScanFn", "beam_hits", "geodesic_fields",
-           "mover_clearance", "sample_field", "to_action"]  # fmt: skip
+           "OracleConfig", "OraclePlanner", "PlannerFilter", "ScanFn", "beam_hits",
+           "geodesic_fields", "mover_clearance", "sample_field", "to_action"]  # fmt: skip
