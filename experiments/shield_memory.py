@@ -41,6 +41,7 @@ from safenav.deploy.shield import shield_for_memory
 from safenav.envs.planner import PlannerFilter
 from safenav.experiments.evaluate import evaluate
 from safenav.experiments.selection import HELDOUT_SEEDS, TEST_SEED, VALIDATION_SEEDS
+from safenav.experiments.stats import outcomes_string
 
 KEYS = ("success_rate", "collision_rate", "timeout_rate", "collision_static_rate",
         "collision_dynamic_rate", "mean_speed", "mean_time_to_goal", "collision_bounds_rate")  # fmt: skip
@@ -107,7 +108,7 @@ def run(
                         shield = with_filter(shield, planner_filter)
                     started = time.perf_counter()
                     r = evaluate(fn, cfg, env_seed=seed, episodes=episodes, shield=shield)
-                    r.pop("per_episode", None)
+                    extra["outcomes"] = outcomes_string(r.pop("per_episode", None))
                     if filtered:  # the share of the flown steps where the planner flew
                         extra["filter_override_share"] = planner_filter.overrides / max(
                             planner_filter.steps, 1)  # fmt: skip

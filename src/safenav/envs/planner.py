@@ -468,7 +468,10 @@ class OraclePlanner:
                 dx = ((p[..., None, 0] - pxy[:, None, :, 0]).abs() - phalf[:, None]).clamp(min=0)
                 dy = ((p[..., None, 1] - pxy[:, None, :, 1]).abs() - phalf[:, None]).clamp(min=0)
                 dz = (p[..., None, 2] - ph[:, None]).clamp(min=0)
-                static = (dx * dx + dy * dy + dz * dz).sqrt().amin(-1)
+                static = (dx * dx + dy * dy + dz * dz).sqrt()
+                static = (
+                    static.amin(-1) if static.shape[-1] else torch.full_like(p[..., 0], math.inf)
+                )
                 static = torch.minimum(
                     static, torch.where(wall_seen, _sides(p, ec.half), math.inf).amin(-1)
                 )
@@ -581,7 +584,8 @@ class PlannerFilter(OraclePlanner):
     (``margin`` from pillars, wall and altitude limits, ``margin + mover_margin`` from moving
     obstacles forecast at constant velocity): a way out is left after it. Otherwise the
     planner's own choice flies (:meth:`~OraclePlanner.choose`).
-    ``overrides`` counts the steps where it did, ``steps`` all filtered steps.
+    ``overrides`` counts the steps where it did, ``steps`` all filtered steps, and
+    ``overridden`` ``(N,)`` says which envs' actions it replaced at the last call.
 
     What it sees is its config's: with ``PLANNER_PILLARS`` the pillars, wall and moving
     obstacles within 4 m, read from the simulator (a diagnostic of what the ``static`` entry's
@@ -594,6 +598,7 @@ class PlannerFilter(OraclePlanner):
             raise ValueError(f"hold={hold}: between 1 and the horizon - 1 ({self.cfg.horizon - 1})")
         self.hold = int(hold)
         self.overrides = self.steps = 0
+        self.overridden: torch.Tensor | None = None
 
     @torch.no_grad()
     def __call__(  # type: ignore[override]  (a shield's signature, not a policy's)
@@ -601,6 +606,7 @@ class PlannerFilter(OraclePlanner):
     ) -> torch.Tensor:
         ids = self._step_start(obs, env)
         out = action.clone()
+        self.overridden = torch.zeros(env.num_envs, dtype=torch.bool, device=env.device)
         if len(ids) == 0:
             return out
         ec, never = env.cfg, self.cfg.horizon + 1
@@ -627,6 +633,7 @@ class PlannerFilter(OraclePlanner):
         bad = (~safe).nonzero().squeeze(-1)
         if len(bad):  # the planner's choice (its smoothness term against the last flown command)
             self.overrides += len(bad)
+            self.overridden[ids[bad]] = True
             chosen = self.choose(_scene_rows(scene, bad), cmds[bad])
             flown = proposal.clone()
             flown[bad] = chosen

@@ -1,0 +1,72 @@
+"""``PlannerFilter``, the model-predictive safety filter (beyond the paper): the policy's action
+flies bit for bit where a way out is left after it, the planner's choice where not, and a policy
+that flies straight into the obstacles stops crashing behind it."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from safenav.envs.config import make_config
+from safenav.envs.dynamics import goal_frame_to_world
+from safenav.envs.nav import SafeNavVectorEnv
+from safenav.envs.planner import PlannerFilter, to_action
+from safenav.envs.scripted import go_to_goal
+from safenav.experiments.evaluate import evaluate
+
+
+def _env(n: int = 16, **overrides) -> tuple[SafeNavVectorEnv, dict]:
+    env = SafeNavVectorEnv(n, config=make_config("easy", **overrides), output="torch",
+                           autoreset_mode="Disabled")  # fmt: skip
+    obs, _ = env.reset(seed=12345)
+    return env, obs
+
+
+def test_it_keeps_safe_actions_bit_for_bit_and_replaces_the_others_by_a_planner_command():
+    torch.manual_seed(0)
+    env, obs = _env()
+    filt = PlannerFilter()
+    kept_some_overrode_some = False
+    for _ in range(40):
+        action = torch.rand(env.num_envs, 3) * 2 - 1
+        out = filt(env, obs, action)
+        kept = ~filt.overridden
+        assert torch.equal(out[kept], action[kept])
+        ids = filt.overridden.nonzero().squeeze(-1)
+        if len(ids):
+            kept_some_overrode_some |= bool(kept.any())
+            flown = goal_frame_to_world(
+                out[ids] * env.cfg.v_max, env.cos_yaw[ids], env.sin_yaw[ids]
+            )
+            cmds = filt.candidates(obs, env, ids)  # one of the planner's commands, as applied
+            assert bool(((cmds - flown[:, None]).norm(dim=-1).amin(-1) < 1e-5).all())
+        obs, *_ = env.step(out)
+    assert kept_some_overrode_some and filt.steps > 0 and 0 < filt.overrides < filt.steps
+
+
+def test_a_hover_in_open_space_is_left_alone():
+    env, obs = _env(8, num_static=0, num_dynamic=0)
+    filt = PlannerFilter()
+    hover = to_action(torch.zeros(8, 3), env.cos_yaw, env.sin_yaw, env.cfg.v_max)
+    for _ in range(5):
+        out = filt(env, obs, hover)
+        assert torch.equal(out, hover) and not filt.overridden.any()
+        obs, *_ = env.step(out)
+    assert filt.overrides == 0 and filt.steps == 40
+
+
+def test_straight_to_the_goal_stops_crashing_behind_it():
+    torch.set_num_threads(1)
+    cfg = make_config("easy")
+    straight = evaluate(go_to_goal, cfg, env_seed=12345, episodes=16)
+    filt = PlannerFilter()
+    filtered = evaluate(go_to_goal, cfg, env_seed=12345, episodes=16, shield=filt)
+    assert straight["collision_rate"] >= 0.5
+    assert filtered["collision_rate"] <= 0.1 and filtered["success_rate"] >= 0.8
+    assert 0 < filt.overrides < filt.steps  # the straight flight flies where it can
+
+
+@pytest.mark.parametrize("hold", [0, 20])
+def test_hold_must_leave_room_for_a_way_out(hold):
+    with pytest.raises(ValueError, match="hold"):
+        PlannerFilter(hold=hold)
