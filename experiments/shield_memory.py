@@ -18,8 +18,9 @@ or ``-slide`` its sliding form (``ShieldConfig.brake_slide``), e.g. ``1map-mover
 and ``-keepK`` the candidate choice that keeps moving (``ShieldConfig.keep_moving`` = K, a
 fraction of the policy's horizontal speed), e.g. ``1map-mover0.3-brake-keep0.5``, and a last
 ``-filter`` the model-predictive safety filter after that shield
-(:class:`safenav.envs.planner.PlannerFilter`, the pillar planner's view), e.g.
-``1map-mover0.3-brake-filter``. One JSON per
+(:class:`safenav.envs.planner.PlannerFilter`, the pillar planner's view of the simulator), e.g.
+``1map-mover0.3-brake-filter``, or ``-filterobs`` the same filter seeing only what the vehicle
+has on board (the observation's pillar list and movers: ``view="observation"``). One JSON per
 (policy, setting, map) in OUT
 (a rerun skips those that exist), then a table of the mean over maps per (policy, setting) on
 stdout and in OUT/table-MAPS.md.
@@ -38,7 +39,7 @@ import torch
 from safenav.algos.policy import load_policy
 from safenav.common.jsonout import write_json
 from safenav.deploy.shield import shield_for_memory
-from safenav.envs.planner import PlannerFilter
+from safenav.envs.planner import PlannerFilter, behind_filter
 from safenav.experiments.evaluate import evaluate
 from safenav.experiments.selection import HELDOUT_SEEDS, TEST_SEED, VALIDATION_SEEDS
 from safenav.experiments.stats import outcomes_string
@@ -58,33 +59,29 @@ def _mean(values: list) -> float:
     return sum(values) / len(values) if values else float("nan")
 
 
-def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str, float, bool]:
+def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str, float, str | None]:
     """``"20"`` -> (20, False, 0.0, False, False, 0.0, False); ``"20map"`` -> (20, True, 0.0,
     False, False, 0.0, False); ``"1map-mover0.3-lag"`` -> (1, True, 0.3, True, False, 0.0, False)
     (``-lag``: the shield models the env's velocity tracker, ``ShieldConfig.response_time``);
     ``"1map-mover0.3-brake"`` -> (1, True, 0.3, False, True, 0.0, False) (the braking cap);
     ``-slide``: its sliding form, ``"slide"`` there; ``-keep0.5``: ``ShieldConfig.keep_moving``
-    0.5; ``-filter``, last: the planner filter after the shield (True last)."""
+    0.5; ``-filter``, last: the planner filter after the shield (its view last: ``"simulator"``;
+    ``-filterobs``: ``"observation"``; None without)."""
     found = re.fullmatch(
-        r"(\d+)(map)?(?:-mover([0-9.]+))?(-lag)?(-brake|-slide)?(?:-keep([0-9.]+))?(-filter)?",
+        r"(\d+)(map)?(?:-mover([0-9.]+))?(-lag)?(-brake|-slide)?(?:-keep([0-9.]+))?"
+        r"(-filter(?:obs)?)?",
         setting,
     )
     if found is None:
         raise SystemExit(f"shield setting {setting!r}: N, Nmap or either with -moverX, -lag, "
-                         "-brake or -slide, -keepK, -filter")  # fmt: skip
+                         "-brake or -slide, -keepK, -filter or -filterobs")  # fmt: skip
     brake = {None: False, "-brake": True, "-slide": "slide"}[found[5]]
     keep = float(found[6] or 0.0)
     if not 0.0 <= keep <= 1.0:
         raise SystemExit(f"shield setting {setting!r}: -keepK takes K in [0, 1]")
+    view = {None: None, "-filter": "simulator", "-filterobs": "observation"}[found[7]]
     return (int(found[1]), found[2] is not None, float(found[3] or 0.0), found[4] is not None,
-            brake, keep, found[7] is not None)  # fmt: skip
-
-
-def with_filter(shield, planner_filter):
-    """``shield`` (None: none), then ``planner_filter`` on its output."""
-    if shield is None:
-        return planner_filter
-    return lambda env, obs, action: planner_filter(env, obs, shield(env, obs, action))
+            brake, keep, view)  # fmt: skip
 
 
 def run(
@@ -104,8 +101,8 @@ def run(
                     shield = shield_for_memory(memory, scan, mover, lag, brake, keep)
                     extra = {"keep_moving": keep} if keep else {}
                     if filtered:
-                        planner_filter = PlannerFilter()
-                        shield = with_filter(shield, planner_filter)
+                        planner_filter = PlannerFilter(view=filtered)
+                        shield = behind_filter(shield, planner_filter)
                     started = time.perf_counter()
                     r = evaluate(fn, cfg, env_seed=seed, episodes=episodes, shield=shield)
                     extra["outcomes"] = outcomes_string(r.pop("per_episode", None))

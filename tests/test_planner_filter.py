@@ -70,3 +70,73 @@ def test_straight_to_the_goal_stops_crashing_behind_it():
 def test_hold_must_leave_room_for_a_way_out(hold):
     with pytest.raises(ValueError, match="hold"):
         PlannerFilter(hold=hold)
+
+
+@pytest.mark.long
+def test_eval_and_render_fly_behind_it(tmp_path, capsys):
+    import json
+
+    from conftest import run_cli
+
+    out = tmp_path / "eval.json"
+    code, _, err = run_cli(capsys, ["eval", "--policy", "straight", "--preset", "easy",
+                                    "--env-seed", "12345", "--episodes", "4", "--planner-filter",
+                                    "--json", str(out)])  # fmt: skip
+    assert code == 0, err
+    result = json.loads(out.read_text())
+    assert result["planner_filter"] is True
+    assert 0 < result["planner_filter_override_share"] < 1 and result["collision_rate"] == 0
+    gif = tmp_path / "ep.gif"
+    code, printed, err = run_cli(capsys, ["render", "--policy", "straight", "--preset", "easy",
+                                          "--env-seed", "12345", "--episode", "1",
+                                          "--planner-filter", "--out", str(gif)])  # fmt: skip
+    assert code == 0, err
+    assert gif.stat().st_size > 0 and "'collision': 0.0" in printed
+
+
+def test_the_observed_view_is_the_simulators_pillars_and_movers():
+    """``observed_scene`` rebuilds from the observation alone the pillars (centre, half side,
+    top) and the tracked movers (centre, velocity, size) the simulator holds."""
+    torch.manual_seed(0)
+    env = SafeNavVectorEnv(6, config=make_config("paper", static_tracked=10), output="torch",
+                           autoreset_mode="Disabled")  # fmt: skip
+    obs, _ = env.reset(seed=12345)
+    for _ in range(10):
+        obs, *_ = env.step(torch.rand(6, 3) * 2 - 1)
+    planner = PlannerFilter(view="observation")
+    ids = torch.arange(6)
+    scene = planner.observed_scene(obs, env, ids)
+    w = env.world_idx
+    present = scene["ph"] > -1e3
+    assert present.any()
+    for i in range(6):
+        xy, half = env.pillar_xy[w[i], : env.n_static], env.pillar_half[w[i], : env.n_static]
+        top = env.pillar_height[w[i], : env.n_static]
+        for j in present[i].nonzero().squeeze(-1):
+            match = (xy - scene["pxy"][i, j]).norm(dim=-1).argmin()
+            assert (xy[match] - scene["pxy"][i, j]).norm() < 1e-4
+            assert abs(half[match] - scene["phalf"][i, j]) < 1e-5
+            assert abs(top[match] - scene["ph"][i, j]) < 1e-4
+    seen = scene["future"][0, ..., 0] < 1e3
+    assert seen.any()
+    step = env.cfg.dt * env.dyn_vel[w]  # (n, D, 3): the constant-velocity forecast's first step
+    for i in range(6):
+        truth = env.dyn_pos[w[i]] + step[i]
+        for j in seen[i].nonzero().squeeze(-1):
+            got = scene["future"][0, i, j]
+            d = (truth[:, :2] - got[:2]).norm(dim=-1)
+            match = d.argmin()
+            assert d[match] < 1e-4
+            assert abs(env.dyn_width[w[i], match] - scene["width"][i, 0, j]) < 1e-5
+            cuboid = bool(env.dyn_is_cuboid[w[i], match])
+            assert cuboid == bool(scene["cuboid"][i, 0, j])
+            if cuboid:  # a standing cylinder's height is its own, not its centre's
+                assert abs(truth[match, 2] - got[2]) < 1e-4
+
+
+def test_the_observed_view_needs_the_pillar_list():
+    env, obs = _env(2)
+    with pytest.raises(ValueError, match="static_tracked"):
+        PlannerFilter(view="observation")(env, obs, torch.zeros(2, 3))
+    with pytest.raises(ValueError, match="view"):
+        PlannerFilter(view="lidar")

@@ -20,6 +20,7 @@ def eval_(
     shield_map: bool = False,
     shield_mover_margin: float = 0.0,
     shield_brake: bool = False,
+    planner_filter: bool = False,
     json_out: Annotated[Path | None, tyro.conf.arg(name="json")] = None,
     policy: Literal[
         "checkpoint", "scripted", "straight", "border", "random", "planner"
@@ -32,7 +33,8 @@ def eval_(
     start/goal episodes, deterministic actions) and print success / collision / timeout rates and
     how it flew (detour ratio, time near the border).
 
-    ``--shield`` corrects actions with the velocity-obstacle safety shield. ``--preset`` overrides
+    ``--shield`` corrects actions with the velocity-obstacle safety shield; ``--planner-filter``
+    then lets the pillar planner fly wherever the command leaves no way out. ``--preset`` overrides
     the checkpoint's env preset. ``--policy scripted`` evaluates the potential-field baseline,
     ``straight`` flies straight at the goal, ``border`` around the field along the border (the
     loophole probe: it must fail in the closed arena), ``planner`` the privileged planner B
@@ -52,6 +54,10 @@ def eval_(
             (0-2; beyond NavRL's shield).
         shield_brake: With --shield: the braking cap: near a static obstacle, the ground or the
             ceiling the shield slows the vehicle to a speed it can stop from (beyond NavRL's).
+        planner_filter: After the shield (if any), the model-predictive safety filter: each
+            command is rolled out 2 s through the vehicle's velocity response against the
+            pillars, wall and moving obstacles within 4 m, and the pillar planner flies where it
+            leaves no way out (beyond the paper; reads the simulator; docs/csac-v1.md).
         json_out: Also write the metrics here as JSON (no value: null); the directory must exist.
         policy: What flies: the checkpoint, or a baseline without one.
         preset: Env preset (easy, medium, paper); default: the checkpoint's, else paper.
@@ -90,6 +96,11 @@ def eval_(
         from safenav.deploy.shield import shield_for_memory
 
         shield_fn = shield_for_memory(memory, shield_map, shield_mover_margin, brake=shield_brake)
+    if planner_filter:
+        from safenav.envs.planner import PlannerFilter, behind_filter
+
+        the_filter = PlannerFilter()
+        shield_fn = behind_filter(shield_fn, the_filter)
     result = evaluate(fn, cfg, env_seed=env_seed, episodes=episodes, device=device,
                       shield=shield_fn, progress=True)  # fmt: skip
     result["checkpoint"] = str(checkpoint) if checkpoint else policy
@@ -99,6 +110,9 @@ def eval_(
         result["shield_map"] = shield_map
         result["shield_mover_margin"] = shield_mover_margin
         result["shield_brake"] = shield_brake
+    result["planner_filter"] = planner_filter
+    if planner_filter:  # the share of the flown steps where the planner flew
+        result["planner_filter_override_share"] = the_filter.overrides / max(the_filter.steps, 1)
     result["env"] = ENV_ID
     result["collision_rule"] = collision_rule
     if policy == "checkpoint":
@@ -117,6 +131,10 @@ def eval_(
                 "collision_border_rate", "detour_ratio", "border_time_fraction",
                 "outside_time_fraction", "mean_path_length", "min_clearance", "mean_speed"):  # fmt: skip
         table.add_row(key, f"{result[key]:.3f}")
+    if planner_filter:
+        table.add_row(
+            "planner_filter_override_share", f"{result['planner_filter_override_share']:.3f}"
+        )
     Console().print(table)
     if json_out is not None:
         from safenav.common.jsonout import write_json

@@ -29,6 +29,7 @@ def render(
     shield_map: bool = False,
     shield_mover_margin: float = 0.0,
     shield_brake: bool = False,
+    planner_filter: bool = False,
 ) -> None:
     """Render one episode (top-down: pillars, moving obstacles, lidar beams, trail, goal) to a GIF.
 
@@ -62,6 +63,9 @@ def render(
             (0-2; beyond NavRL's shield).
         shield_brake: With --shield: the braking cap: near a static obstacle, the ground or the
             ceiling the shield slows the vehicle to a speed it can stop from (beyond NavRL's).
+        planner_filter: After the shield (if any), the model-predictive safety filter: the
+            pillar planner flies where the command leaves no way out (beyond the paper; reads the
+            simulator; docs/csac-v1.md).
     """
     from safenav.commands.eval import check_shield_memory
     from safenav.common.checks import check_output_file, in_range
@@ -88,7 +92,7 @@ def render(
     if checkpoint is None and policy == "checkpoint":
         policy = "scripted"
     safenav_only = {"--preset": preset is not None, "--record": record is not None,
-                    "--shield": shield}  # fmt: skip
+                    "--shield": shield, "--planner-filter": planner_filter}  # fmt: skip
     loaded = None
     if policy == "checkpoint":
         loaded = _load_or_render_gymnasium(checkpoint, out, env_seed, episode, fps,
@@ -104,7 +108,8 @@ def render(
                            env_seed=env_seed, episode=episode, fps=fps, record=record,
                            shield_memory=memory, shield_map=shield_map,
                            shield_mover_margin=shield_mover_margin,
-                           shield_brake=shield_brake, loaded=loaded)  # fmt: skip
+                           shield_brake=shield_brake, loaded=loaded,
+                           planner_filter=planner_filter)  # fmt: skip
     print(f"wrote {out}{f' and {record}' if record is not None else ''}: {stats}")
 
 

@@ -55,7 +55,7 @@ from safenav.envs.sensors import (
     moving_obstacle_clearance,
     pillar_clearance,
 )
-from safenav.envs.world import CUBOID_HEIGHT, CYLINDER_HEIGHT, border_clearance
+from safenav.envs.world import CUBOID_HEIGHT, CYLINDER_HEIGHT, DYN_WIDTHS, border_clearance
 
 FAR = 1.0e4  # m: where obstacles outside the planner's view are put
 W_MARGIN = 100.0  # cost per metre of intrusion into the margins (1 cm = 1 m of cost-to-go)
@@ -439,6 +439,48 @@ class OraclePlanner:
                 "columns": columns, "hit_r": hit_r,
                 "band": (env.band[ids, 0, None], env.band[ids, 1, None])}  # fmt: skip
 
+    def observed_scene(self, obs: dict[str, torch.Tensor], env: SafeNavVectorEnv,
+                       ids: torch.Tensor) -> dict:  # fmt: skip
+        """:meth:`scene` from what a vehicle has on board: the observation's ``static`` rows (the
+        pillars' footprints and tops, ``EnvConfig.static_tracked``) and ``dynamic`` rows (the
+        tracked moving obstacles, forecast at constant velocity), the vehicle's position,
+        velocity and goal (odometry and mission; here the env's) and the arena's wall (its
+        geofence). Nothing else of the simulator is read. Static rows layout:
+        ``safenav.envs.config.STATIC_FEATURES``; dynamic rows:
+        :func:`~safenav.envs.sensors.dynamic_obstacle_features`."""
+        if "static" not in obs:
+            raise ValueError("the observed view needs the observation's pillar list "
+                             "(EnvConfig.static_tracked > 0)")  # fmt: skip
+        c, ec = self.cfg, env.cfg
+        rng = ec.lidar_range
+        pos0, goal = env.pos[ids], env.goal[ids]
+        cy, sy = env.cos_yaw[ids, None], env.sin_yaw[ids, None]
+        world = lambda g: goal_frame_to_world(g, cy, sy)  # noqa: E731  (n, M, 3) goal frame
+        st = obs["static"][ids].to(pos0.dtype)
+        flat = torch.cat([st[..., 2:4] * rng, torch.zeros_like(st[..., :1])], -1)
+        pxy = pos0[:, None, :2] + world(flat)[..., :2]
+        phalf = st[..., 4] * 0.4
+        ph = torch.where(st[..., 6] > 0.5, pos0[:, None, 2] + st[..., 5] * rng, -FAR)
+        dyn = obs["dynamic"][ids].to(pos0.dtype)
+        nd = dyn.shape[1]
+        future = width = cuboid = None
+        if nd:
+            dist = torch.sqrt((dyn[..., 3] * rng) ** 2 + (dyn[..., 4] * rng) ** 2)
+            centre = pos0[:, None] + world(dyn[..., 0:3] * dist[..., None])
+            vel = world(dyn[..., 5:8] * ec.v_max)
+            t = torch.arange(1, c.horizon + 1, device=pos0.device, dtype=pos0.dtype)
+            future = centre[None] + t[:, None, None, None] * ec.dt * vel[None]  # (H, n, D, 3)
+            seen = dyn.abs().sum(-1) > 0  # rows of zeros are empty slots
+            future = torch.where(seen[None, ..., None], future, FAR)
+            width = ((dyn[..., 8] * (len(DYN_WIDTHS) - 1) + 1.0) * DYN_WIDTHS[0])[:, None]
+            cuboid = (dyn[..., 9] > 0.5)[:, None]
+        wall_seen = (_sides(pos0, ec.half) <= rng)[:, None]
+        return {"env": env, "ids": ids, "pos": pos0, "vel": env.vel[ids], "goal": goal,
+                "pxy": pxy, "phalf": phalf, "ph": ph, "nd": nd, "future": future,
+                "width": width, "cuboid": cuboid, "wall_seen": wall_seen, "hits": None,
+                "columns": None, "hit_r": None,
+                "band": (env.band[ids, 0, None], env.band[ids, 1, None])}  # fmt: skip
+
     def simulate(self, scene: dict, cmds: torch.Tensor, p: torch.Tensor, v: torch.Tensor,
                  t0: int = 0, steps: int | None = None) -> dict[str, torch.Tensor]:  # fmt: skip
         """Roll the commands ``cmds`` ``(n, K, 3)`` (world frame, each held) through the env's
@@ -569,6 +611,10 @@ class AutoresetPlanner(OraclePlanner):
         pass
 
 
+FILTER_VIEWS = ("simulator", "observation")
+"""What :class:`PlannerFilter` sees (its ``view``)."""
+
+
 class PlannerFilter(OraclePlanner):
     """A model-predictive safety filter over a policy (beyond the paper and NavRL): the
     Simplex architecture (Sha, 2001; with a learned controller, Phan et al., 2020, "Neural
@@ -587,16 +633,20 @@ class PlannerFilter(OraclePlanner):
     ``overrides`` counts the steps where it did, ``steps`` all filtered steps, and
     ``overridden`` ``(N,)`` says which envs' actions it replaced at the last call.
 
-    What it sees is its config's: with ``PLANNER_PILLARS`` the pillars, wall and moving
-    obstacles within 4 m, read from the simulator (a diagnostic of what the ``static`` entry's
-    geometry allows, not yet the onboard runtime's; docs/csac-v1.md)."""
+    ``view``: what it sees. ``"simulator"``: its config's view read from the simulator (with
+    ``PLANNER_PILLARS``, the pillars, wall and moving obstacles within 4 m; a diagnostic of what
+    the ``static`` entry's geometry allows); ``"observation"``: what the vehicle has on board,
+    the observation's pillar list and tracked moving obstacles, its odometry and the arena's
+    wall (:meth:`~OraclePlanner.observed_scene`; docs/csac-v1.md)."""
 
     def __init__(self, config: OracleConfig | None = None, hold: int = 1,
-                 scan: ScanFn | None = None) -> None:  # fmt: skip
+                 scan: ScanFn | None = None, view: str = "simulator") -> None:  # fmt: skip
         super().__init__(config or PLANNER_PILLARS, scan)
         if not 1 <= hold < self.cfg.horizon:
             raise ValueError(f"hold={hold}: between 1 and the horizon - 1 ({self.cfg.horizon - 1})")
-        self.hold = int(hold)
+        if view not in FILTER_VIEWS:
+            raise ValueError(f"view={view!r}: choose one of {FILTER_VIEWS}")
+        self.hold, self.view = int(hold), view
         self.overrides = self.steps = 0
         self.overridden: torch.Tensor | None = None
 
@@ -614,7 +664,7 @@ class PlannerFilter(OraclePlanner):
         # The command the env will apply for the policy's action (goal frame, clipped per axis).
         proposal = goal_frame_to_world(action[ids].clamp(-1.0, 1.0) * ec.v_max, cos_y, sin_y)
         cmds = self.candidates(obs, env, ids)  # (n, K, 3)
-        scene = self.scene(obs, env, ids)
+        scene = (self.scene if self.view == "simulator" else self.observed_scene)(obs, env, ids)
         n, k = cmds.shape[:2]
         clean = lambda r: (r["first_hit"] == never) & (r["intrude"] <= 0)  # noqa: E731
         start = lambda sc: (sc["pos"][:, None], sc["vel"][:, None])  # noqa: E731  one rollout each
@@ -640,6 +690,14 @@ class PlannerFilter(OraclePlanner):
             out[ids[bad]] = to_action(chosen, cos_y[bad], sin_y[bad], ec.v_max).to(out.dtype)
         self.prev_cmd[ids] = flown
         return out
+
+
+def behind_filter(shield, planner_filter: PlannerFilter):
+    """A shield ``(env, obs, action) -> action``: ``shield`` (None: none), then
+    ``planner_filter`` on its output."""
+    if shield is None:
+        return planner_filter
+    return lambda env, obs, action: planner_filter(env, obs, shield(env, obs, action))
 
 
 def _scene_rows(scene: dict, rows: torch.Tensor) -> dict:
@@ -676,6 +734,7 @@ success / 0.021 collision on 144 validation episodes (with ``keep_band``: 0.896 
 PLANNERS = {"range": PLANNER_B, "pillars": PLANNER_PILLARS}
 """The planners a learner may replay (``CSACConfig.planner_view``), by what they see."""
 
-__all__ = ["FAR", "PLANNERS", "PLANNER_B", "PLANNER_B_BEAMS", "PLANNER_PILLARS", "AutoresetPlanner",
-           "OracleConfig", "OraclePlanner", "PlannerFilter", "ScanFn", "beam_hits",
-           "geodesic_fields", "mover_clearance", "sample_field", "to_action"]  # fmt: skip
+__all__ = ["FAR", "FILTER_VIEWS", "PLANNERS", "PLANNER_B", "PLANNER_B_BEAMS", "PLANNER_PILLARS",
+           "AutoresetPlanner", "OracleConfig", "OraclePlanner", "PlannerFilter", "ScanFn",
+           "beam_hits", "behind_filter", "geodesic_fields", "mover_clearance", "sample_field",
+           "to_action"]  # fmt: skip

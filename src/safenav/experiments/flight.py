@@ -85,12 +85,15 @@ def render_episode(
     shield_mover_margin: float = 0.0,
     shield_brake: bool = False,
     loaded=None,
+    planner_filter: bool = False,
 ) -> dict:
     """Fly episode ``episode`` of the fixed scenario and write ``out`` (GIF), and ``record``
     (MCAP, stamped with the simulation time) when given; returns its stats. ``loaded``: the
-    checkpoint's policy, when already read."""
+    checkpoint's policy, when already read; ``planner_filter``: behind the model-predictive safety
+    filter (:class:`~safenav.envs.planner.PlannerFilter`) after the shield."""
     frames, stats = fly_frames(checkpoint, policy, preset, env_seed, episode, record, shield_memory,
-                               shield_map, shield_mover_margin, shield_brake, loaded)  # fmt: skip
+                               shield_map, shield_mover_margin, shield_brake, loaded,
+                               planner_filter)  # fmt: skip
     Path(out).parent.mkdir(parents=True, exist_ok=True)
     # Hold the last frame for a second so the outcome is visible.
     frames += [frames[-1]] * fps
@@ -133,13 +136,15 @@ def fly_frames(
     shield_mover_margin: float = 0.0,
     shield_brake: bool = False,
     loaded=None,
+    planner_filter: bool = False,
 ) -> tuple[list, dict]:
     """The rendered frames (top-down RGB arrays, the last with the outcome) and the stats of
     episode ``episode`` of the fixed scenario of map ``env_seed``, flown by the policy, behind
     the safety shield when ``shield_memory`` is 1 (the memoryless shield) or more (a
     :class:`~safenav.deploy.shield.MemoryShield` of that many range images), with the map scan
     when ``shield_map``, ``shield_mover_margin`` metres more clearance from moving obstacles, the
-    braking cap when ``shield_brake``; ``loaded``: the checkpoint's policy, when already read."""
+    braking cap when ``shield_brake``, then the planner filter when ``planner_filter``;
+    ``loaded``: the checkpoint's policy, when already read."""
     fn, cfg = resolve_policy(checkpoint, policy, loaded=loaded)
     cfg, starts, goals = fixed_test_scenario(scenario_config(cfg, preset), env_seed, episode + 1)
     env = SafeNavVectorEnv(1, config=cfg, output="torch", autoreset_mode="Disabled",
@@ -159,6 +164,11 @@ def fly_frames(
                                    brake=shield_brake)  # fmt: skip
         act = lambda o, a=act: shield(env, o, a(o))  # noqa: E731
         arithmetic = batched_arithmetic()  # the episode as safenav eval's batch flies it
+    if planner_filter:
+        from safenav.envs.planner import PlannerFilter
+
+        the_filter = PlannerFilter()
+        act = lambda o, a=act: the_filter(env, o, a(o))  # noqa: E731
     frames = [env.render()]
     recorder = None
     if record is not None:
