@@ -45,7 +45,7 @@ def fly(path: Path, setting: str, out: Path, episodes: int) -> tuple[list[float]
         f = out / f"{label(path)}-m{setting}-seed{seed}-{episodes}.json"
         if not f.exists():
             fn = fn or load_policy(path)
-            memory, scan, mover, lag, brake, keep = parse_setting(setting)
+            memory, scan, mover, lag, brake, keep, _ = parse_setting(setting)
             shield = (
                 None if memory == 0 else shield_for_memory(memory, scan, mover, lag, brake, keep)
             )

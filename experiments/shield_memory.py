@@ -20,7 +20,9 @@ fraction of the policy's horizontal speed), e.g. ``1map-mover0.3-brake-keep0.5``
 ``-filter`` the model-predictive safety filter after that shield
 (:class:`safenav.envs.planner.PlannerFilter`, the pillar planner's view of the simulator), e.g.
 ``1map-mover0.3-brake-filter``, or ``-filterobs`` the same filter seeing only what the vehicle
-has on board (the observation's pillar list and movers: ``view="observation"``). One JSON per
+has on board (the observation's pillar list and movers: ``view="observation"``), either with
+``-stall`` the planner's handover where a flight stalls (``PlannerFilter(stall=STALL)``).
+One JSON per
 (policy, setting, map) in OUT
 (a rerun skips those that exist), then a table of the mean over maps per (policy, setting) on
 stdout and in OUT/table-MAPS.md.
@@ -44,6 +46,8 @@ from safenav.experiments.evaluate import evaluate
 from safenav.experiments.selection import HELDOUT_SEEDS, TEST_SEED, VALIDATION_SEEDS
 from safenav.experiments.stats import outcomes_string
 
+STALL = (10.0, 2.0, 5.0)
+"""``-stall``: less than 2 m nearer the goal in 10 s hands the flight to the planner for 5 s."""
 KEYS = ("success_rate", "collision_rate", "timeout_rate", "collision_static_rate",
         "collision_dynamic_rate", "mean_speed", "mean_time_to_goal", "collision_bounds_rate")  # fmt: skip
 
@@ -66,10 +70,10 @@ def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str, flo
     ``"1map-mover0.3-brake"`` -> (1, True, 0.3, False, True, 0.0, False) (the braking cap);
     ``-slide``: its sliding form, ``"slide"`` there; ``-keep0.5``: ``ShieldConfig.keep_moving``
     0.5; ``-filter``, last: the planner filter after the shield (its view last: ``"simulator"``;
-    ``-filterobs``: ``"observation"``; None without)."""
+    ``-filterobs``: ``"observation"``; None without; ``-stall`` after either: ``"...-stall"``)."""
     found = re.fullmatch(
         r"(\d+)(map)?(?:-mover([0-9.]+))?(-lag)?(-brake|-slide)?(?:-keep([0-9.]+))?"
-        r"(-filter(?:obs)?)?",
+        r"(-filter(?:obs)?(?:-stall)?)?",
         setting,
     )
     if found is None:
@@ -79,7 +83,11 @@ def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str, flo
     keep = float(found[6] or 0.0)
     if not 0.0 <= keep <= 1.0:
         raise SystemExit(f"shield setting {setting!r}: -keepK takes K in [0, 1]")
-    view = {None: None, "-filter": "simulator", "-filterobs": "observation"}[found[7]]
+    view = {None: None, "-filter": "simulator", "-filterobs": "observation"}[
+        found[7] and found[7].removesuffix("-stall")
+    ]
+    if found[7] and found[7].endswith("-stall"):
+        view += "-stall"
     return (int(found[1]), found[2] is not None, float(found[3] or 0.0), found[4] is not None,
             brake, keep, view)  # fmt: skip
 
@@ -101,7 +109,8 @@ def run(
                     shield = shield_for_memory(memory, scan, mover, lag, brake, keep)
                     extra = {"keep_moving": keep} if keep else {}
                     if filtered:
-                        planner_filter = PlannerFilter(view=filtered)
+                        view, _, stall = filtered.partition("-")
+                        planner_filter = PlannerFilter(view=view, stall=STALL if stall else None)
                         shield = behind_filter(shield, planner_filter)
                     started = time.perf_counter()
                     r = evaluate(fn, cfg, env_seed=seed, episodes=episodes, shield=shield)
@@ -109,6 +118,9 @@ def run(
                     if filtered:  # the share of the flown steps where the planner flew
                         extra["filter_override_share"] = planner_filter.overrides / max(
                             planner_filter.steps, 1)  # fmt: skip
+                        if stall:
+                            extra["filter_handover_share"] = planner_filter.handovers / max(
+                                planner_filter.steps, 1)  # fmt: skip
                     write_json(f, {**r, "policy": str(path), "shield_memory": memory,
                                    "shield_map": scan, "mover_margin": mover,
                                    "response": lag, "brake": brake, **extra,

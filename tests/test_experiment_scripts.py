@@ -296,11 +296,16 @@ def test_shield_memory_flies_each_memory_and_pairs_them_by_policy(tiny_run, tmp_
     assert "| 1 | 0 |" not in table and "| 1map | 1 |" not in table
 
 
-def test_shield_memory_parses_the_braking_settings():
+def test_shield_memory_parses_the_braking_and_filter_settings():
     sm = script("shield_memory")
-    assert sm.parse_setting("1map-mover0.3-brake") == (1, True, 0.3, False, True, 0.0)
-    assert sm.parse_setting("1map-mover0.3-slide") == (1, True, 0.3, False, "slide", 0.0)
-    assert sm.parse_setting("1map-mover0.3-brake-keep0.5") == (1, True, 0.3, False, True, 0.5)
+    assert sm.parse_setting("1map-mover0.3-brake") == (1, True, 0.3, False, True, 0.0, None)
+    assert sm.parse_setting("1map-mover0.3-slide") == (1, True, 0.3, False, "slide", 0.0, None)
+    assert sm.parse_setting("1map-mover0.3-brake-keep0.5") == (1, True, 0.3, False, True, 0.5, None)
+    assert sm.parse_setting("1map-mover0.3-brake-filter")[-1] == "simulator"
+    assert sm.parse_setting("1map-mover0.3-brake-filterobs")[-1] == "observation"
+    assert sm.parse_setting("1map-mover0.3-brake-filterobs-stall")[-1] == "observation-stall"
+    with pytest.raises(SystemExit, match="-filterobs"):
+        sm.parse_setting("1map-stall")
     with pytest.raises(SystemExit, match="-slide"):
         sm.parse_setting("1map-brake-slide")
     with pytest.raises(SystemExit, match=r"\[0, 1\]"):

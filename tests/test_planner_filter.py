@@ -140,3 +140,25 @@ def test_the_observed_view_needs_the_pillar_list():
         PlannerFilter(view="observation")(env, obs, torch.zeros(2, 3))
     with pytest.raises(ValueError, match="view"):
         PlannerFilter(view="lidar")
+
+
+def test_a_stalled_flight_is_handed_to_the_planner_for_a_while():
+    env, obs = _env(4, num_static=0, num_dynamic=0)
+    filt = PlannerFilter(stall=(2.0, 1.0, 1.0))  # < 1 m nearer in 2 s: the planner flies 1 s
+    hover = to_action(torch.zeros(4, 3), env.cos_yaw, env.sin_yaw, env.cfg.v_max)
+    start = (env.goal - env.pos).norm(dim=-1)
+    handed = []
+    for _ in range(35):
+        out = filt(env, obs, hover)
+        handed.append(filt.overridden.clone())
+        obs, *_ = env.step(out)
+    handed = torch.stack(handed)  # (35, 4)
+    # hovers for 2 s (20 steps), the planner flies steps 21-30, then the policy hovers again
+    assert not handed[:20].any() and handed[20:30].all() and not handed[30:].any()
+    assert filt.handovers == filt.overrides == 40
+    assert bool(((env.goal - env.pos).norm(dim=-1) < start - 1.0).all())
+
+
+def test_stall_settings_are_checked():
+    with pytest.raises(ValueError, match="stall"):
+        PlannerFilter(stall=(10.0, 0.0, 5.0))

@@ -637,18 +637,51 @@ class PlannerFilter(OraclePlanner):
     ``PLANNER_PILLARS``, the pillars, wall and moving obstacles within 4 m; a diagnostic of what
     the ``static`` entry's geometry allows); ``"observation"``: what the vehicle has on board,
     the observation's pillar list and tracked moving obstacles, its odometry and the arena's
-    wall (:meth:`~OraclePlanner.observed_scene`; docs/csac-v1.md)."""
+    wall (:meth:`~OraclePlanner.observed_scene`; docs/csac-v1.md).
+
+    ``stall``: ``(window s, progress m, handover s)`` or None (off): a recovery behaviour, as
+    navigation stacks have. Where an episode has come less than ``progress`` metres nearer its
+    goal over the last ``window`` seconds, the planner flies the next ``handover`` seconds
+    (counted in ``handovers`` and in ``overrides``), then the policy again."""
 
     def __init__(self, config: OracleConfig | None = None, hold: int = 1,
-                 scan: ScanFn | None = None, view: str = "simulator") -> None:  # fmt: skip
+                 scan: ScanFn | None = None, view: str = "simulator",
+                 stall: tuple[float, float, float] | None = None) -> None:  # fmt: skip
         super().__init__(config or PLANNER_PILLARS, scan)
         if not 1 <= hold < self.cfg.horizon:
             raise ValueError(f"hold={hold}: between 1 and the horizon - 1 ({self.cfg.horizon - 1})")
         if view not in FILTER_VIEWS:
             raise ValueError(f"view={view!r}: choose one of {FILTER_VIEWS}")
-        self.hold, self.view = int(hold), view
-        self.overrides = self.steps = 0
+        if stall is not None and (len(stall) != 3 or not all(0 < x < math.inf for x in stall)):
+            raise ValueError(f"stall={stall!r}: (window s, progress m, handover s), each > 0")
+        self.hold, self.view, self.stall = int(hold), view, stall
+        self.overrides = self.steps = self.handovers = 0
         self.overridden: torch.Tensor | None = None
+
+    def _start(self, env: SafeNavVectorEnv) -> None:
+        super()._start(env)
+        n = env.num_envs
+        self._mark = torch.full((n,), math.inf, device=env.device)  # goal distance, window start
+        self._mark_step = torch.zeros(n, dtype=torch.long, device=env.device)
+        self._handover_left = torch.zeros(n, dtype=torch.long, device=env.device)
+
+    def _handing_over(self, env: SafeNavVectorEnv, ids: torch.Tensor) -> torch.Tensor:
+        """``stall``'s test for episodes ``ids``: ``(n,)`` True where the planner flies now."""
+        window, progress, handover = self.stall
+        to_steps = lambda s: max(1, round(s / env.cfg.dt))  # noqa: E731
+        d = (env.goal[ids] - env.pos[ids]).norm(dim=-1)
+        t = env.steps[ids].to(torch.long)
+        begun = (t == 0) | torch.isinf(self._mark[ids])  # a new episode: its window starts now
+        due = ~begun & (t - self._mark_step[ids] >= to_steps(window))
+        stalled = due & (self._mark[ids] - d < progress)
+        self._handover_left[ids[stalled]] = to_steps(handover)
+        restart = begun | due
+        self._mark[ids[restart]] = d[restart]
+        self._mark_step[ids[restart]] = t[restart]
+        handing = self._handover_left[ids] > 0
+        self._handover_left[ids[handing]] -= 1
+        self.handovers += int(handing.sum())
+        return handing
 
     @torch.no_grad()
     def __call__(  # type: ignore[override]  (a shield's signature, not a policy's)
@@ -678,6 +711,8 @@ class PlannerFilter(OraclePlanner):
             tail = self.simulate(sub, cmds[rest], head["p"].expand(-1, k, 3).contiguous(),
                                  head["v"].expand(-1, k, 3).contiguous(), self.hold)  # fmt: skip
             safe[rest] = clean(head)[:, 0] & clean(tail).any(-1)
+        if self.stall is not None:
+            safe = safe & ~self._handing_over(env, ids)
         flown = proposal
         self.steps += n
         bad = (~safe).nonzero().squeeze(-1)
