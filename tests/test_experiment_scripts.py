@@ -423,3 +423,31 @@ def test_collision_rule_flies_validation_first_and_pools_by_episodes(tmp_path, m
     flown.clear()
     mod.main()  # every file is there: nothing flies again
     assert flown == []
+
+
+def test_filter_report_pools_the_test_episodes_and_pairs_them(tmp_path, capsys):
+    fr = script("filter_report")
+    setting = f"{fr.BASE}-filter"
+    trials = tmp_path / "trials"
+    trials.mkdir()
+
+    def write(label, which, seed, outcomes, share=None):
+        rates = {f"{k}_rate": outcomes.count(ch) / len(outcomes)
+                 for k, ch in (("success", "S"), ("collision", "C"), ("timeout", "T"))}  # fmt: skip
+        data = {**rates, "outcomes": outcomes,
+                **({"filter_override_share": share} if share is not None else {})}  # fmt: skip
+        (tmp_path / f"{label}-m{which}-seed{seed}-200.json").write_text(json.dumps(data))
+
+    for label, seed in fr.POLICIES.items():
+        write(label, fr.BASE, 1, "C" * 20 + "S" * 160 + "T" * 20)
+        write(label, setting, 1, "S" * 20 + "S" * 160 + "T" * 20, share=0.08)  # crashes -> goals
+        for s in fr.HELDOUT_SEEDS:
+            write(label, setting, s, "S" * 190 + "C" * 10)
+        heldout = {"success_rate": 0.8, "collision_rate": 0.1}
+        (trials / f"csac-s{seed}.json").write_text(json.dumps({"heldout": heldout}))
+    fr.main([str(tmp_path), "--setting", setting, "--trials", str(trials)])
+    out = capsys.readouterr().out
+    assert "| success | 0.800 (0.774-0.824) | 0.900 (0.880-0.917) |" in out
+    assert "McNemar (collision, paired episodes): only with the filter 0, only without 100" in out
+    assert "| default-s5 (5) | 0.800 | 0.100 | 0.950 | 0.050 |" in out
+    assert (tmp_path / f"report-{setting}.md").exists()
