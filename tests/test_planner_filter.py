@@ -81,6 +81,7 @@ def test_eval_and_render_fly_behind_it(tmp_path, capsys):
     out = tmp_path / "eval.json"
     code, _, err = run_cli(capsys, ["eval", "--policy", "straight", "--preset", "easy",
                                     "--env-seed", "12345", "--episodes", "4", "--planner-filter",
+                                    "--planner-filter-view", "simulator",
                                     "--json", str(out)])  # fmt: skip
     assert code == 0, err
     result = json.loads(out.read_text())
@@ -89,7 +90,8 @@ def test_eval_and_render_fly_behind_it(tmp_path, capsys):
     gif = tmp_path / "ep.gif"
     code, printed, err = run_cli(capsys, ["render", "--policy", "straight", "--preset", "easy",
                                           "--env-seed", "12345", "--episode", "1",
-                                          "--planner-filter", "--out", str(gif)])  # fmt: skip
+                                          "--planner-filter", "--planner-filter-view", "simulator",
+                                          "--out", str(gif)])  # fmt: skip
     assert code == 0, err
     assert gif.stat().st_size > 0 and "'collision': 0.0" in printed
 
@@ -162,3 +164,12 @@ def test_a_stalled_flight_is_handed_to_the_planner_for_a_while():
 def test_stall_settings_are_checked():
     with pytest.raises(ValueError, match="stall"):
         PlannerFilter(stall=(10.0, 0.0, 5.0))
+
+
+def test_the_observed_view_refuses_a_flight_without_the_pillar_list(tmp_path, capsys):
+    from conftest import run_cli
+
+    for verb in (["eval", "--episodes", "2"], ["render", "--out", str(tmp_path / "e.gif")]):
+        code, _, err = run_cli(capsys, [*verb, "--policy", "straight", "--preset", "easy",
+                                        "--planner-filter"])  # fmt: skip
+        assert code != 0 and "--planner-filter-view simulator" in err, (verb, err)

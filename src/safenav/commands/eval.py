@@ -21,6 +21,7 @@ def eval_(
     shield_mover_margin: float = 0.0,
     shield_brake: bool = False,
     planner_filter: bool = False,
+    planner_filter_view: Literal["observation", "simulator"] = "observation",
     json_out: Annotated[Path | None, tyro.conf.arg(name="json")] = None,
     policy: Literal[
         "checkpoint", "scripted", "straight", "border", "random", "planner"
@@ -57,7 +58,10 @@ def eval_(
         planner_filter: After the shield (if any), the model-predictive safety filter: each
             command is rolled out 2 s through the vehicle's velocity response against the
             pillars, wall and moving obstacles within 4 m, and the pillar planner flies where it
-            leaves no way out (beyond the paper; reads the simulator; docs/csac-v1.md).
+            leaves no way out (beyond the paper; docs/csac-v1.md).
+        planner_filter_view: What the filter sees: observation (what the vehicle has on board:
+            the observation's pillar list and tracked movers, for policies trained with it) or
+            simulator (the pillars and movers within 4 m, read from the simulator: any policy).
         json_out: Also write the metrics here as JSON (no value: null); the directory must exist.
         policy: What flies: the checkpoint, or a baseline without one.
         preset: Env preset (easy, medium, paper); default: the checkpoint's, else paper.
@@ -91,6 +95,13 @@ def eval_(
         memory, shield_map, shield_mover_margin, shield_brake = own_shield_settings(
             fn, checkpoint, memory, shield_map, shield_mover_margin, shield_brake)  # fmt: skip
         shield = memory > 0
+    if planner_filter and planner_filter_view == "observation" and not cfg.static_tracked:
+        from safenav.errors import SafenavError
+
+        raise SafenavError(
+            "--planner-filter sees the observation's pillar list, which this policy's "
+            "observation lacks (EnvConfig.static_tracked 0): add --planner-filter-view simulator"
+        )
     shield_fn = None
     if memory:  # the shield's module loads Numba (~0.35 s): only when it flies
         from safenav.deploy.shield import shield_for_memory
@@ -99,7 +110,7 @@ def eval_(
     if planner_filter:
         from safenav.envs.planner import PlannerFilter, behind_filter
 
-        the_filter = PlannerFilter()
+        the_filter = PlannerFilter(view=planner_filter_view)
         shield_fn = behind_filter(shield_fn, the_filter)
     result = evaluate(fn, cfg, env_seed=env_seed, episodes=episodes, device=device,
                       shield=shield_fn, progress=True)  # fmt: skip
@@ -111,7 +122,10 @@ def eval_(
         result["shield_mover_margin"] = shield_mover_margin
         result["shield_brake"] = shield_brake
     result["planner_filter"] = planner_filter
-    if planner_filter:  # the share of the flown steps where the planner flew
+    if planner_filter:
+        result["planner_filter_view"] = (
+            planner_filter_view  # the share of the flown steps where the planner flew
+        )
         result["planner_filter_override_share"] = the_filter.overrides / max(the_filter.steps, 1)
     result["env"] = ENV_ID
     result["collision_rule"] = collision_rule

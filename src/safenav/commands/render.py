@@ -30,6 +30,7 @@ def render(
     shield_mover_margin: float = 0.0,
     shield_brake: bool = False,
     planner_filter: bool = False,
+    planner_filter_view: Literal["observation", "simulator"] = "observation",
 ) -> None:
     """Render one episode (top-down: pillars, moving obstacles, lidar beams, trail, goal) to a GIF.
 
@@ -64,8 +65,10 @@ def render(
         shield_brake: With --shield: the braking cap: near a static obstacle, the ground or the
             ceiling the shield slows the vehicle to a speed it can stop from (beyond NavRL's).
         planner_filter: After the shield (if any), the model-predictive safety filter: the
-            pillar planner flies where the command leaves no way out (beyond the paper; reads the
-            simulator; docs/csac-v1.md).
+            pillar planner flies where the command leaves no way out (beyond the paper;
+            docs/csac-v1.md).
+        planner_filter_view: What the filter sees: observation (the observation's pillar list
+            and tracked movers) or simulator (the pillars and movers within 4 m).
     """
     from safenav.commands.eval import check_shield_memory
     from safenav.common.checks import check_output_file, in_range
@@ -109,7 +112,7 @@ def render(
                            shield_memory=memory, shield_map=shield_map,
                            shield_mover_margin=shield_mover_margin,
                            shield_brake=shield_brake, loaded=loaded,
-                           planner_filter=planner_filter)  # fmt: skip
+                           planner_filter=planner_filter and planner_filter_view)  # fmt: skip
     print(f"wrote {out}{f' and {record}' if record is not None else ''}: {stats}")
 
 

@@ -85,12 +85,13 @@ def render_episode(
     shield_mover_margin: float = 0.0,
     shield_brake: bool = False,
     loaded=None,
-    planner_filter: bool = False,
+    planner_filter: str | bool = False,
 ) -> dict:
     """Fly episode ``episode`` of the fixed scenario and write ``out`` (GIF), and ``record``
     (MCAP, stamped with the simulation time) when given; returns its stats. ``loaded``: the
     checkpoint's policy, when already read; ``planner_filter``: behind the model-predictive safety
-    filter (:class:`~safenav.envs.planner.PlannerFilter`) after the shield."""
+    filter (:class:`~safenav.envs.planner.PlannerFilter`) after the shield, its view named
+    (``"observation"``, ``"simulator"``; False: none)."""
     frames, stats = fly_frames(checkpoint, policy, preset, env_seed, episode, record, shield_memory,
                                shield_map, shield_mover_margin, shield_brake, loaded,
                                planner_filter)  # fmt: skip
@@ -136,7 +137,7 @@ def fly_frames(
     shield_mover_margin: float = 0.0,
     shield_brake: bool = False,
     loaded=None,
-    planner_filter: bool = False,
+    planner_filter: str | bool = False,
 ) -> tuple[list, dict]:
     """The rendered frames (top-down RGB arrays, the last with the outcome) and the stats of
     episode ``episode`` of the fixed scenario of map ``env_seed``, flown by the policy, behind
@@ -167,7 +168,12 @@ def fly_frames(
     if planner_filter:
         from safenav.envs.planner import PlannerFilter
 
-        the_filter = PlannerFilter()
+        if planner_filter == "observation" and not cfg.static_tracked:
+            raise SafenavError("--planner-filter sees the observation's pillar list, which this "
+                               "flight's observation lacks (EnvConfig.static_tracked 0): add "
+                               "--planner-filter-view simulator")  # fmt: skip
+
+        the_filter = PlannerFilter(view=planner_filter)
         act = lambda o, a=act: the_filter(env, o, a(o))  # noqa: E731
     frames = [env.render()]
     recorder = None
