@@ -41,12 +41,12 @@ import torch
 from safenav.algos.policy import load_policy
 from safenav.common.jsonout import write_json
 from safenav.deploy.shield import shield_for_memory
-from safenav.envs.planner import PlannerFilter, behind_filter
+from safenav.envs.planner import FILTER_STALL, PlannerFilter, behind_filter
 from safenav.experiments.evaluate import evaluate
 from safenav.experiments.selection import HELDOUT_SEEDS, TEST_SEED, VALIDATION_SEEDS
 from safenav.experiments.stats import outcomes_string
 
-STALL = (10.0, 2.0, 5.0)
+STALL = FILTER_STALL
 """``-stall``: less than 2 m nearer the goal in 10 s hands the flight to the planner for 5 s."""
 KEYS = ("success_rate", "collision_rate", "timeout_rate", "collision_static_rate",
         "collision_dynamic_rate", "mean_speed", "mean_time_to_goal", "collision_bounds_rate")  # fmt: skip

@@ -87,6 +87,7 @@ def test_eval_and_render_fly_behind_it(tmp_path, capsys):
     result = json.loads(out.read_text())
     assert result["planner_filter"] is True
     assert 0 < result["planner_filter_override_share"] < 1 and result["collision_rate"] == 0
+    assert 0 <= result["planner_filter_handover_share"] <= result["planner_filter_override_share"]
     gif = tmp_path / "ep.gif"
     code, printed, err = run_cli(capsys, ["render", "--policy", "straight", "--preset", "easy",
                                           "--env-seed", "12345", "--episode", "1",

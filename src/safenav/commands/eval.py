@@ -58,7 +58,8 @@ def eval_(
         planner_filter: After the shield (if any), the model-predictive safety filter: each
             command is rolled out 2 s through the vehicle's velocity response against the
             pillars, wall and moving obstacles within 4 m, and the pillar planner flies where it
-            leaves no way out (beyond the paper; docs/csac-v1.md).
+            leaves no way out, and for 5 s where a flight came less than 2 m nearer its goal in
+            10 s (beyond the paper; docs/csac-v1.md).
         planner_filter_view: What the filter sees: observation (what the vehicle has on board:
             the observation's pillar list and tracked movers, for policies trained with it) or
             simulator (the pillars and movers within 4 m, read from the simulator: any policy).
@@ -108,9 +109,9 @@ def eval_(
 
         shield_fn = shield_for_memory(memory, shield_map, shield_mover_margin, brake=shield_brake)
     if planner_filter:
-        from safenav.envs.planner import PlannerFilter, behind_filter
+        from safenav.envs.planner import FILTER_STALL, PlannerFilter, behind_filter
 
-        the_filter = PlannerFilter(view=planner_filter_view)
+        the_filter = PlannerFilter(view=planner_filter_view, stall=FILTER_STALL)
         shield_fn = behind_filter(shield_fn, the_filter)
     result = evaluate(fn, cfg, env_seed=env_seed, episodes=episodes, device=device,
                       shield=shield_fn, progress=True)  # fmt: skip
@@ -127,6 +128,7 @@ def eval_(
             planner_filter_view  # the share of the flown steps where the planner flew
         )
         result["planner_filter_override_share"] = the_filter.overrides / max(the_filter.steps, 1)
+        result["planner_filter_handover_share"] = the_filter.handovers / max(the_filter.steps, 1)
     result["env"] = ENV_ID
     result["collision_rule"] = collision_rule
     if policy == "checkpoint":

@@ -65,8 +65,8 @@ def render(
         shield_brake: With --shield: the braking cap: near a static obstacle, the ground or the
             ceiling the shield slows the vehicle to a speed it can stop from (beyond NavRL's).
         planner_filter: After the shield (if any), the model-predictive safety filter: the
-            pillar planner flies where the command leaves no way out (beyond the paper;
-            docs/csac-v1.md).
+            pillar planner flies where the command leaves no way out, and 5 s where a flight
+            stalls (beyond the paper; docs/csac-v1.md).
         planner_filter_view: What the filter sees: observation (the observation's pillar list
             and tracked movers) or simulator (the pillars and movers within 4 m).
     """

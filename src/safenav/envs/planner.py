@@ -613,6 +613,9 @@ class AutoresetPlanner(OraclePlanner):
 
 FILTER_VIEWS = ("simulator", "observation")
 """What :class:`PlannerFilter` sees (its ``view``)."""
+FILTER_STALL = (10.0, 2.0, 5.0)
+"""The stall handover of ``safenav eval --planner-filter``: less than 2 m nearer the goal in 10 s
+and the planner flies 5 s (set before its validation screen, adopted by it: docs/csac-v1.md)."""
 
 
 class PlannerFilter(OraclePlanner):
@@ -769,7 +772,7 @@ success / 0.021 collision on 144 validation episodes (with ``keep_band``: 0.896 
 PLANNERS = {"range": PLANNER_B, "pillars": PLANNER_PILLARS}
 """The planners a learner may replay (``CSACConfig.planner_view``), by what they see."""
 
-__all__ = ["FAR", "FILTER_VIEWS", "PLANNERS", "PLANNER_B", "PLANNER_B_BEAMS", "PLANNER_PILLARS",
-           "AutoresetPlanner", "OracleConfig", "OraclePlanner", "PlannerFilter", "ScanFn",
-           "beam_hits", "behind_filter", "geodesic_fields", "mover_clearance", "sample_field",
-           "to_action"]  # fmt: skip
+__all__ = ["FAR", "FILTER_STALL", "FILTER_VIEWS", "PLANNERS", "PLANNER_B", "PLANNER_B_BEAMS",
+           "PLANNER_PILLARS", "AutoresetPlanner", "OracleConfig", "OraclePlanner", "PlannerFilter",
+           "ScanFn", "beam_hits", "behind_filter", "geodesic_fields", "mover_clearance",
+           "sample_field", "to_action"]  # fmt: skip

@@ -166,14 +166,14 @@ def fly_frames(
         act = lambda o, a=act: shield(env, o, a(o))  # noqa: E731
         arithmetic = batched_arithmetic()  # the episode as safenav eval's batch flies it
     if planner_filter:
-        from safenav.envs.planner import PlannerFilter
+        from safenav.envs.planner import FILTER_STALL, PlannerFilter
 
         if planner_filter == "observation" and not cfg.static_tracked:
             raise SafenavError("--planner-filter sees the observation's pillar list, which this "
                                "flight's observation lacks (EnvConfig.static_tracked 0): add "
                                "--planner-filter-view simulator")  # fmt: skip
 
-        the_filter = PlannerFilter(view=planner_filter)
+        the_filter = PlannerFilter(view=planner_filter, stall=FILTER_STALL)
         act = lambda o, a=act: the_filter(env, o, a(o))  # noqa: E731
     frames = [env.render()]
     recorder = None
