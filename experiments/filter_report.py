@@ -19,8 +19,7 @@ import argparse
 import json
 from pathlib import Path
 
-from scipy import stats
-
+from safenav.experiments.aggregate import confidence_intervals
 from safenav.experiments.selection import HELDOUT_SEEDS, TEST_SEED
 from safenav.experiments.stats import mcnemar_exact
 
@@ -30,8 +29,8 @@ BASE = "1map-mover0.3-brake"
 
 
 def wilson(k: int, n: int) -> str:
-    ci = stats.binomtest(k, n).proportion_ci(confidence_level=0.95, method="wilson")
-    return f"{k / n:.3f} ({ci.low:.3f}-{ci.high:.3f})"
+    low, high = confidence_intervals([(k / n, n)])["wilson"]
+    return f"{k / n:.3f} ({low:.3f}-{high:.3f})"
 
 
 def load(directory: Path, label: str, setting: str, seed: int) -> dict:

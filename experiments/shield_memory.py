@@ -21,7 +21,7 @@ fraction of the policy's horizontal speed), e.g. ``1map-mover0.3-brake-keep0.5``
 (:class:`safenav.envs.planner.PlannerFilter`, the pillar planner's view of the simulator), e.g.
 ``1map-mover0.3-brake-filter``, or ``-filterobs`` the same filter seeing only what the vehicle
 has on board (the observation's pillar list and movers: ``view="observation"``), either with
-``-stall`` the planner's handover where a flight stalls (``PlannerFilter(stall=STALL)``).
+``-stall`` the planner's handover where a flight stalls (``stall=FILTER_STALL``).
 One JSON per
 (policy, setting, map) in OUT
 (a rerun skips those that exist), then a table of the mean over maps per (policy, setting) on
@@ -46,8 +46,6 @@ from safenav.experiments.evaluate import evaluate
 from safenav.experiments.selection import HELDOUT_SEEDS, TEST_SEED, VALIDATION_SEEDS
 from safenav.experiments.stats import outcomes_string
 
-STALL = FILTER_STALL
-"""``-stall``: less than 2 m nearer the goal in 10 s hands the flight to the planner for 5 s."""
 KEYS = ("success_rate", "collision_rate", "timeout_rate", "collision_static_rate",
         "collision_dynamic_rate", "mean_speed", "mean_time_to_goal", "collision_bounds_rate")  # fmt: skip
 
@@ -110,17 +108,17 @@ def run(
                     extra = {"keep_moving": keep} if keep else {}
                     if filtered:
                         view, _, stall = filtered.partition("-")
-                        planner_filter = PlannerFilter(view=view, stall=STALL if stall else None)
+                        planner_filter = PlannerFilter(
+                            view=view, stall=FILTER_STALL if stall else None
+                        )
                         shield = behind_filter(shield, planner_filter)
                     started = time.perf_counter()
                     r = evaluate(fn, cfg, env_seed=seed, episodes=episodes, shield=shield)
                     extra["outcomes"] = outcomes_string(r.pop("per_episode", None))
                     if filtered:  # the share of the flown steps where the planner flew
-                        extra["filter_override_share"] = planner_filter.overrides / max(
-                            planner_filter.steps, 1)  # fmt: skip
+                        extra["filter_override_share"] = planner_filter.override_share
                         if stall:
-                            extra["filter_handover_share"] = planner_filter.handovers / max(
-                                planner_filter.steps, 1)  # fmt: skip
+                            extra["filter_handover_share"] = planner_filter.handover_share
                     write_json(f, {**r, "policy": str(path), "shield_memory": memory,
                                    "shield_map": scan, "mover_margin": mover,
                                    "response": lag, "brake": brake, **extra,

@@ -77,7 +77,7 @@ def eval_(
 
     from safenav import ENV_ID
     from safenav.experiments.evaluate import evaluate
-    from safenav.experiments.flight import resolve_policy, scenario_config
+    from safenav.experiments.flight import flight_filter, resolve_policy, scenario_config
 
     check_eval_args(env_seed, episodes, json_out, device, preset)
     memory = check_shield_memory(shield, shield_memory, shield_map, shield_mover_margin,
@@ -96,22 +96,15 @@ def eval_(
         memory, shield_map, shield_mover_margin, shield_brake = own_shield_settings(
             fn, checkpoint, memory, shield_map, shield_mover_margin, shield_brake)  # fmt: skip
         shield = memory > 0
-    if planner_filter and planner_filter_view == "observation" and not cfg.static_tracked:
-        from safenav.errors import SafenavError
-
-        raise SafenavError(
-            "--planner-filter sees the observation's pillar list, which this policy's "
-            "observation lacks (EnvConfig.static_tracked 0): add --planner-filter-view simulator"
-        )
+    the_filter = flight_filter(planner_filter_view, cfg) if planner_filter else None
     shield_fn = None
     if memory:  # the shield's module loads Numba (~0.35 s): only when it flies
         from safenav.deploy.shield import shield_for_memory
 
         shield_fn = shield_for_memory(memory, shield_map, shield_mover_margin, brake=shield_brake)
-    if planner_filter:
-        from safenav.envs.planner import FILTER_STALL, PlannerFilter, behind_filter
+    if the_filter is not None:
+        from safenav.envs.planner import behind_filter
 
-        the_filter = PlannerFilter(view=planner_filter_view, stall=FILTER_STALL)
         shield_fn = behind_filter(shield_fn, the_filter)
     result = evaluate(fn, cfg, env_seed=env_seed, episodes=episodes, device=device,
                       shield=shield_fn, progress=True)  # fmt: skip
@@ -123,12 +116,10 @@ def eval_(
         result["shield_mover_margin"] = shield_mover_margin
         result["shield_brake"] = shield_brake
     result["planner_filter"] = planner_filter
-    if planner_filter:
-        result["planner_filter_view"] = (
-            planner_filter_view  # the share of the flown steps where the planner flew
-        )
-        result["planner_filter_override_share"] = the_filter.overrides / max(the_filter.steps, 1)
-        result["planner_filter_handover_share"] = the_filter.handovers / max(the_filter.steps, 1)
+    if the_filter is not None:  # and the share of the flown steps where the planner flew
+        result["planner_filter_view"] = planner_filter_view
+        result["planner_filter_override_share"] = the_filter.override_share
+        result["planner_filter_handover_share"] = the_filter.handover_share
     result["env"] = ENV_ID
     result["collision_rule"] = collision_rule
     if policy == "checkpoint":

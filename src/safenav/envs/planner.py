@@ -380,7 +380,7 @@ class OraclePlanner:
         remembers this step's range image: call it once per step."""
         c, ec = self.cfg, env.cfg
         n = len(ids)
-        pos0, goal = env.pos[ids], env.goal[ids]
+        pos0 = env.pos[ids]
         w = env.world_idx[ids]
         rng = ec.lidar_range if c.sense == "lidar" else c.privileged_range
 
@@ -412,8 +412,6 @@ class OraclePlanner:
                 torch.gather(width, 1, m_idx)[:, None],
                 torch.gather(cuboid, 1, m_idx)[:, None],
             )
-        # The wall: each side seen within range.
-        wall_seen = (_sides(pos0, ec.half) <= rng)[:, None]  # (n, 1, 4)
         hits = columns = hit_r = None
         if c.sense == "lidar":
             now = beam_hits(obs["lidar"], env.pos, env.yaw, ec)  # every env: the memory is per env
@@ -433,11 +431,9 @@ class OraclePlanner:
             if c.fill_gaps:  # the gap to the next beam at each hit's range
                 d = (hits - pos0[:, None]).norm(dim=-1).clamp(max=ec.lidar_range)
                 hit_r = d * math.sin(math.pi / ec.lidar_h_beams)
-        return {"env": env, "ids": ids, "pos": pos0, "vel": env.vel[ids], "goal": goal,
-                "pxy": pxy, "phalf": phalf, "ph": ph, "nd": nd, "future": future,
-                "width": width, "cuboid": cuboid, "wall_seen": wall_seen, "hits": hits,
-                "columns": columns, "hit_r": hit_r,
-                "band": (env.band[ids, 0, None], env.band[ids, 1, None])}  # fmt: skip
+        return _scene(env, ids, rng, pxy=pxy, phalf=phalf, ph=ph, nd=nd, future=future,
+                      width=width, cuboid=cuboid, hits=hits, columns=columns,
+                      hit_r=hit_r)  # fmt: skip
 
     def observed_scene(self, obs: dict[str, torch.Tensor], env: SafeNavVectorEnv,
                        ids: torch.Tensor) -> dict:  # fmt: skip
@@ -453,7 +449,7 @@ class OraclePlanner:
                              "(EnvConfig.static_tracked > 0)")  # fmt: skip
         c, ec = self.cfg, env.cfg
         rng = ec.lidar_range
-        pos0, goal = env.pos[ids], env.goal[ids]
+        pos0 = env.pos[ids]
         cy, sy = env.cos_yaw[ids, None], env.sin_yaw[ids, None]
         world = lambda g: goal_frame_to_world(g, cy, sy)  # noqa: E731  (n, M, 3) goal frame
         st = obs["static"][ids].to(pos0.dtype)
@@ -474,12 +470,8 @@ class OraclePlanner:
             future = torch.where(seen[None, ..., None], future, FAR)
             width = ((dyn[..., 8] * (len(DYN_WIDTHS) - 1) + 1.0) * DYN_WIDTHS[0])[:, None]
             cuboid = (dyn[..., 9] > 0.5)[:, None]
-        wall_seen = (_sides(pos0, ec.half) <= rng)[:, None]
-        return {"env": env, "ids": ids, "pos": pos0, "vel": env.vel[ids], "goal": goal,
-                "pxy": pxy, "phalf": phalf, "ph": ph, "nd": nd, "future": future,
-                "width": width, "cuboid": cuboid, "wall_seen": wall_seen, "hits": None,
-                "columns": None, "hit_r": None,
-                "band": (env.band[ids, 0, None], env.band[ids, 1, None])}  # fmt: skip
+        return _scene(env, ids, rng, pxy=pxy, phalf=phalf, ph=ph, nd=nd, future=future,
+                      width=width, cuboid=cuboid)  # fmt: skip
 
     def simulate(self, scene: dict, cmds: torch.Tensor, p: torch.Tensor, v: torch.Tensor,
                  t0: int = 0, steps: int | None = None) -> dict[str, torch.Tensor]:  # fmt: skip
@@ -585,6 +577,17 @@ class OraclePlanner:
         return cmds[torch.arange(n, device=env.device), best]
 
 
+def _scene(env: SafeNavVectorEnv, ids: torch.Tensor, view_range: float, **parts) -> dict:
+    """A scene of episodes ``ids``: their vehicles' state, goals and altitude bands, the wall's
+    sides within ``view_range`` (m), and the obstacles' ``parts`` (no range-image hits unless
+    given)."""
+    pos = env.pos[ids]
+    return {"env": env, "ids": ids, "pos": pos, "vel": env.vel[ids], "goal": env.goal[ids],
+            "wall_seen": (_sides(pos, env.cfg.half) <= view_range)[:, None],  # (n, 1, 4)
+            "band": (env.band[ids, 0, None], env.band[ids, 1, None]),
+            "hits": None, "columns": None, "hit_r": None, **parts}  # fmt: skip
+
+
 def _sides(p: torch.Tensor, half: float) -> torch.Tensor:
     """Distances ``(..., 4)`` from points ``p`` ``(..., 3)`` to the four sides of the wall."""
     return torch.stack([half - p[..., 0], half + p[..., 0], half - p[..., 1], half + p[..., 1]], -1)
@@ -660,6 +663,16 @@ class PlannerFilter(OraclePlanner):
         self.hold, self.view, self.stall = int(hold), view, stall
         self.overrides = self.steps = self.handovers = 0
         self.overridden: torch.Tensor | None = None
+
+    @property
+    def override_share(self) -> float:
+        """The share of the filtered steps where the planner flew (0 before any)."""
+        return self.overrides / max(self.steps, 1)
+
+    @property
+    def handover_share(self) -> float:
+        """The share of the filtered steps that were stall handovers (0 before any)."""
+        return self.handovers / max(self.steps, 1)
 
     def _start(self, env: SafeNavVectorEnv) -> None:
         super()._start(env)

@@ -102,6 +102,19 @@ def render_episode(
     return stats
 
 
+def flight_filter(view: str, cfg: EnvConfig):
+    """The planner filter ``safenav eval`` and ``render --planner-filter`` fly behind (the stall
+    handover included), seeing ``view``; refused before the flight where the observed view
+    would find no pillar list in this config's observation."""
+    from safenav.envs.planner import FILTER_STALL, PlannerFilter
+
+    if view == "observation" and not cfg.static_tracked:
+        raise SafenavError("--planner-filter sees the observation's pillar list, which this "
+                           "flight's observation lacks (EnvConfig.static_tracked 0): add "
+                           "--planner-filter-view simulator")  # fmt: skip
+    return PlannerFilter(view=view, stall=FILTER_STALL)
+
+
 BATCH_ROWS = 8
 """Torch's CPU matrix products round a batch of 1-3 rows differently from a larger one (~1e-7 in
 the actions of a trained policy, measured), and a flight amplifies that within seconds: a
@@ -166,14 +179,7 @@ def fly_frames(
         act = lambda o, a=act: shield(env, o, a(o))  # noqa: E731
         arithmetic = batched_arithmetic()  # the episode as safenav eval's batch flies it
     if planner_filter:
-        from safenav.envs.planner import FILTER_STALL, PlannerFilter
-
-        if planner_filter == "observation" and not cfg.static_tracked:
-            raise SafenavError("--planner-filter sees the observation's pillar list, which this "
-                               "flight's observation lacks (EnvConfig.static_tracked 0): add "
-                               "--planner-filter-view simulator")  # fmt: skip
-
-        the_filter = PlannerFilter(view=planner_filter, stall=FILTER_STALL)
+        the_filter = flight_filter(planner_filter, cfg)
         act = lambda o, a=act: the_filter(env, o, a(o))  # noqa: E731
     frames = [env.render()]
     recorder = None
