@@ -174,3 +174,65 @@ def test_the_observed_view_refuses_a_flight_without_the_pillar_list(tmp_path, ca
         code, _, err = run_cli(capsys, [*verb, "--policy", "straight", "--preset", "easy",
                                         "--planner-filter"])  # fmt: skip
         assert code != 0 and "--planner-filter-view simulator" in err, (verb, err)
+
+
+def test_a_spec_round_trips_and_refuses_an_unknown_view():
+    from safenav.envs.planner import filter_from_spec, filter_spec
+
+    assert filter_spec() == {"view": "observation", "stall": [10.0, 2.0, 5.0]}
+    the_filter = filter_from_spec(filter_spec())
+    assert the_filter.view == "observation" and the_filter.stall == (10.0, 2.0, 5.0)
+    assert filter_from_spec(filter_spec("simulator", None)).stall is None
+    with pytest.raises(ValueError, match="view"):
+        filter_spec("camera")
+
+
+def _train_with_filter(run_dir, *env_kwargs: str) -> list[str]:
+    from conftest import PAPER_OBSERVATION
+
+    return ["train", *PAPER_OBSERVATION, "--flight-filter", "--preset", "easy", "--seed", "1",
+            "--num-envs", "4", "--total-steps", "200", "--csac.learning-starts", "64",
+            "--csac.batch-size", "16", "--csac.net.hidden", "32", "32", "--eval-every", "0",
+            "--no-progress", "--no-tensorboard", "--torch-threads", "1", "--run-dir", str(run_dir),
+            *(["--env-kwargs", *env_kwargs] if env_kwargs else [])]  # fmt: skip
+
+
+@pytest.mark.long
+def test_a_run_trained_with_flight_filter_is_reported_and_evaluated_behind_it(tmp_path, capsys):
+    """``safenav train --flight-filter``: the policy records the filter, its report flies the test
+    scenario and held-out maps behind it (and the test once more without), and ``safenav eval``
+    flies it behind the filter unless ``--no-planner-filter``."""
+    import json
+
+    from conftest import run_cli
+    from safenav.envs.planner import filter_spec
+    from safenav.experiments.selection import report_policy
+
+    run = tmp_path / "run"
+    code, _, err = run_cli(capsys, _train_with_filter(run, "static_tracked", "4"))
+    assert code == 0, err
+    policy = run / "checkpoint.pt"
+    report = report_policy(policy, episodes=2, heldout=(2,))
+    assert report["flight_filter"] == filter_spec()
+    for flight in (report["test"], report["heldout"]["per_seed"][0], report["test_navrl_rule"]):
+        assert 0 <= flight["planner_filter_override_share"] <= 1
+    assert "planner_filter_override_share" not in report["test_without_filter"]
+    for extra, expected in (([], True), (["--no-planner-filter"], False)):
+        out = tmp_path / f"eval{len(extra)}.json"
+        code, _, err = run_cli(capsys, ["eval", str(policy), "--env-seed", "12345", "--episodes",
+                                        "2", *extra, "--json", str(out)])  # fmt: skip
+        assert code == 0, err
+        result = json.loads(out.read_text())
+        assert result["planner_filter"] is expected, extra
+        assert ("planner_filter_override_share" in result) is expected
+        assert ("flies behind the planner filter" in err) is expected
+
+
+def test_flight_filter_needs_the_pillar_list_and_a_safenav_env(tmp_path, capsys):
+    from conftest import run_cli
+    from safenav.common.config import RunConfig
+
+    code, _, err = run_cli(capsys, _train_with_filter(tmp_path / "run"))
+    assert code != 0 and "static_tracked" in err, err
+    with pytest.raises(ValueError, match="flight-filter"):
+        RunConfig(env="Pendulum-v1", flight_filter=True)

@@ -373,11 +373,15 @@ success = 0.8 + 0.05 * seed
                                                 "success": success}}))
 if "--select" in args:  # what train --select leaves: the validation choice and its report
     (run / "policy.pt").write_text((run / "checkpoint.pt").read_text())
-    (run / "selection.json").write_text(json.dumps({{"selection": "validation"}}))
+    (run / "selection.json").write_text(json.dumps({{"selection": "validation",
+                                                     "wall_clock_s": 12.5}}))
     (run / "final.json").write_text(json.dumps({{"heldout": {{"seeds": [2, 3, 4, 5, 6],
         "episodes_per_seed": 10, "success_rate": success - 0.1, "collision_rate": 0.1,
         "timeout_rate": 0.9 - success}}, "test_navrl_rule": {{"episodes": 10,
-        "success_rate": success, "collision_rate": 0.05, "timeout_rate": 0.95 - success}}}}))
+        "success_rate": success, "collision_rate": 0.05, "timeout_rate": 0.95 - success}},
+        "flight_filter": {{"view": "observation", "stall": [10.0, 2.0, 5.0]}},
+        "test_without_filter": {{"episodes": 10, "success_rate": success - 0.2,
+        "collision_rate": 0.2, "timeout_rate": 1.0 - success}}}}))
 (run.parent / "calls.txt").open("a").write(" ".join(args) + "\\n")
 """
 
@@ -435,6 +439,12 @@ def test_trial_fresh_then_skipped_then_resumed_for_more_steps(tmp_path, fake_pyt
     results = agg.aggregate([rec])
     assert results["algos"]["csac"]["test_navrl_rule"]["success_rate"]["mean"] == pytest.approx(0.8)
     assert "## Under the paper's collision rule" in agg.render_markdown(results)
+    # a policy reported behind the planner filter: the test behind its shield alone beside it
+    assert rec["planner_filter"]["view"] == "observation" and rec["selection_wall_clock_s"] == 12.5
+    unfiltered = results["algos"]["csac"]["test_without_filter"]
+    assert unfiltered["success_rate"]["mean"] == pytest.approx(0.6) and unfiltered["seeds"] == 1
+    assert unfiltered["ci95"]["collision_rate"]["episodes"] == 10
+    assert "## Without the planner filter" in agg.render_markdown(results)
     # each finished trial leaves OUT/trials/<label>-s<seed>.json, small enough to commit
     kept = json.loads(longer.record_path.read_text())
     assert longer.record_path == tmp_path / "trials" / "csac-s0.json"

@@ -59,7 +59,8 @@ def eval_(
             command is rolled out 2 s through the vehicle's velocity response against the
             pillars, wall and moving obstacles within 4 m, and the pillar planner flies where it
             leaves no way out, and for 5 s where a flight came less than 2 m nearer its goal in
-            10 s (beyond the paper; docs/csac-v1.md).
+            10 s (beyond the paper; docs/csac-v1.md). A policy trained with --flight-filter
+            flies behind it unless --no-planner-filter.
         planner_filter_view: What the filter sees: observation (what the vehicle has on board:
             the observation's pillar list and tracked movers, for policies trained with it) or
             simulator (the pillars and movers within 4 m, read from the simulator: any policy).
@@ -96,6 +97,8 @@ def eval_(
         memory, shield_map, shield_mover_margin, shield_brake = own_shield_settings(
             fn, checkpoint, memory, shield_map, shield_mover_margin, shield_brake)  # fmt: skip
         shield = memory > 0
+        planner_filter, planner_filter_view = own_planner_filter(fn, checkpoint, planner_filter,
+                                                                 planner_filter_view)  # fmt: skip
     the_filter = flight_filter(planner_filter_view, cfg) if planner_filter else None
     shield_fn = None
     if memory:  # the shield's module loads Numba (~0.35 s): only when it flies
@@ -205,6 +208,34 @@ def own_shield_settings(policy, checkpoint, memory: int, shield_map: bool, mover
     Console(stderr=True).print(f"note: {checkpoint} trained behind the safety shield and flies "
                                f"behind it ({what}; --no-shield: alone)")  # fmt: skip
     return memory, shield_map, mover_margin, brake
+
+
+FILTER_FLAGS = ("planner-filter", "planner-filter-view")
+
+
+def own_planner_filter(policy, checkpoint, planner_filter: bool, view: str) -> tuple[bool, str]:
+    """The planner filter a flight gets: a policy that records one (``safenav train
+    --flight-filter``: ``meta["flight_filter"]``) flies behind it unless a filter option is given
+    (``--no-planner-filter`` flies it without); otherwise the options' ``(planner_filter, view)``
+    as they are."""
+    from safenav.cli import ARGS
+    from safenav.commands.train import given_flag
+    from safenav.errors import SafenavError
+
+    spec = policy.meta.get("flight_filter")
+    if not spec or any(given_flag(f, ARGS.get()) for f in FILTER_FLAGS):
+        return planner_filter, view
+    from rich.console import Console
+
+    from safenav.envs.planner import filter_spec
+
+    if spec != filter_spec(str(spec.get("view"))):  # eval and render fly FILTER_STALL
+        raise SafenavError(f"{checkpoint} records a planner filter {spec}, not one this "
+                           f"version flies ({filter_spec()}): pass --planner-filter or "
+                           "--no-planner-filter")  # fmt: skip
+    Console(stderr=True).print(f"note: {checkpoint} flies behind the planner filter "
+                               f"({spec['view']} view; --no-planner-filter: without)")  # fmt: skip
+    return True, str(spec["view"])
 
 
 def check_eval_args(env_seed: int, episodes: int, json_out: Path | None, device: str,

@@ -99,6 +99,13 @@ class RunConfig:
     """With ``shield``: the training reward falls by this much per m/s of the shield's correction
     of the policy's action at each step (beyond the paper; 0 = none): the policy learns to need
     the shield less. Evaluations and the logged returns are without it."""
+    flight_filter: bool = False
+    """SafeNav-v1: the final report (test scenario, held-out maps) and ``safenav eval`` / ``render``
+    (by default) fly the policy behind the model-predictive planner filter after its shield
+    (beyond the paper: ``safenav eval --planner-filter``, the observed view with the stall
+    handover; ``meta["flight_filter"]``; docs/csac-v1.md). The periodic evaluations and the
+    selection on validation maps fly without it, for it triples an evaluation's cost. Needs the
+    observation's pillar list (``static_tracked``)."""
     keep_policies: bool = False
     """Also keep the policy of every periodic evaluation as ``policies/step_<N>.pt`` (policy-only,
     ~0.6 MB each), to compare a run's policies afterwards (experiments/checkpoint_sweep.py)."""
@@ -187,6 +194,8 @@ class RunConfig:
             raise ValueError(f"{' / '.join(extras)} set the shield: add --shield")
         if self.shield and not self.env.split(":")[-1].startswith("SafeNav-"):
             raise ValueError(f"shield: the safety shield flies SafeNav, not {self.env}")
+        if self.flight_filter and not self.env.split(":")[-1].startswith("SafeNav-"):
+            raise ValueError(f"flight-filter: the planner filter flies SafeNav, not {self.env}")
 
     def shield_spec(self) -> dict[str, Any] | None:
         """The shield the policy trains behind, as its ``meta["shield"]`` records it; None without."""

@@ -621,6 +621,21 @@ FILTER_STALL = (10.0, 2.0, 5.0)
 and the planner flies 5 s (set before its validation screen, adopted by it: docs/csac-v1.md)."""
 
 
+def filter_spec(view: str = "observation",
+                stall: tuple[float, float, float] | None = FILTER_STALL) -> dict:  # fmt: skip
+    """A :class:`PlannerFilter` as a policy's ``meta["flight_filter"]`` records it (``safenav
+    train --flight-filter``): ``{"view": ..., "stall": [window, progress, handover] or None}``."""
+    if view not in FILTER_VIEWS:
+        raise ValueError(f"view={view!r}: choose one of {FILTER_VIEWS}")
+    return {"view": view, "stall": None if stall is None else [float(x) for x in stall]}
+
+
+def filter_from_spec(spec: dict) -> PlannerFilter:
+    """A fresh :class:`PlannerFilter` of a :func:`filter_spec`."""
+    stall = spec.get("stall")
+    return PlannerFilter(view=spec["view"], stall=None if stall is None else tuple(stall))
+
+
 class PlannerFilter(OraclePlanner):
     """A model-predictive safety filter over a policy (beyond the paper and NavRL): the
     Simplex architecture (Sha, 2001; with a learned controller, Phan et al., 2020, "Neural
@@ -787,5 +802,5 @@ PLANNERS = {"range": PLANNER_B, "pillars": PLANNER_PILLARS}
 
 __all__ = ["FAR", "FILTER_STALL", "FILTER_VIEWS", "PLANNERS", "PLANNER_B", "PLANNER_B_BEAMS",
            "PLANNER_PILLARS", "AutoresetPlanner", "OracleConfig", "OraclePlanner", "PlannerFilter",
-           "ScanFn", "beam_hits", "behind_filter", "geodesic_fields", "mover_clearance",
-           "sample_field", "to_action"]  # fmt: skip
+           "ScanFn", "beam_hits", "behind_filter", "filter_from_spec", "filter_spec",
+           "geodesic_fields", "mover_clearance", "sample_field", "to_action"]  # fmt: skip

@@ -293,10 +293,12 @@ def seed_record(
     if isinstance(held, dict):
         heldout = {k: held.get(k) for k in ("seeds", "episodes_per_seed", "success_rate",
                                             "collision_rate", "timeout_rate")}  # fmt: skip
+    side = ("episodes", "success_rate", "collision_rate", "timeout_rate", "collision_static_rate")
     navrl = final.get("test_navrl_rule")  # reports before 2026-12-01 lack it
-    navrl = ({k: navrl.get(k) for k in ("episodes", "success_rate", "collision_rate",
-                                        "timeout_rate", "collision_static_rate")}
-             if isinstance(navrl, dict) else None)  # fmt: skip
+    navrl = {k: navrl.get(k) for k in side} if isinstance(navrl, dict) else None
+    unfiltered = final.get("test_without_filter")  # policies reported behind the planner filter
+    unfiltered = {k: unfiltered.get(k) for k in side} if isinstance(unfiltered, dict) else None
+    selection = read_json(run_dir / "selection.json") or {}
 
     return {
         "algo": algo,
@@ -313,8 +315,12 @@ def seed_record(
         "selection": "validation" if (run_dir / "selection.json").exists() else "final checkpoint",
         "heldout": heldout,
         "test_navrl_rule": navrl,
+        "planner_filter": final.get("flight_filter"),
+        "planner_filter_override_share": ev.get("planner_filter_override_share"),
+        "test_without_filter": unfiltered,
         "env_steps": env_steps,
         "wall_clock_s": wall_clock_s,
+        "selection_wall_clock_s": selection.get("wall_clock_s"),
         "time_to_target": time_to_target(progress, target) if progress else None,
         "validation_curve": validation_curve(progress) if progress else [],
         "test_outcomes": outcomes_string(ev.get("per_episode")),
@@ -351,6 +357,19 @@ def mean_std(values: Iterable[float | None]) -> dict[str, float] | None:
     return {"mean": float(xs.mean()), "std": std}
 
 
+def side_report(reports: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
+    """Per-seed reports of one more flight of the test scenario (``{"episodes", "success_rate",
+    ...}`` each; e.g. under NavRL's collision rule): their seeds, means and 95 % intervals; None
+    where no seed has one."""
+    if not reports:
+        return None
+    return {"seeds": len(reports),
+            **{key: mean_std(n.get(key) for n in reports)
+               for key in ("success_rate", "collision_rate", "timeout_rate")},
+            "ci95": {key: confidence_intervals([(n.get(key), n.get("episodes")) for n in reports])
+                     for key in ("success_rate", "collision_rate")}}  # fmt: skip
+
+
 def aggregate_algo(
     name: str, per_seed: Sequence[dict[str, Any]], target: Target = Target()
 ) -> dict[str, Any]:
@@ -365,6 +384,8 @@ def aggregate_algo(
     wall = mean_std(r.get("wall_clock_s") for r in per_seed)
     held = [r["heldout"] for r in evaluated if isinstance(r.get("heldout"), dict)]
     navrl = [r["test_navrl_rule"] for r in evaluated if isinstance(r.get("test_navrl_rule"), dict)]
+    unfiltered = [r["test_without_filter"] for r in evaluated
+                  if isinstance(r.get("test_without_filter"), dict)]  # fmt: skip
     return {
         "success_rate": mean_std(r["success_rate"] for r in evaluated),
         "collision_rate": mean_std(r["collision_rate"] for r in evaluated),
@@ -396,19 +417,9 @@ def aggregate_algo(
         if held
         else None,  # fmt: skip
         # The test scenario under NavRL's collision rule, the paper's (seeds that report it).
-        "test_navrl_rule": {
-            "seeds": len(navrl),
-            **{
-                key: mean_std(n.get(key) for n in navrl)
-                for key in ("success_rate", "collision_rate", "timeout_rate")
-            },
-            "ci95": {
-                key: confidence_intervals([(n.get(key), n.get("episodes")) for n in navrl])
-                for key in ("success_rate", "collision_rate")
-            },
-        }
-        if navrl
-        else None,  # fmt: skip
+        "test_navrl_rule": side_report(navrl),
+        # Policies reported behind the planner filter: the test scenario behind the shield alone.
+        "test_without_filter": side_report(unfiltered),
         "seeds": len(evaluated),
         "env_steps": steps["mean"] if steps else None,
         "wall_clock_s": wall["mean"] if wall else None,
@@ -608,6 +619,17 @@ def render_markdown(results: dict[str, Any]) -> str:
                   "| algorithm | seeds | success (ours) | success (paper) | collision (ours) "
                   "| collision (paper) | timeout (ours) |", "|---|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
         lines += [beside_paper(name, a["test_navrl_rule"]) + "|" for name, a in with_rule.items()]
+    filtered = {name: a for name, a in algos.items() if a.get("test_without_filter")}
+    if filtered:
+        lines += ["", "## Without the planner filter", "",
+                  "Policies reported behind the planner filter (`safenav train --flight-filter`): "
+                  "the same test episodes flown behind their shield alone, the policy's own part. "
+                  "Mean ± std over the seeds whose report has it.", "",
+                  "| algorithm | seeds | success (ours) | success (paper) | collision (ours) "
+                  "| collision (paper) | timeout (ours) |",
+                  "|---|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+        lines += [beside_paper(name, a["test_without_filter"]) + "|"
+                  for name, a in filtered.items()]  # fmt: skip
     lines += ["", "## 95 % confidence intervals", "",
               "Wilson: the episodes of every seed pooled (episode-level uncertainty); bootstrap: "
               "the mean over seeds resampled (seed-to-seed spread; none below 2 seeds). Held-out: "
@@ -749,6 +771,7 @@ __all__ = [
     "render_markdown",
     "run_identity",
     "seed_record",
+    "side_report",
     "time_to_target",
     "validation_curve",
     "write_results",

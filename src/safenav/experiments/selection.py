@@ -137,7 +137,11 @@ def report_policy(
     held-out map, ``episodes`` episodes each (success / collision / timeout and the arena
     metrics), plus the held-out episodes pooled, and the test scenario once more under NavRL's
     collision rule (``test_navrl_rule``: a static collision only where a beam reads it,
-    ``EnvConfig.collision_rule``), the rule behind the paper's figures."""
+    ``EnvConfig.collision_rule``), the rule behind the paper's figures. A policy that records a
+    planner filter (``meta["flight_filter"]``, ``safenav train --flight-filter``) flies every one
+    of them behind it (the shares of steps the planner flew beside each), and the test scenario
+    once more behind its shield alone (``test_without_filter``)."""
+    from safenav.envs.planner import behind_filter, filter_from_spec
     from safenav.experiments.evaluate import evaluate
     from safenav.experiments.flight import resolve_policy
 
@@ -148,21 +152,36 @@ def report_policy(
             "border_time_fraction", "collision_static_rate", "collision_dynamic_rate",
             "collision_border_rate", "mean_time_to_goal", "min_clearance")  # fmt: skip
 
-    def summary(seed: int, rule: str = "body") -> dict[str, Any]:
+    filter_meta = fn.meta.get("flight_filter")
+
+    def summary(seed: int, rule: str = "body", planner_filter: bool = True) -> dict[str, Any]:
+        shield, the_filter = own_shield(fn), None
+        if filter_meta and planner_filter:
+            the_filter = filter_from_spec(filter_meta)
+            shield = behind_filter(shield, the_filter)
         res = evaluate(fn, cfg.replace(collision_rule=rule), env_seed=seed, episodes=episodes,
-                       device=device, shield=own_shield(fn))  # fmt: skip
-        return {k: res.get(k) for k in keys} | {"env_seed": seed, "episodes": episodes,
-                                            "per_episode": {k: res["per_episode"][k]
-                                                            for k in ("success", "collision")}}  # fmt: skip
+                       device=device, shield=shield)  # fmt: skip
+        per_episode = {k: res["per_episode"][k] for k in ("success", "collision")}
+        out = {k: res.get(k) for k in keys} | {"env_seed": seed, "episodes": episodes,
+                                               "per_episode": per_episode}  # fmt: skip
+        if the_filter is not None:  # the share of the flown steps where the planner flew
+            out |= {"planner_filter_override_share": the_filter.override_share,
+                    "planner_filter_handover_share": the_filter.handover_share}  # fmt: skip
+        return out
 
     test = summary(TEST_SEED)
     held = [summary(s) for s in heldout]
     pooled = {k: float(sum(h[k] for h in held) / len(held)) for k in ("success_rate", "collision_rate",
                                                                      "timeout_rate")}  # fmt: skip
-    return {"test": test, "heldout": {"seeds": list(heldout), "episodes_per_seed": episodes,
-                                      **pooled, "per_seed": held},
-            "test_navrl_rule": summary(TEST_SEED, "navrl"),
-            "shield": fn.meta.get("shield"), "flight_shield": flight_shield_spec(fn.meta)}  # fmt: skip
+    report = {"test": test, "heldout": {"seeds": list(heldout), "episodes_per_seed": episodes,
+                                        **pooled, "per_seed": held},
+              "test_navrl_rule": summary(TEST_SEED, "navrl"),
+              "shield": fn.meta.get("shield"),
+              "flight_shield": flight_shield_spec(fn.meta)}  # fmt: skip
+    if filter_meta:  # the system is reported; the policy behind its shield alone beside it
+        report |= {"flight_filter": filter_meta,
+                   "test_without_filter": summary(TEST_SEED, planner_filter=False)}  # fmt: skip
+    return report
 
 
 __all__ = ["HELDOUT_SEEDS", "RESERVED_SEEDS", "TEST_SEED", "VALIDATION_SEEDS", "own_shield", "report_policy",

@@ -55,6 +55,7 @@ from safenav.common.logger import RunLogger
 from safenav.common.normalize import make_normalization
 from safenav.common.progress import ProgressDisplay  # here, not lazily: its import draws `random`
 from safenav.common.stopping import RunGuard, enable_sigint
+from safenav.envs.planner import filter_spec
 from safenav.envs.vector import TorchVecEnv, env_horizon, is_safenav, make_vec_env, obs_layout
 from safenav.errors import SafenavError
 from safenav.training.evaluation import BestPolicy, periodic_evaluation
@@ -191,6 +192,11 @@ class Trainer:
             raise SafenavError("--shield: this caller of train() passes no shield_factory")
         if spec is not None:  # the env executes the shield's corrections (training/shielded.py)
             self.env = ShieldedVecEnv(self.env, shield_factory(spec), run.shield_penalty)
+        nav_cfg = getattr(envs.unwrapped, "cfg", None)
+        if run.flight_filter and not getattr(nav_cfg, "static_tracked", 0):
+            raise SafenavError("--flight-filter: the planner filter flies on the observation's "
+                               "pillar list, which this env's observation lacks (add --env-kwargs "
+                               "static_tracked 10)")  # fmt: skip
         self.refresh_every = 0  # map redraws: SafeNav only
         if self.nav:
             horizon = env_horizon(envs)
@@ -406,13 +412,17 @@ class Trainer:
                 **(self.normalization.meta() if self.normalization is not None else {})}  # fmt: skip
 
     def _shield_meta(self) -> dict[str, Any]:
-        """The shield the policy trained behind, and the one it flies behind where they differ
-        (``--shield-flight-brake``; only then, so the policies of a run resumed from before it
-        still average)."""
+        """The shield the policy trained behind, the one it flies behind where they differ
+        (``--shield-flight-brake``), and the planner filter it is reported behind
+        (``--flight-filter``); each only where set, so the policies of a run resumed from before
+        it still average."""
+        out: dict[str, Any] = {}
+        if self.run_cfg.flight_filter:
+            out["flight_filter"] = filter_spec()
         if not self.run_cfg.shield:
-            return {}
+            return out
         train, flight = self.run_cfg.shield_spec(), self.run_cfg.flight_shield_spec()
-        return {"shield": train, **({"flight_shield": flight} if flight != train else {})}
+        return {"shield": train, **({"flight_shield": flight} if flight != train else {}), **out}
 
     def policy_state(self) -> dict[str, Any]:
         """The policy-only part of a checkpoint (``best.pt``, ``policies/``)."""
