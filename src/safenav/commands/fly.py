@@ -28,6 +28,7 @@ def fly(
     shield_map: bool = False,
     shield_mover_margin: float = 0.0,
     shield_brake: bool = False,
+    planner_filter: bool = False,
     takeoff_altitude: float = 1.5,
     origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
     link_timeout: float = 1.0,
@@ -78,6 +79,11 @@ def fly(
             (0-2; 0.3 was chosen on validation maps).
         shield_brake: With --shield: the braking cap: near a static obstacle, the ground or the
             ceiling the shield slows the vehicle to a speed it can stop from (beyond NavRL's).
+        planner_filter: After the shield (if any), the model-predictive safety filter on
+            board, as safenav eval --planner-filter flies it (beyond the paper). The pillar
+            planner flies where the command leaves no way out in a 2 s rollout, and for 5 s
+            where the flight came less than 2 m nearer its goal in 10 s. Needs a policy with
+            the pillar list (static_tracked > 0).
         takeoff_altitude: Takeoff altitude above home, metres.
         origin: World ENU position of PX4's local NED origin.
         link_timeout: Seconds without telemetry that count as link loss (exit status 3).
@@ -111,13 +117,19 @@ def fly(
     check_fly_args(policy, connect, perception, rate, takeoff_altitude, link_timeout,
                    max_flight_time, json_out, demo, preset, episode, gif, goal, origin,
                    checkpoint if demo and not scripted and policy is None else None, record)  # fmt: skip
+    if planner_filter and rate > 10.0:
+        print(f"note: --planner-filter at --rate {rate:g} Hz: the filter takes ~25 ms a tick on one "
+              "core; at 20 Hz on a loaded 2-core machine it missed 8 % of the deadlines "
+              "(docs/deployment.md, \"The planner filter on board\"): --rate 10 is the env's "
+              "control rate", file=sys.stderr)  # fmt: skip
     try:
         if demo:
             from safenav.deploy.demo import run_demo
 
             summary = run_demo(policy=policy, checkpoint=checkpoint, scripted=scripted, preset=preset,
                                episode=episode, rate=rate, shield=shield, shield_memory=memory, shield_map=shield_map, shield_mover_margin=shield_mover_margin, shield_brake=shield_brake, gif=gif or Path("flight.gif"),
-                               max_flight_time=max_flight_time, record=record)  # fmt: skip
+                               max_flight_time=max_flight_time, record=record,
+                               planner_filter=planner_filter)  # fmt: skip
         else:
             if policy is None or goal is None:
                 raise SafenavError("pass --policy policy.onnx and --goal X Y Z (or --demo)")
@@ -125,7 +137,7 @@ def fly(
                                  link_timeout, max_flight_time, land, record=record,
                                  shield_memory=memory, shield_map=shield_map,
                                  shield_mover_margin=shield_mover_margin,
-                                 shield_brake=shield_brake)  # fmt: skip
+                                 shield_brake=shield_brake, planner_filter=planner_filter)  # fmt: skip
     except FlightAborted as err:
         summary = getattr(err, "summary", None)
         if json_out is not None and summary is not None:
@@ -274,23 +286,27 @@ def fly_policy(policy: Path, connect: str, goal, perception: str, rate: float, s
                takeoff_altitude: float, origin, link_timeout: float, max_flight_time: float, land: bool,
                record: Path | None = None, shield_memory: int | None = None,
                shield_map: bool = False, shield_mover_margin: float = 0.0,
-               shield_brake: bool = False) -> dict:  # fmt: skip
+               shield_brake: bool = False, planner_filter: bool = False) -> dict:  # fmt: skip
     """Fly ``policy`` to ``goal`` on the vehicle at ``connect``; ``shield_memory``: the shield's
-    memory in range images (default: 1 with ``shield``, the memoryless shield)."""
+    memory in range images (default: 1 with ``shield``, the memoryless shield);
+    ``planner_filter``: the planner filter after it."""
     import torch
 
     from safenav.common.checks import parse_hostport
     from safenav.deploy.export import OnnxPolicy, load_sidecar
     from safenav.deploy.fly import FlightAborted, FlightController, FlyConfig, MavsdkLink
+    from safenav.deploy.onboard_filter import check_planner_filter
     from safenav.deploy.runtime import OnboardRuntime, RuntimeConfig
 
     _, cfg = load_sidecar(policy)  # refuses a checkpoint given as --policy, with the fix
+    check_planner_filter(planner_filter, cfg, str(policy))
     torch.set_num_threads(1)  # the runtime is single-threaded by design; leave the other cores
     memory = max(1, shield_memory or 1) if shield else 0  # range images; 0: no shield
     runtime = OnboardRuntime(OnnxPolicy(policy), cfg,
                              RuntimeConfig.for_flight(cfg, memory, rate, shield_map and shield,
                                                       shield_mover_margin if shield else 0.0,
-                                                      shield_brake and shield))  # fmt: skip
+                                                      shield_brake and shield,
+                                                      planner_filter))  # fmt: skip
     recorder = None
     if record is not None:  # no ground truth here: the map holds the goal and the geofence
         from safenav.deploy.mcap_log import McapRecorder, Scene
@@ -300,7 +316,8 @@ def fly_policy(policy: Path, connect: str, goal, perception: str, rate: float, s
                                           "rate_hz": rate, "shield": shield, "shield_memory": memory,
                                           "shield_map": shield_map,
                                           "shield_mover_margin": shield_mover_margin,
-                                          "shield_brake": shield_brake})  # fmt: skip
+                                          "shield_brake": shield_brake,
+                                          "planner_filter": planner_filter})  # fmt: skip
     link = MavsdkLink(connect)
     ctl = FlightController(runtime, link, FlyConfig(
         goal=tuple(goal), rate_hz=rate, takeoff_altitude=takeoff_altitude, origin=tuple(origin),

@@ -98,13 +98,15 @@ def run_demo(
     max_flight_time: float = 120.0,
     world_seed: int = 1,
     record: Path | None = None,
+    planner_filter: bool = False,
 ) -> dict[str, Any]:
     """Fly test episode ``episode`` of ``preset`` (world ``world_seed``) against a simulated PX4;
     ``record``: write the flight's MCAP log there (:mod:`safenav.deploy.mcap_log`, with the
     simulator's pillars in ``/safenav/map``); ``shield_memory``: the shield's memory in range
     images (default: 1 with ``shield``, the memoryless shield; see ``RuntimeConfig.for_flight``);
     ``shield_map``: with ``shield``, the map scan too; ``shield_mover_margin``: with ``shield``,
-    metres more clearance from moving obstacles; ``shield_brake``: the braking cap."""
+    metres more clearance from moving obstacles; ``shield_brake``: the braking cap;
+    ``planner_filter``: the planner filter after the shield (``RuntimeConfig.planner_filter``)."""
     from safenav.deploy.export import OnnxPolicy, load_sidecar
     from safenav.deploy.fly import FlightAborted, FlightController, FlyConfig, MavsdkLink
     from safenav.deploy.runtime import OnboardRuntime, RuntimeConfig
@@ -116,6 +118,10 @@ def run_demo(
     with tempfile.TemporaryDirectory(prefix="safenav-fly-") as tmp:
         onnx = resolve_onnx(policy, checkpoint, scripted, cfg, Path(tmp))
         _, pcfg = load_sidecar(onnx)
+        from safenav.deploy.onboard_filter import check_planner_filter
+
+        what = "scripted" if scripted else str(policy or checkpoint)
+        check_planner_filter(planner_filter, pcfg, what)
         torch.set_num_threads(1)  # the runtime is single-threaded by design
         port, pport = free_port(), free_port(socket.SOCK_STREAM)
         with sim_vehicle_process(
@@ -141,6 +147,7 @@ def run_demo(
                     shield_map and shield,
                     shield_mover_margin if shield else 0.0,
                     shield_brake and shield,
+                    planner_filter,
                 ),
             )
             link = MavsdkLink(f"udpin://127.0.0.1:{port}")
@@ -188,7 +195,7 @@ def run_demo(
         "scenario": {"preset": preset, "world_seed": world_seed, "episode": episode,
                      "start": [round(x, 3) for x in start], "goal": [round(x, 3) for x in goal]},
         "policy": str(policy) if policy else ("scripted" if scripted else str(checkpoint)),
-        "shield": shield, "shield_memory": memory, "shield_map": shield_map and shield, "shield_mover_margin": shield_mover_margin if shield else 0.0, "shield_brake": shield_brake and shield, "rate_hz": rate, "wall_time_s": round(wall, 1),
+        "shield": shield, "shield_memory": memory, "shield_map": shield_map and shield, "shield_mover_margin": shield_mover_margin if shield else 0.0, "shield_brake": shield_brake and shield, "planner_filter": planner_filter, "rate_hz": rate, "wall_time_s": round(wall, 1),
         **{k: v for k, v in flight.summary().items() if k not in ("reached_goal", "flight_time_s")},
     }  # fmt: skip
     if gif is not None and ctl.snapshots:

@@ -221,6 +221,7 @@ class FlightLog:
     hover_ticks: int = 0
     late_ticks: int = 0
     shielded_ticks: int = 0
+    filtered_ticks: int = 0
     min_goal_distance_m: float = math.inf
     setpoint_ms: list[float] = field(default_factory=list)
     trajectory: list[tuple[float, list[float]]] = field(default_factory=list)
@@ -233,7 +234,7 @@ class FlightLog:
             "reached_goal": self.reached_goal, "aborted": self.aborted or None,
             "flight_time_s": round(self.flight_time_s, 3), "ticks": self.ticks,
             "hover_ticks": self.hover_ticks, "late_ticks": self.late_ticks,
-            "shielded_ticks": self.shielded_ticks,
+            "shielded_ticks": self.shielded_ticks, "filtered_ticks": self.filtered_ticks,
             "min_goal_distance_m": round(self.min_goal_distance_m, 3) if math.isfinite(self.min_goal_distance_m) else None,
             "setpoint_p50_ms": round(float(np.percentile(ms, 50)), 3),
             "setpoint_p99_ms": round(float(np.percentile(ms, 99)), 3),
@@ -431,6 +432,7 @@ class FlightController:
             else:
                 v = sp.velocity_ned
                 self.log.shielded_ticks += int(sp.shielded)
+                self.log.filtered_ticks += int(sp.filtered)
             yaw = sp.yaw_ned_deg if math.isfinite(sp.yaw_ned_deg) else 0.0
             self.link.send_velocity_ned(v, yaw)
             self._record(tel, now, v, sp)

@@ -112,6 +112,11 @@ class RuntimeConfig:
     """Range images in the policy's memory image (``EnvConfig.lidar_memory`` > 0), one per
     control step; 0: the env's ``lidar_memory`` (the runtime steps at the env's rate). ``safenav
     fly`` converts the env's 10 Hz images to its setpoint rate (:meth:`for_flight`)."""
+    planner_filter: bool = False
+    """After the shield, the planner filter (:class:`~safenav.deploy.onboard_filter.OnboardFilter`,
+    beyond the paper; ``safenav eval --planner-filter``'s observed view with the stall handover):
+    the pillar planner flies where the command leaves no way out, and for 5 s where the flight
+    stalls. Needs the policy's pillar list (``EnvConfig.static_tracked`` > 0)."""
     geofence: bool = True
     """Mark the env's arena border as a wall in the onboard map, as the simulator does (SafeNav-v1
     trains policies in a closed arena): the flight area is a geofence the policy sees coming. As
@@ -120,14 +125,15 @@ class RuntimeConfig:
     @classmethod
     def for_flight(cls, env_config: EnvConfig, shield_memory: int, rate_hz: float,
                    shield_map: bool = False, mover_margin: float = 0.0,
-                   brake: bool = False) -> RuntimeConfig:  # fmt: skip
+                   brake: bool = False, planner_filter: bool = False) -> RuntimeConfig:  # fmt: skip
         """The runtime of ``safenav fly``: no shield (``shield_memory`` 0), the shield (1), or the
         memory shield of the last ``shield_memory`` range images at the env's control rate (10 Hz:
         20 is 2 s, as ``safenav eval --shield-memory 20``), i.e. that many seconds of setpoints at
         ``rate_hz``; ``shield_map``: the shield also takes the map scan; ``mover_margin``: metres
         more clearance from tracked moving obstacles; ``brake``: the braking cap (it needs the
-        odometry's altitude: the memory shield's path). :class:`~safenav.errors.SafenavError`
-        if the memory is more than 100 setpoints."""
+        odometry's altitude: the memory shield's path); ``planner_filter``: the planner filter
+        after it. :class:`~safenav.errors.SafenavError` if the memory is more than 100
+        setpoints."""
         from safenav.errors import SafenavError
 
         # The policy's memory image (lidar_memory) spans the same seconds at the setpoint rate.
@@ -137,7 +143,7 @@ class RuntimeConfig:
             raise SafenavError(f"lidar_memory {env_config.lidar_memory} at --rate {rate_hz:g} Hz is "
                                f"{policy_memory} range images, more than 1000")  # fmt: skip
         if shield_memory <= 0:
-            return cls(policy_memory=policy_memory)
+            return cls(policy_memory=policy_memory, planner_filter=planner_filter)
         steps = 1 if shield_memory == 1 else max(2, round(shield_memory * rate_hz * env_config.dt))
         if steps > 100:
             raise SafenavError(f"--shield-memory {shield_memory} ({shield_memory * env_config.dt:g} s of range "
@@ -145,7 +151,7 @@ class RuntimeConfig:
         braking = ShieldConfig.braking_of(env_config) if brake else {}
         return cls(shield=ShieldConfig.for_env(env_config, mover_margin=mover_margin, **braking),
                    shield_memory=steps, shield_map=shield_map,
-                   policy_memory=policy_memory)  # fmt: skip
+                   policy_memory=policy_memory, planner_filter=planner_filter)  # fmt: skip
 
 
 @dataclass
@@ -165,6 +171,8 @@ class Setpoint:
     policy_action: np.ndarray | None = None
     """The policy's own action."""
     shielded: bool = False
+    filtered: bool = False
+    """The planner filter replaced the command (``RuntimeConfig.planner_filter``)."""
     observation: dict[str, np.ndarray] | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
 
@@ -208,6 +216,16 @@ class OnboardRuntime:
                                and (memory > 1 or scan or self.config.shield.brake_time > 0)
                                else None)  # fmt: skip
         self._episode_start = True  # the memory shield's next image begins a new memory
+        self._filter = None
+        if self.config.planner_filter:
+            if not env_config.static_tracked:
+                raise ValueError("planner_filter flies on the policy's pillar list: its env config "
+                                 "has none (static_tracked 0)")  # fmt: skip
+            from safenav.deploy.onboard_filter import OnboardFilter
+
+            self._filter = OnboardFilter()
+        self._start_z = 0.0  # the flight's start altitude and its first step's time: the filter's
+        self._flight_t0: float | None = None
         if self.config.policy_memory < 0:
             raise ValueError(f"policy_memory {self.config.policy_memory}: 0 or more range images")
         # The policy's memory image: beam hits of the last images, world frame (see observation)
@@ -259,6 +277,7 @@ class OnboardRuntime:
                 start = self._pos
             self._goal = goal
             self._yaw = goal_frame_yaw(start, goal)
+            self._start_z, self._flight_t0 = float(start[2]), None
             self._episode_start = True  # a new flight: what the memory shield saw is not on it
             self._mem_points = None  # nor what the policy's memory image remembered
 
@@ -545,6 +564,19 @@ class OnboardRuntime:
                 if not torch.isfinite(action).all():  # absurd (finite) tracker data can do this
                     return self._hover("shielded action not finite")
             t3 = time.perf_counter()
+            filtered = False
+            if self._filter is not None:
+                from safenav.deploy.onboard_filter import VehicleView
+
+                if self._flight_t0 is None:
+                    self._flight_t0 = now
+                view = VehicleView.of(self.cfg, self._pos, self._vel, self._goal, self._yaw,
+                                      self._start_z, now - self._flight_t0)  # fmt: skip
+                action = self._filter(view, obs, action)
+                filtered = bool(self._filter.overridden[0])
+                if not torch.isfinite(action).all():
+                    return self._hover("filtered action not finite")
+            t4 = time.perf_counter()
             # Goal frame -> world (as goal_frame_to_world): rotate by the goal yaw about z.
             a = action[0].numpy().astype(np.float64) * self.cfg.v_max
             c, s = math.cos(self._yaw), math.sin(self._yaw)
@@ -555,8 +587,9 @@ class OnboardRuntime:
             return Setpoint(
                 velocity=v, velocity_ned=enu_to_ned(v), yaw_ned_deg=math.degrees(yaw_enu_to_ned(self._yaw)),
                 hover=False, action=action[0].numpy().copy(), policy_action=raw[0].copy(), shielded=shielded,
-                observation={k: v[0].copy() for k, v in np_obs.items()},
-                timings_ms={"observation": (t1 - t0) * 1e3, "policy": (t2 - t1) * 1e3, "shield": (t3 - t2) * 1e3},
+                filtered=filtered, observation={k: v[0].copy() for k, v in np_obs.items()},
+                timings_ms={"observation": (t1 - t0) * 1e3, "policy": (t2 - t1) * 1e3, "shield": (t3 - t2) * 1e3,
+                            **({"filter": (t4 - t3) * 1e3} if self._filter is not None else {})},
             )  # fmt: skip
 
 
