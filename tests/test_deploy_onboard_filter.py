@@ -119,3 +119,30 @@ def test_it_needs_the_policys_pillar_list():
     assert RuntimeConfig.for_flight(
         make_config("easy"), 0, 20.0, planner_filter=True
     ).planner_filter
+
+
+def test_the_same_goal_flown_again_is_a_new_flight():
+    """A handover left from a stalled flight does not carry into the next flight to the same goal
+    (``OnboardRuntime.set_goal`` calls ``new_flight``; its clock restarts)."""
+    cfg = make_config("easy", static_tracked=6)
+    env = SafeNavVectorEnv(1, config=cfg, output="torch", autoreset_mode="Disabled")
+    obs, _ = env.reset(seed=12345)
+    the_filter = OnboardFilter(stall=STALL)
+
+    def hover(seconds: float) -> int:
+        before = the_filter.handovers
+        for t in range(round(seconds / cfg.dt)):
+            view = _view(env, cfg)
+            view.time = t * cfg.dt
+            the_filter(view, obs, torch.zeros(1, 3))
+        return the_filter.handovers - before
+
+    assert hover(2.5) > 0  # its handover runs to 3 s of that flight's clock
+    the_filter.new_flight()
+    assert hover(1.9) == 0
+    rt = OnboardRuntime(lambda *a: np.zeros((1, 3), np.float32), cfg,
+                        config=RuntimeConfig(require_tracker=False, planner_filter=True))  # fmt: skip
+    rt.update_state([0.0, 0.0, 1.0], [0.0, 0.0, 0.0])
+    rt._filter._goals = torch.zeros(1, 3)
+    rt.set_goal([0.0, 5.0, 1.0])
+    assert rt._filter._goals is None and rt._flight_t0 is None

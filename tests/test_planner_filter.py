@@ -217,7 +217,8 @@ def test_a_run_trained_with_flight_filter_is_reported_and_evaluated_behind_it(tm
     for flight in (report["test"], report["heldout"]["per_seed"][0], report["test_navrl_rule"]):
         assert 0 <= flight["planner_filter_override_share"] <= 1
     assert "planner_filter_override_share" not in report["test_without_filter"]
-    for extra, expected in (([], True), (["--no-planner-filter"], False)):
+    for extra, expected in (([], True), (["--no-planner-filter"], False),
+                            (["--planner-filter-view", "simulator"], True)):  # fmt: skip
         out = tmp_path / f"eval{len(extra)}.json"
         code, _, err = run_cli(capsys, ["eval", str(policy), "--env-seed", "12345", "--episodes",
                                         "2", *extra, "--json", str(out)])  # fmt: skip
@@ -226,6 +227,8 @@ def test_a_run_trained_with_flight_filter_is_reported_and_evaluated_behind_it(tm
         assert result["planner_filter"] is expected, extra
         assert ("planner_filter_override_share" in result) is expected
         assert ("flies behind the planner filter" in err) is expected
+        assert result.get("planner_filter_view") == (extra[-1] if len(extra) == 2 else
+                                                     "observation" if expected else None)  # fmt: skip
 
 
 def test_flight_filter_needs_the_pillar_list_and_a_safenav_env(tmp_path, capsys):
@@ -236,3 +239,20 @@ def test_flight_filter_needs_the_pillar_list_and_a_safenav_env(tmp_path, capsys)
     assert code != 0 and "static_tracked" in err, err
     with pytest.raises(ValueError, match="flight-filter"):
         RunConfig(env="Pendulum-v1", flight_filter=True)
+
+
+@pytest.mark.parametrize("rule", ["body", "navrl"])
+def test_a_graze_no_beam_reads_ends_an_episode_only_under_the_body_rule(rule):
+    """Under NavRL's collision rule the env flies on after touching a pillar no beam reads: so
+    does the planner (and the filter), rather than leaving the episode to the shield alone."""
+    env, _ = _env(1, collision_rule=rule)
+    w = int(env.world_idx[0])
+    tallest = int(env.pillar_height[w, : env.n_static].argmax())
+    env.pos[0, :2] = env.pillar_xy[w, tallest]  # inside the tallest pillar, well below its top
+    env.pos[0, 2] = 1.0
+    env.steps[0] = 5
+    env._beam_reads_pillar = lambda ids: torch.zeros(len(ids), dtype=torch.bool)
+    planner = PlannerFilter()
+    planner._start(env)
+    planner._update_finished(env)
+    assert bool(planner.finished[0]) is (rule == "body")

@@ -445,6 +445,10 @@ def test_trial_fresh_then_skipped_then_resumed_for_more_steps(tmp_path, fake_pyt
     assert unfiltered["success_rate"]["mean"] == pytest.approx(0.6) and unfiltered["seeds"] == 1
     assert unfiltered["ci95"]["collision_rate"]["episodes"] == 10
     assert "## Without the planner filter" in agg.render_markdown(results)
+    # the time to the selected policy: training plus the selection on validation maps
+    to_policy = results["algos"]["csac"]["to_policy_wall_clock_s"]
+    assert to_policy["max"] == pytest.approx(rec["wall_clock_s"] + 12.5)
+    assert " (+ " in agg.render_markdown(results)
     # each finished trial leaves OUT/trials/<label>-s<seed>.json, small enough to commit
     kept = json.loads(longer.record_path.read_text())
     assert longer.record_path == tmp_path / "trials" / "csac-s0.json"

@@ -205,37 +205,39 @@ def own_shield_settings(policy, checkpoint, memory: int, shield_map: bool, mover
     what = ", ".join([f"memory {memory}", *(["map scan"] if shield_map else []),
                       *([f"+{mover_margin:g} m from movers"] if mover_margin else []),
                       *(["braking cap"] if brake else [])])  # fmt: skip
+    alone = "without the shield" if policy.meta.get("flight_filter") else "alone"
     Console(stderr=True).print(f"note: {checkpoint} trained behind the safety shield and flies "
-                               f"behind it ({what}; --no-shield: alone)")  # fmt: skip
+                               f"behind it ({what}; --no-shield: {alone})")  # fmt: skip
     return memory, shield_map, mover_margin, brake
-
-
-FILTER_FLAGS = ("planner-filter", "planner-filter-view")
 
 
 def own_planner_filter(policy, checkpoint, planner_filter: bool, view: str) -> tuple[bool, str]:
     """The planner filter a flight gets: a policy that records one (``safenav train
-    --flight-filter``: ``meta["flight_filter"]``) flies behind it unless a filter option is given
-    (``--no-planner-filter`` flies it without); otherwise the options' ``(planner_filter, view)``
-    as they are."""
+    --flight-filter``: ``meta["flight_filter"]``) flies behind it unless ``--planner-filter`` /
+    ``--no-planner-filter`` is given (``--planner-filter-view`` alone changes only what it sees);
+    otherwise the options' ``(planner_filter, view)`` as they are."""
     from safenav.cli import ARGS
     from safenav.commands.train import given_flag
     from safenav.errors import SafenavError
 
     spec = policy.meta.get("flight_filter")
-    if not spec or any(given_flag(f, ARGS.get()) for f in FILTER_FLAGS):
+    if not spec or given_flag("planner-filter", ARGS.get()):
         return planner_filter, view
     from rich.console import Console
 
-    from safenav.envs.planner import filter_spec
+    from safenav.envs.planner import FILTER_STALL, FILTER_VIEWS
 
-    if spec != filter_spec(str(spec.get("view"))):  # eval and render fly FILTER_STALL
-        raise SafenavError(f"{checkpoint} records a planner filter {spec}, not one this "
-                           f"version flies ({filter_spec()}): pass --planner-filter or "
+    stall = spec.get("stall")
+    if spec.get("view") not in FILTER_VIEWS or stall is None or tuple(stall) != FILTER_STALL:
+        raise SafenavError(f"{checkpoint} records a planner filter {spec}; eval and render fly "
+                           f"its observation or simulator view with the stall handover "
+                           f"{list(FILTER_STALL)}: pass --planner-filter or "
                            "--no-planner-filter")  # fmt: skip
+    if not given_flag("planner-filter-view", ARGS.get()):
+        view = str(spec["view"])
     Console(stderr=True).print(f"note: {checkpoint} flies behind the planner filter "
-                               f"({spec['view']} view; --no-planner-filter: without)")  # fmt: skip
-    return True, str(spec["view"])
+                               f"({view} view; --no-planner-filter: without)")  # fmt: skip
+    return True, view
 
 
 def check_eval_args(env_seed: int, episodes: int, json_out: Path | None, device: str,

@@ -132,6 +132,12 @@ def finish_run(run_dir: Path, device: str = "cpu", report_episodes: int = 200) -
           f"  test under NavRL's collision rule: success "
           f"{report['test_navrl_rule']['success_rate']:.3f} collision "
           f"{report['test_navrl_rule']['collision_rate']:.3f}")  # fmt: skip
+    alone = report.get("test_without_filter")
+    if alone is not None:  # the figures above fly behind the planner filter
+        print(
+            f"  (behind the planner filter; test without it: success "
+            f"{alone['success_rate']:.3f} collision {alone['collision_rate']:.3f})"
+        )
     return final
 
 

@@ -61,7 +61,8 @@ class OnboardFilter(PlannerFilter):
     """:class:`~safenav.envs.planner.PlannerFilter` (observed view, the stall handover of
     ``stall``, default :data:`~safenav.envs.planner.FILTER_STALL`) over one vehicle's
     :class:`VehicleView`: ``action = filter(view, obs, action)``, ``overridden[0]`` whether the
-    planner's command replaced the policy's. A new goal starts a new flight."""
+    planner's command replaced the policy's. A new goal, or :meth:`new_flight`, starts a new
+    flight."""
 
     def __init__(self, stall: tuple[float, float, float] | None = FILTER_STALL) -> None:
         super().__init__(view="observation", stall=stall)
@@ -69,6 +70,10 @@ class OnboardFilter(PlannerFilter):
     def _start(self, env) -> None:  # type: ignore[override]
         super()._start(env)
         self._mark_time, self._mark_dist, self._handover_until = -math.inf, math.inf, -math.inf
+
+    def new_flight(self) -> None:
+        """Start afresh at the next call (a new goal, or the same goal flown again)."""
+        self._goals = None
 
     def _step_start(self, obs, env) -> torch.Tensor:  # type: ignore[override]
         """A new flight where the goal changed (each step brings a new view of the vehicle);
@@ -85,7 +90,7 @@ class OnboardFilter(PlannerFilter):
         t, d = env.time, float((env.goal[0] - env.pos[0]).norm())
         eps = 1e-6  # seconds: 100 steps of 0.1 s are 10 s, whatever the rounding of the clock
         if not math.isfinite(self._mark_time) or t < self._mark_time:  # a new flight's window
-            self._mark_time, self._mark_dist = t, d
+            self._mark_time, self._mark_dist, self._handover_until = t, d, -math.inf
         elif t - self._mark_time >= window - eps:
             if self._mark_dist - d < progress:
                 self._handover_until = t + handover

@@ -224,7 +224,9 @@ class OnboardRuntime:
             from safenav.deploy.onboard_filter import OnboardFilter
 
             self._filter = OnboardFilter()
-        self._start_z = 0.0  # the flight's start altitude and its first step's time: the filter's
+        # The flight's start altitude (NavRL's altitude band) and its first step's time (the stall
+        # clock): the filter's view of the vehicle.
+        self._start_z = 0.0
         self._flight_t0: float | None = None
         if self.config.policy_memory < 0:
             raise ValueError(f"policy_memory {self.config.policy_memory}: 0 or more range images")
@@ -278,6 +280,8 @@ class OnboardRuntime:
             self._goal = goal
             self._yaw = goal_frame_yaw(start, goal)
             self._start_z, self._flight_t0 = float(start[2]), None
+            if self._filter is not None:  # a new flight, even to the same goal
+                self._filter.new_flight()
             self._episode_start = True  # a new flight: what the memory shield saw is not on it
             self._mem_points = None  # nor what the policy's memory image remembered
 

@@ -296,8 +296,8 @@ class OraclePlanner:
             )
 
     def _update_finished(self, env: SafeNavVectorEnv) -> None:
-        """Episodes that ended (success or collision, the env's own tests): they get zero
-        actions and no planning (the evaluator ignores them)."""
+        """Episodes that ended (success or collision, the env's own tests, its collision rule
+        included): they get zero actions and no planning (the evaluator ignores them)."""
         ec, w = env.cfg, env.world_idx
         pos = env.pos
         static = pillar_clearance(pos, env.pillar_xy[w, : env.n_static],
@@ -309,7 +309,11 @@ class OraclePlanner:
             rel = env.dyn_pos[w, :nd] - pos[:, None]
             dyn = moving_obstacle_clearance(rel, env.dyn_width[w, :nd], env.dyn_is_cuboid[w, :nd],
                                             pos[:, 2], CUBOID_HEIGHT, CYLINDER_HEIGHT).amin(-1)  # fmt: skip
-        collided = ((static <= ec.uav_radius) | (dyn <= ec.uav_radius)
+        hit_static = static <= ec.uav_radius
+        if ec.collision_rule == "navrl" and bool(hit_static.any()):  # as the env counts it
+            ids = hit_static.nonzero().squeeze(-1)
+            hit_static[ids] = env._beam_reads_pillar(ids)
+        collided = (hit_static | (dyn <= ec.uav_radius)
                     | (border_clearance(pos, ec.half) <= ec.uav_radius)
                     | (pos[:, 2] < ec.z_min) | (pos[:, 2] > ec.z_max))  # fmt: skip
         arrived = (env.goal - pos).norm(dim=-1) < ec.goal_tolerance

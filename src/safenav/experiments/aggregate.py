@@ -357,6 +357,12 @@ def mean_std(values: Iterable[float | None]) -> dict[str, float] | None:
     return {"mean": float(xs.mean()), "std": std}
 
 
+def time_cell(rec: dict[str, Any]) -> str:
+    """A seed's training time, and its selection's after a + where it has one."""
+    sel = rec.get("selection_wall_clock_s")
+    return fmt_seconds(rec.get("wall_clock_s")) + (f" (+ {fmt_seconds(sel)})" if sel else "")
+
+
 def side_report(reports: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
     """Per-seed reports of one more flight of the test scenario (``{"episodes", "success_rate",
     ...}`` each; e.g. under NavRL's collision rule): their seeds, means and 95 % intervals; None
@@ -382,6 +388,9 @@ def aggregate_algo(
     sources = sorted({t["source"] for t in reached})
     steps = mean_std(r.get("env_steps") for r in per_seed)
     wall = mean_std(r.get("wall_clock_s") for r in per_seed)
+    to_policy = [r["wall_clock_s"] + r["selection_wall_clock_s"] for r in per_seed
+                 if r.get("wall_clock_s") is not None
+                 and r.get("selection_wall_clock_s") is not None]  # fmt: skip
     held = [r["heldout"] for r in evaluated if isinstance(r.get("heldout"), dict)]
     navrl = [r["test_navrl_rule"] for r in evaluated if isinstance(r.get("test_navrl_rule"), dict)]
     unfiltered = [r["test_without_filter"] for r in evaluated
@@ -423,6 +432,10 @@ def aggregate_algo(
         "seeds": len(evaluated),
         "env_steps": steps["mean"] if steps else None,
         "wall_clock_s": wall["mean"] if wall else None,
+        # Training plus the selection on validation maps: the time to the selected policy.
+        "to_policy_wall_clock_s": mean_std(to_policy) | {"max": max(to_policy)}
+        if to_policy
+        else None,
         "time_to_target": {
             "success_min": target.success,
             "collision_max": target.collision,
@@ -711,7 +724,7 @@ def render_markdown(results: dict[str, Any]) -> str:
         "## Every seed",
         "",
         "| algorithm | seed | success | collision | timeout | held-out success / collision "
-        "| detour | policy | env steps | training time | run |",
+        "| detour | policy | env steps | training (+ selection) | run |",
         "|---|---:|---:|---:|---:|---:|---:|---|---:|---:|---|",
     ]
     for name, a in algos.items():
@@ -720,7 +733,7 @@ def render_markdown(results: dict[str, Any]) -> str:
                 f"| {display_name(name)} | {r.get('seed')} | {pct(r.get('success_rate'))} "
                 f"| {pct(r.get('collision_rate'))} | {pct(r.get('timeout_rate'))} "
                 f"| {held_cell(r.get('heldout'))} | {ratio(r.get('detour_ratio'))} "
-                f"| {r.get('selection', '—')} | {fmt_steps(r.get('env_steps'))} | {fmt_seconds(r.get('wall_clock_s'))} "
+                f"| {r.get('selection', '—')} | {fmt_steps(r.get('env_steps'))} | {time_cell(r)} "
                 f"| `{r.get('run_dir')}` |"
             )
     lines.append("")

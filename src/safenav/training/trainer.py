@@ -195,8 +195,8 @@ class Trainer:
         nav_cfg = getattr(envs.unwrapped, "cfg", None)
         if run.flight_filter and not getattr(nav_cfg, "static_tracked", 0):
             raise SafenavError("--flight-filter: the planner filter flies on the observation's "
-                               "pillar list, which this env's observation lacks (add --env-kwargs "
-                               "static_tracked 10)")  # fmt: skip
+                               "pillar list, which this env's observation lacks: add --env-kwargs "
+                               "static_tracked 10, or --no-flight-filter")  # fmt: skip
         self.refresh_every = 0  # map redraws: SafeNav only
         if self.nav:
             horizon = env_horizon(envs)
