@@ -140,8 +140,8 @@ def test_the_same_goal_flown_again_is_a_new_flight():
     assert hover(2.5) > 0  # its handover runs to 3 s of that flight's clock
     the_filter.new_flight()
     assert hover(1.9) == 0
-    rt = OnboardRuntime(lambda *a: np.zeros((1, 3), np.float32), cfg,
-                        config=RuntimeConfig(require_tracker=False, planner_filter=True))  # fmt: skip
+    config = RuntimeConfig(require_tracker=False, planner_filter=True)
+    rt = OnboardRuntime(lambda *a: np.zeros((1, 3), np.float32), cfg, config=config)
     rt.update_state([0.0, 0.0, 1.0], [0.0, 0.0, 0.0])
     rt._filter._goals = torch.zeros(1, 3)
     rt.set_goal([0.0, 5.0, 1.0])

@@ -227,8 +227,8 @@ def test_a_run_trained_with_flight_filter_is_reported_and_evaluated_behind_it(tm
         assert result["planner_filter"] is expected, extra
         assert ("planner_filter_override_share" in result) is expected
         assert ("flies behind the planner filter" in err) is expected
-        assert result.get("planner_filter_view") == (extra[-1] if len(extra) == 2 else
-                                                     "observation" if expected else None)  # fmt: skip
+        view = extra[-1] if len(extra) == 2 else "observation" if expected else None
+        assert result.get("planner_filter_view") == view
 
 
 def test_flight_filter_needs_the_pillar_list_and_a_safenav_env(tmp_path, capsys):
