@@ -21,7 +21,8 @@ fraction of the policy's horizontal speed), e.g. ``1map-mover0.3-brake-keep0.5``
 (:class:`safenav.envs.planner.PlannerFilter`, the pillar planner's view of the simulator), e.g.
 ``1map-mover0.3-brake-filter``, or ``-filterobs`` the same filter seeing only what the vehicle
 has on board (the observation's pillar list and movers: ``view="observation"``), either with
-``-stall`` the planner's handover where a flight stalls (``stall=FILTER_STALL``).
+``-stall`` the planner's handover where a flight stalls (``stall=FILTER_STALL``), or ``-stallP``
+the same with P metres of progress in its window (e.g. ``-stall4``: ``(10, 4, 5)``).
 One JSON per
 (policy, setting, map) in OUT
 (a rerun skips those that exist), then a table of the mean over maps per (policy, setting) on
@@ -68,10 +69,11 @@ def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str, flo
     ``"1map-mover0.3-brake"`` -> (1, True, 0.3, False, True, 0.0, False) (the braking cap);
     ``-slide``: its sliding form, ``"slide"`` there; ``-keep0.5``: ``ShieldConfig.keep_moving``
     0.5; ``-filter``, last: the planner filter after the shield (its view last: ``"simulator"``;
-    ``-filterobs``: ``"observation"``; None without; ``-stall`` after either: ``"...-stall"``)."""
+    ``-filterobs``: ``"observation"``; None without; ``-stall`` or ``-stallP`` after either:
+    ``"...-stall"``, ``"...-stallP"``)."""
     found = re.fullmatch(
         r"(\d+)(map)?(?:-mover([0-9.]+))?(-lag)?(-brake|-slide)?(?:-keep([0-9.]+))?"
-        r"(-filter(?:obs)?(?:-stall)?)?",
+        r"(-filter(?:obs)?(?:-stall(?:[0-9.]+)?)?)?",
         setting,
     )
     if found is None:
@@ -81,13 +83,24 @@ def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str, flo
     keep = float(found[6] or 0.0)
     if not 0.0 <= keep <= 1.0:
         raise SystemExit(f"shield setting {setting!r}: -keepK takes K in [0, 1]")
-    view = {None: None, "-filter": "simulator", "-filterobs": "observation"}[
-        found[7] and found[7].removesuffix("-stall")
-    ]
-    if found[7] and found[7].endswith("-stall"):
-        view += "-stall"
+    head, stall, progress = (found[7] or "").partition("-stall")
+    view = {"": None, "-filter": "simulator", "-filterobs": "observation"}[head]
+    if stall:
+        view += "-stall" + progress
     return (int(found[1]), found[2] is not None, float(found[3] or 0.0), found[4] is not None,
             brake, keep, view)  # fmt: skip
+
+
+def stall_of(setting: str) -> tuple[float, float, float] | None:
+    """``""`` -> None (no handover); ``"stall"`` -> ``FILTER_STALL``; ``"stallP"`` -> its window and
+    handover with P metres of progress."""
+    if not setting:
+        return None
+    progress = setting.removeprefix("stall")
+    if not progress:
+        return FILTER_STALL
+    window, _, handover = FILTER_STALL
+    return (window, float(progress), handover)
 
 
 def run(
@@ -108,9 +121,7 @@ def run(
                     extra = {"keep_moving": keep} if keep else {}
                     if filtered:
                         view, _, stall = filtered.partition("-")
-                        planner_filter = PlannerFilter(
-                            view=view, stall=FILTER_STALL if stall else None
-                        )
+                        planner_filter = PlannerFilter(view=view, stall=stall_of(stall))
                         shield = behind_filter(shield, planner_filter)
                     started = time.perf_counter()
                     r = evaluate(fn, cfg, env_seed=seed, episodes=episodes, shield=shield)

@@ -304,6 +304,9 @@ def test_shield_memory_parses_the_braking_and_filter_settings():
     assert sm.parse_setting("1map-mover0.3-brake-filter")[-1] == "simulator"
     assert sm.parse_setting("1map-mover0.3-brake-filterobs")[-1] == "observation"
     assert sm.parse_setting("1map-mover0.3-brake-filterobs-stall")[-1] == "observation-stall"
+    assert sm.parse_setting("1map-mover0.3-brake-filterobs-stall4")[-1] == "observation-stall4"
+    assert sm.stall_of("") is None and sm.stall_of("stall") == (10.0, 2.0, 5.0)
+    assert sm.stall_of("stall4") == (10.0, 4.0, 5.0)
     with pytest.raises(SystemExit, match="-filterobs"):
         sm.parse_setting("1map-stall")
     with pytest.raises(SystemExit, match="-slide"):
