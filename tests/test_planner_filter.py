@@ -187,6 +187,14 @@ def test_a_spec_round_trips_and_refuses_an_unknown_view():
         filter_spec("camera")
 
 
+def test_one_predicate_says_whether_a_config_observes_the_pillar_list():
+    from safenav.envs.planner import observes_pillars
+
+    assert observes_pillars(make_config("paper", static_tracked=10))
+    assert not observes_pillars(make_config("paper"))
+    assert not observes_pillars(None)  # a Gymnasium task that is not SafeNav
+
+
 def _train_with_filter(run_dir, *env_kwargs: str) -> list[str]:
     from conftest import PAPER_OBSERVATION
 

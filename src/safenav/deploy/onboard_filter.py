@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from safenav.envs.config import EnvConfig
-from safenav.envs.planner import FILTER_STALL, PlannerFilter
+from safenav.envs.planner import FILTER_STALL, PlannerFilter, observes_pillars
 
 
 @dataclass
@@ -105,7 +105,7 @@ def check_planner_filter(planner_filter: bool, cfg: EnvConfig | None, what: str)
     flight, for a policy (``what``) without one."""
     from safenav.errors import SafenavError
 
-    if planner_filter and not (cfg is not None and cfg.static_tracked):
+    if planner_filter and not observes_pillars(cfg):
         raise SafenavError(f"--planner-filter flies on the policy's pillar list, which {what} "
                            "does not observe (static_tracked 0): fly it without the filter")  # fmt: skip
 

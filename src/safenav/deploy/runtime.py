@@ -46,10 +46,12 @@ import torch
 from safenav.deploy.export import check_deployable, input_names
 from safenav.deploy.frames import enu_to_ned, goal_frame_yaw, yaw_enu_to_ned
 from safenav.deploy.mapping import HeightMap
+from safenav.deploy.onboard_filter import OnboardFilter, VehicleView
 from safenav.deploy.perception_link import DepthImage, PerceptionFrame, TrackedObstacle
 from safenav.deploy.shield import MemoryShield, ShieldConfig, map_scan_hits, shield_action
 from safenav.envs.config import EnvConfig
 from safenav.envs.nav import DIST_SCALE, Z_SCALE
+from safenav.envs.planner import observes_pillars
 from safenav.envs.sensors import (
     FAR_POINT,
     RangeImageSpec,
@@ -218,10 +220,9 @@ class OnboardRuntime:
         self._episode_start = True  # the memory shield's next image begins a new memory
         self._filter = None
         if self.config.planner_filter:
-            if not env_config.static_tracked:
+            if not observes_pillars(env_config):
                 raise ValueError("planner_filter flies on the policy's pillar list: its env config "
                                  "has none (static_tracked 0)")  # fmt: skip
-            from safenav.deploy.onboard_filter import OnboardFilter
 
             self._filter = OnboardFilter()
         # The flight's start altitude (NavRL's altitude band) and its first step's time (the stall
@@ -570,8 +571,6 @@ class OnboardRuntime:
             t3 = time.perf_counter()
             filtered = False
             if self._filter is not None:
-                from safenav.deploy.onboard_filter import VehicleView
-
                 if self._flight_t0 is None:
                     self._flight_t0 = now
                 view = VehicleView.of(self.cfg, self._pos, self._vel, self._goal, self._yaw,

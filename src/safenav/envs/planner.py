@@ -625,6 +625,13 @@ FILTER_STALL = (10.0, 2.0, 5.0)
 and the planner flies 5 s (set before its validation screen, adopted by it: docs/csac-v1.md)."""
 
 
+def observes_pillars(cfg) -> bool:
+    """Whether an env config's observation has the pillar list (``static_tracked`` > 0) that the
+    filter's observed view, in the simulator and on board, flies on. The one test of it: the
+    trainer, ``safenav fly`` and the onboard runtime refuse a filter without it."""
+    return bool(cfg is not None and getattr(cfg, "static_tracked", 0))
+
+
 def filter_spec(view: str = "observation",
                 stall: tuple[float, float, float] | None = FILTER_STALL) -> dict:  # fmt: skip
     """A :class:`PlannerFilter` as a policy's ``meta["flight_filter"]`` records it (``safenav

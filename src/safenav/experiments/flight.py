@@ -106,13 +106,13 @@ def flight_filter(view: str, cfg: EnvConfig):
     """The planner filter ``safenav eval`` and ``render --planner-filter`` fly behind (the stall
     handover included), seeing ``view``; refused before the flight where the observed view
     would find no pillar list in this config's observation."""
-    from safenav.envs.planner import FILTER_STALL, PlannerFilter
+    from safenav.envs.planner import filter_from_spec, filter_spec, observes_pillars
 
-    if view == "observation" and not cfg.static_tracked:
+    if view == "observation" and not observes_pillars(cfg):
         raise SafenavError("--planner-filter sees the observation's pillar list, which this "
                            "flight's observation lacks (EnvConfig.static_tracked 0): add "
                            "--planner-filter-view simulator")  # fmt: skip
-    return PlannerFilter(view=view, stall=FILTER_STALL)
+    return filter_from_spec(filter_spec(view))  # what a --flight-filter policy's report flies
 
 
 BATCH_ROWS = 8

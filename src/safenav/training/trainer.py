@@ -55,7 +55,7 @@ from safenav.common.logger import RunLogger
 from safenav.common.normalize import make_normalization
 from safenav.common.progress import ProgressDisplay  # here, not lazily: its import draws `random`
 from safenav.common.stopping import RunGuard, enable_sigint
-from safenav.envs.planner import filter_spec
+from safenav.envs.planner import filter_spec, observes_pillars
 from safenav.envs.vector import TorchVecEnv, env_horizon, is_safenav, make_vec_env, obs_layout
 from safenav.errors import SafenavError
 from safenav.training.evaluation import BestPolicy, periodic_evaluation
@@ -193,7 +193,7 @@ class Trainer:
         if spec is not None:  # the env executes the shield's corrections (training/shielded.py)
             self.env = ShieldedVecEnv(self.env, shield_factory(spec), run.shield_penalty)
         nav_cfg = getattr(envs.unwrapped, "cfg", None)
-        if run.flight_filter and not getattr(nav_cfg, "static_tracked", 0):
+        if run.flight_filter and not observes_pillars(nav_cfg):
             raise SafenavError("--flight-filter: the planner filter flies on the observation's "
                                "pillar list, which this env's observation lacks: add --env-kwargs "
                                "static_tracked 10, or --no-flight-filter")  # fmt: skip
