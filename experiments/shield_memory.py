@@ -22,7 +22,9 @@ fraction of the policy's horizontal speed), e.g. ``1map-mover0.3-brake-keep0.5``
 ``1map-mover0.3-brake-filter``, or ``-filterobs`` the same filter seeing only what the vehicle
 has on board (the observation's pillar list and movers: ``view="observation"``), either with
 ``-stall`` the planner's handover where a flight stalls (``stall=FILTER_STALL``), or ``-stallP``
-the same with P metres of progress in its window (e.g. ``-stall4``: ``(10, 4, 5)``).
+the same with P metres of progress in its window (e.g. ``-stall4``: ``(10, 4, 5)``), or
+``-stallslide`` the handover's sliding test (``stall_test="sliding"``), ``-stallslideW`` the same
+over a W s window with the same progress per second (e.g. ``-stallslide5``: ``(5, 1, 5)``).
 One JSON per
 (policy, setting, map) in OUT
 (a rerun skips those that exist), then a table of the mean over maps per (policy, setting) on
@@ -73,7 +75,7 @@ def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str, flo
     ``"...-stall"``, ``"...-stallP"``)."""
     found = re.fullmatch(
         r"(\d+)(map)?(?:-mover([0-9.]+))?(-lag)?(-brake|-slide)?(?:-keep([0-9.]+))?"
-        r"(-filter(?:obs)?(?:-stall(?:[0-9.]+)?)?)?",
+        r"(-filter(?:obs)?(?:-stall(?:slide)?(?:[0-9.]+)?)?)?",
         setting,
     )
     if found is None:
@@ -91,16 +93,21 @@ def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str, flo
             brake, keep, view)  # fmt: skip
 
 
-def stall_of(setting: str) -> tuple[float, float, float] | None:
-    """``""`` -> None (no handover); ``"stall"`` -> ``FILTER_STALL``; ``"stallP"`` -> its window and
-    handover with P metres of progress."""
+def stall_of(setting: str) -> tuple[tuple[float, float, float] | None, str]:
+    """The filter's ``(stall, stall_test)``: ``""`` -> None (no handover); ``"stall"`` ->
+    ``FILTER_STALL``; ``"stallP"`` -> its window and handover with P metres of progress; with
+    ``"slide"`` after ``"stall"`` the sliding test, and its number the window W s (progress 0.2 W
+    m, FILTER_STALL's 2 m in 10 s)."""
     if not setting:
-        return None
-    progress = setting.removeprefix("stall")
-    if not progress:
-        return FILTER_STALL
-    window, _, handover = FILTER_STALL
-    return (window, float(progress), handover)
+        return None, "tumbling"
+    window, progress, handover = FILTER_STALL
+    number = setting.removeprefix("stall")
+    if number.startswith("slide"):
+        number = number.removeprefix("slide")
+        if number:
+            window, progress = float(number), float(number) * progress / window
+        return (window, progress, handover), "sliding"
+    return (window, float(number) if number else progress, handover), "tumbling"
 
 
 def run(
@@ -121,7 +128,9 @@ def run(
                     extra = {"keep_moving": keep} if keep else {}
                     if filtered:
                         view, _, stall = filtered.partition("-")
-                        planner_filter = PlannerFilter(view=view, stall=stall_of(stall))
+                        stall_setting, stall_test = stall_of(stall)
+                        planner_filter = PlannerFilter(view=view, stall=stall_setting,
+                                                       stall_test=stall_test)  # fmt: skip
                         shield = behind_filter(shield, planner_filter)
                     started = time.perf_counter()
                     r = evaluate(fn, cfg, env_seed=seed, episodes=episodes, shield=shield)

@@ -162,9 +162,41 @@ def test_a_stalled_flight_is_handed_to_the_planner_for_a_while():
     assert bool(((env.goal - env.pos).norm(dim=-1) < start - 1.0).all())
 
 
+def _first_handover(stall_test: str) -> tuple[int, torch.Tensor]:
+    """Fly 1 s at the goal, then hover, behind a (2 s, 1 m, 1 s) stall handover: the step of the
+    first handover (the same in every env) and which steps were handed over."""
+    env, obs = _env(4, num_static=0, num_dynamic=0)
+    filt = PlannerFilter(stall=(2.0, 1.0, 1.0), stall_test=stall_test)
+    to_goal = env.goal - env.pos
+    go = to_action(to_goal / to_goal.norm(dim=-1, keepdim=True) * env.cfg.v_max, env.cos_yaw,
+                   env.sin_yaw, env.cfg.v_max)  # fmt: skip
+    hover = torch.zeros_like(go)
+    handed = []
+    for step in range(80):
+        out = filt(env, obs, go if step < 10 else hover)
+        handed.append(filt.overridden.clone())
+        obs, *_ = env.step(out)
+    handed = torch.stack(handed)  # (80, 4)
+    first = handed.any(-1).nonzero()[0].item()
+    assert bool(handed[first : first + 10].all()) and not handed[first + 10 : first + 20].any()
+    return first, handed
+
+
+def test_a_sliding_stall_test_hands_a_dither_over_sooner():
+    tumbling, _ = _first_handover("tumbling")
+    sliding, handed = _first_handover("sliding")
+    # the first window (0-2 s) holds the 1 s of flight: the tumbling test waits for the second
+    assert tumbling == 40 and 20 < sliding < 40
+    # after a handover, a full window of the policy's flight before the next test
+    again = handed[sliding + 10 :].any(-1).nonzero()
+    assert len(again) == 0 or again[0].item() >= 20
+
+
 def test_stall_settings_are_checked():
     with pytest.raises(ValueError, match="stall"):
         PlannerFilter(stall=(10.0, 0.0, 5.0))
+    with pytest.raises(ValueError, match="stall_test"):
+        PlannerFilter(stall=(10.0, 2.0, 5.0), stall_test="hourly")
 
 
 def test_the_observed_view_refuses_a_flight_without_the_pillar_list(tmp_path, capsys):
@@ -183,6 +215,8 @@ def test_a_spec_round_trips_and_refuses_an_unknown_view():
     the_filter = filter_from_spec(filter_spec())
     assert the_filter.view == "observation" and the_filter.stall == (10.0, 2.0, 5.0)
     assert filter_from_spec(filter_spec("simulator", None)).stall is None
+    sliding = filter_spec(stall_test="sliding")
+    assert sliding["stall_test"] == "sliding" and filter_from_spec(sliding).stall_test == "sliding"
     with pytest.raises(ValueError, match="view"):
         filter_spec("camera")
 

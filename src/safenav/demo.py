@@ -1,9 +1,10 @@
 """``make demo``: the main job, end to end, in a few minutes on a laptop CPU.
 
 1. Evaluate the committed policy ``checkpoints/csac.pt`` (the default ``csac`` recipe,
-   csac-shielded-memory-pillars, trained on SafeNav-v1, seed 1, its policy chosen on validation
-   maps; results/csac/) on the fixed test scenario of the paper preset (env seed 1, 200 episodes),
-   behind the shield it was trained with, and render one of its flights to ``demo/flight.gif``.
+   csac-shielded-memory-pillars with the planner filter, trained on SafeNav-v1, seed 1, its
+   policy chosen on validation maps; results/csac/) on the fixed test scenario of the paper
+   preset (env seed 1, 200 episodes), behind the shield it was trained with and the planner
+   filter it records, and render one of its flights to ``demo/flight.gif``.
    Without a committed policy, the scripted potential-field controller stands in.
 2. Start a short CSAC training run of its own (``demo/run``), when the trainer is installed.
 """

@@ -225,14 +225,13 @@ def own_planner_filter(policy, checkpoint, planner_filter: bool, view: str) -> t
         return planner_filter, view
     from rich.console import Console
 
-    from safenav.envs.planner import FILTER_STALL, FILTER_VIEWS
+    from safenav.envs.planner import FILTER_STALL, FILTER_VIEWS, filter_spec
 
-    stall = spec.get("stall")
-    if spec.get("view") not in FILTER_VIEWS or stall is None or tuple(stall) != FILTER_STALL:
+    if spec.get("view") not in FILTER_VIEWS or spec != filter_spec(spec["view"]):
         raise SafenavError(f"{checkpoint} records a planner filter {spec}; eval and render fly "
                            f"its observation or simulator view with the stall handover "
-                           f"{list(FILTER_STALL)}: pass --planner-filter or "
-                           "--no-planner-filter")  # fmt: skip
+                           f"{list(FILTER_STALL)} tested in tumbling windows: pass "
+                           "--planner-filter or --no-planner-filter")  # fmt: skip
     if not given_flag("planner-filter-view", ARGS.get()):
         view = str(spec["view"])
     Console(stderr=True).print(f"note: {checkpoint} flies behind the planner filter "

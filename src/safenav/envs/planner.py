@@ -620,6 +620,8 @@ class AutoresetPlanner(OraclePlanner):
 
 FILTER_VIEWS = ("simulator", "observation")
 """What :class:`PlannerFilter` sees (its ``view``)."""
+STALL_TESTS = ("tumbling", "sliding")
+"""When :class:`PlannerFilter`'s stall handover tests for a stall (its ``stall_test``)."""
 FILTER_STALL = (10.0, 2.0, 5.0)
 """The stall handover of ``safenav eval --planner-filter``: less than 2 m nearer the goal in 10 s
 and the planner flies 5 s (set before its validation screen, adopted by it: docs/csac-v1.md)."""
@@ -633,18 +635,24 @@ def observes_pillars(cfg) -> bool:
 
 
 def filter_spec(view: str = "observation",
-                stall: tuple[float, float, float] | None = FILTER_STALL) -> dict:  # fmt: skip
+                stall: tuple[float, float, float] | None = FILTER_STALL,
+                stall_test: str = "tumbling") -> dict:  # fmt: skip
     """A :class:`PlannerFilter` as a policy's ``meta["flight_filter"]`` records it (``safenav
-    train --flight-filter``): ``{"view": ..., "stall": [window, progress, handover] or None}``."""
+    train --flight-filter``): ``{"view": ..., "stall": [window, progress, handover] or None}``,
+    and ``"stall_test"`` where it is not the adopted ``"tumbling"``."""
     if view not in FILTER_VIEWS:
         raise ValueError(f"view={view!r}: choose one of {FILTER_VIEWS}")
-    return {"view": view, "stall": None if stall is None else [float(x) for x in stall]}
+    if stall_test not in STALL_TESTS:
+        raise ValueError(f"stall_test={stall_test!r}: choose one of {STALL_TESTS}")
+    spec = {"view": view, "stall": None if stall is None else [float(x) for x in stall]}
+    return spec if stall_test == "tumbling" else {**spec, "stall_test": stall_test}
 
 
 def filter_from_spec(spec: dict) -> PlannerFilter:
     """A fresh :class:`PlannerFilter` of a :func:`filter_spec`."""
     stall = spec.get("stall")
-    return PlannerFilter(view=spec["view"], stall=None if stall is None else tuple(stall))
+    return PlannerFilter(view=spec["view"], stall=None if stall is None else tuple(stall),
+                         stall_test=spec.get("stall_test", "tumbling"))  # fmt: skip
 
 
 class PlannerFilter(OraclePlanner):
@@ -674,11 +682,15 @@ class PlannerFilter(OraclePlanner):
     ``stall``: ``(window s, progress m, handover s)`` or None (off): a recovery behaviour, as
     navigation stacks have. Where an episode has come less than ``progress`` metres nearer its
     goal over the last ``window`` seconds, the planner flies the next ``handover`` seconds
-    (counted in ``handovers`` and in ``overrides``), then the policy again."""
+    (counted in ``handovers`` and in ``overrides``), then the policy again. ``stall_test``: when
+    that is tested: ``"tumbling"`` (adopted), at the end of back-to-back windows, so a dither is
+    handed over one to two windows after it starts; ``"sliding"`` (under test), every step over
+    the last ``window`` seconds, a full window after the episode's start or the last handover."""
 
     def __init__(self, config: OracleConfig | None = None, hold: int = 1,
                  scan: ScanFn | None = None, view: str = "simulator",
-                 stall: tuple[float, float, float] | None = None) -> None:  # fmt: skip
+                 stall: tuple[float, float, float] | None = None,
+                 stall_test: str = "tumbling") -> None:  # fmt: skip
         super().__init__(config or PLANNER_PILLARS, scan)
         if not 1 <= hold < self.cfg.horizon:
             raise ValueError(f"hold={hold}: between 1 and the horizon - 1 ({self.cfg.horizon - 1})")
@@ -686,7 +698,9 @@ class PlannerFilter(OraclePlanner):
             raise ValueError(f"view={view!r}: choose one of {FILTER_VIEWS}")
         if stall is not None and (len(stall) != 3 or not all(0 < x < math.inf for x in stall)):
             raise ValueError(f"stall={stall!r}: (window s, progress m, handover s), each > 0")
-        self.hold, self.view, self.stall = int(hold), view, stall
+        if stall_test not in STALL_TESTS:
+            raise ValueError(f"stall_test={stall_test!r}: choose one of {STALL_TESTS}")
+        self.hold, self.view, self.stall, self.stall_test = int(hold), view, stall, stall_test
         self.overrides = self.steps = self.handovers = 0
         self.overridden: torch.Tensor | None = None
 
@@ -706,6 +720,9 @@ class PlannerFilter(OraclePlanner):
         self._mark = torch.full((n,), math.inf, device=env.device)  # goal distance, window start
         self._mark_step = torch.zeros(n, dtype=torch.long, device=env.device)
         self._handover_left = torch.zeros(n, dtype=torch.long, device=env.device)
+        if self.stall is not None and self.stall_test == "sliding":  # the last window's distances
+            w = max(1, round(self.stall[0] / env.cfg.dt))
+            self._history = torch.full((n, w + 1), math.inf, device=env.device)
 
     def _handing_over(self, env: SafeNavVectorEnv, ids: torch.Tensor) -> torch.Tensor:
         """``stall``'s test for episodes ``ids``: ``(n,)`` True where the planner flies now."""
@@ -713,6 +730,8 @@ class PlannerFilter(OraclePlanner):
         to_steps = lambda s: max(1, round(s / env.cfg.dt))  # noqa: E731
         d = (env.goal[ids] - env.pos[ids]).norm(dim=-1)
         t = env.steps[ids].to(torch.long)
+        if self.stall_test == "sliding":
+            return self._sliding_handover(ids, d, t, to_steps(window), progress, to_steps(handover))
         begun = (t == 0) | torch.isinf(self._mark[ids])  # a new episode: its window starts now
         due = ~begun & (t - self._mark_step[ids] >= to_steps(window))
         stalled = due & (self._mark[ids] - d < progress)
@@ -720,6 +739,23 @@ class PlannerFilter(OraclePlanner):
         restart = begun | due
         self._mark[ids[restart]] = d[restart]
         self._mark_step[ids[restart]] = t[restart]
+        handing = self._handover_left[ids] > 0
+        self._handover_left[ids[handing]] -= 1
+        self.handovers += int(handing.sum())
+        return handing
+
+    def _sliding_handover(self, ids: torch.Tensor, d: torch.Tensor, t: torch.Tensor, w: int,
+                          progress: float, handover: int) -> torch.Tensor:  # fmt: skip
+        """The ``"sliding"`` stall test: distance now against ``w`` steps ago, every step, once
+        ``w`` steps of this episode have passed since its start or its last handover's end."""
+        slots = self._history.shape[1]  # w + 1: now and w steps ago
+        self._history[ids, t % slots] = d
+        before = self._history[ids, (t - w) % slots]
+        self._mark_step[ids[t == 0]] = 0
+        free = self._handover_left[ids] == 0
+        stalled = free & (t - self._mark_step[ids] >= w) & (before - d < progress)
+        self._handover_left[ids[stalled]] = handover
+        self._mark_step[ids[stalled]] = t[stalled] + handover  # a full window after it ends
         handing = self._handover_left[ids] > 0
         self._handover_left[ids[handing]] -= 1
         self.handovers += int(handing.sum())

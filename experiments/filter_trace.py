@@ -1,0 +1,78 @@
+"""One episode behind the planner filter, second by second: where the UAV is, how far from its
+goal, whether the filter's planner flies (a way-out override or a stall handover, and how many
+handover steps are left), the policy's action and the action flown. What a GIF of a timeout
+shows, in numbers (docs/csac-v1.md, "The two-thread re-derivation, finished").
+
+    .venv/bin/python experiments/filter_trace.py results/csac/runs/csac/seed1/policy.pt \\
+        --env-seed 12345 --episode 62 --from-s 20 --to-s 56
+
+The flight is ``safenav render``'s (the same frames and outcome): behind the recipe's flight
+shield (memory 1, map scan, 0.3 m mover margin, braking cap) and the filter's observed view with
+the stall handover (``FILTER_STALL``). Validation maps only (12345-12348) for a diagnosis that
+guides a choice.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import safenav.experiments.flight as flight
+
+
+def trace(checkpoint: Path, env_seed: int, episode: int) -> tuple[dict, list[dict]]:
+    """The episode's stats and one row per control step."""
+    rows: list[dict] = []
+    build = flight.flight_filter
+
+    def traced(view, cfg):
+        the_filter = build(view, cfg)
+
+        def call(env, obs, action):
+            out = the_filter(env, obs, action)
+            rows.append({"t": float(env.steps[0]) * env.cfg.dt,
+                         "pos": [round(x, 2) for x in env.pos[0].tolist()],
+                         "to_goal": round(float((env.goal[0] - env.pos[0]).norm()), 2),
+                         "planner": bool(the_filter.overridden[0]),
+                         "handover_left": int(the_filter._handover_left[0]),
+                         "action": [round(x, 2) for x in action[0].tolist()],
+                         "flown": [round(x, 2) for x in out[0].tolist()]})  # fmt: skip
+            return out
+
+        return call
+
+    flight.flight_filter = traced
+    try:
+        _, stats = flight.fly_frames(checkpoint, env_seed=env_seed, episode=episode,
+                                     shield_memory=1, shield_map=True, shield_mover_margin=0.3,
+                                     shield_brake=True, planner_filter="observation")  # fmt: skip
+    finally:
+        flight.flight_filter = build
+    return stats, rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("checkpoint", type=Path)
+    parser.add_argument("--env-seed", type=int, default=12345)
+    parser.add_argument("--episode", type=int, default=0)
+    parser.add_argument("--from-s", type=float, default=0.0)
+    parser.add_argument("--to-s", type=float, default=60.0)
+    args = parser.parse_args()
+    stats, rows = trace(args.checkpoint, args.env_seed, args.episode)
+    print(stats)
+    print(
+        "| t (s) | position (m) | to goal (m) | planner flies | handover steps left | action | flown |"
+    )
+    print("|---:|---|---:|---|---:|---|---|")
+    for r in rows:
+        whole = abs(r["t"] - round(r["t"])) < 1e-6
+        if whole and args.from_s <= r["t"] <= args.to_s:
+            print(f"| {r['t']:.0f} | {r['pos']} | {r['to_goal']} | {r['planner']} | "
+                  f"{r['handover_left']} | {r['action']} | {r['flown']} |")  # fmt: skip
+    planner = sum(r["planner"] for r in rows)
+    print(f"\nthe planner flew {planner} of {len(rows)} steps")
+
+
+if __name__ == "__main__":
+    main()
