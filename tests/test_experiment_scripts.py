@@ -305,8 +305,14 @@ def test_shield_memory_parses_the_braking_and_filter_settings():
     assert sm.parse_setting("1map-mover0.3-brake-filterobs")[-1] == "observation"
     assert sm.parse_setting("1map-mover0.3-brake-filterobs-stall")[-1] == "observation-stall"
     assert sm.parse_setting("1map-mover0.3-brake-filterobs-stall4")[-1] == "observation-stall4"
-    assert sm.stall_of("") is None and sm.stall_of("stall") == (10.0, 2.0, 5.0)
-    assert sm.stall_of("stall4") == (10.0, 4.0, 5.0)
+    assert sm.stall_of("") == (None, "tumbling")
+    assert sm.stall_of("stall") == ((10.0, 2.0, 5.0), "tumbling")
+    assert sm.stall_of("stall4") == ((10.0, 4.0, 5.0), "tumbling")
+    assert sm.parse_setting("1map-mover0.3-brake-filterobs-stallslide5")[-1] == (
+        "observation-stallslide5"
+    )
+    assert sm.stall_of("stallslide") == ((10.0, 2.0, 5.0), "sliding")
+    assert sm.stall_of("stallslide5") == ((5.0, 1.0, 5.0), "sliding")
     with pytest.raises(SystemExit, match="-filterobs"):
         sm.parse_setting("1map-stall")
     with pytest.raises(SystemExit, match="-slide"):

@@ -95,6 +95,7 @@ def run_trial(env_id: str, algo: str, seed: int, steps: int, eval_every: int, ep
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.evaluation import evaluate_policy
+    from stable_baselines3.common.logger import Logger
     from stable_baselines3.common.vec_env import VecNormalize, sync_envs_normalization
 
     import safenav  # noqa: F401  (registers the velocity tasks)
@@ -111,6 +112,8 @@ def run_trial(env_id: str, algo: str, seed: int, steps: int, eval_every: int, ep
         eval_env = VecNormalize(eval_env, training=False, norm_reward=False)
     model = (SAC if algo == "sac" else PPO)("MlpPolicy", env, seed=seed, device="cpu", verbose=0,
                                            **kwargs)  # fmt: skip
+    # SB3's default logger makes a directory under /tmp for every run, written to or not.
+    model.set_logger(Logger(folder=None, output_formats=[]))
     curve: list[list[float]] = []
     train_curve: list[list[float]] = []
 

@@ -76,9 +76,9 @@ def _sb3_learner(device: str = "cpu"):
 
     model = SAC("MlpPolicy", FlatEnv(), batch_size=BATCH, buffer_size=20_000, learning_starts=0,
                 policy_kwargs={"net_arch": [256, 256]}, device=device, seed=0, verbose=0)  # fmt: skip
-    from stable_baselines3.common.logger import configure
+    from stable_baselines3.common.logger import Logger
 
-    model.set_logger(configure(None, []))
+    model.set_logger(Logger(folder=None, output_formats=[]))  # configure() makes a /tmp directory
     rng = np.random.default_rng(0)
     for _ in range(20):  # 20 x 1000 random transitions
         o = rng.random((1000, dim), dtype=np.float32)
