@@ -26,14 +26,16 @@ def _view(env, cfg, i: int = 0) -> VehicleView:
                           float(env.steps[i]) * cfg.dt)  # fmt: skip
 
 
-@pytest.mark.parametrize("flight", ["straight", "hover"])
-def test_it_decides_as_the_envs_observed_view_bit_for_bit(flight):
-    """Straight at the goal (overrides) and hovering (stall handovers): the same actions, step by
-    step, as ``PlannerFilter(view="observation")`` given the env."""
+@pytest.mark.parametrize("flight,stall_test", [("straight", "tumbling"), ("hover", "tumbling"),
+                                               ("hover", "sliding")])  # fmt: skip
+def test_it_decides_as_the_envs_observed_view_bit_for_bit(flight, stall_test):
+    """Straight at the goal (overrides) and hovering (stall handovers, either test): the same
+    actions, step by step, as ``PlannerFilter(view="observation")`` given the env."""
     cfg = make_config("paper", static_tracked=6)
     env = SafeNavVectorEnv(1, config=cfg, output="torch", autoreset_mode="Disabled")
     obs, _ = env.reset(seed=12345)
-    on_env, on_board = PlannerFilter(view="observation", stall=STALL), OnboardFilter(stall=STALL)
+    on_env = PlannerFilter(view="observation", stall=STALL, stall_test=stall_test)
+    on_board = OnboardFilter(stall=STALL, stall_test=stall_test)
     for _ in range(80):
         action = go_to_goal(obs) if flight == "straight" else torch.zeros(1, 3)
         expected = on_env(env, obs, action.clone())

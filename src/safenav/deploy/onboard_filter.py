@@ -12,6 +12,7 @@ rather than env steps. Nothing tells it a flight has ended, so it filters until 
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -64,12 +65,14 @@ class OnboardFilter(PlannerFilter):
     planner's command replaced the policy's. A new goal, or :meth:`new_flight`, starts a new
     flight."""
 
-    def __init__(self, stall: tuple[float, float, float] | None = FILTER_STALL) -> None:
-        super().__init__(view="observation", stall=stall)
+    def __init__(self, stall: tuple[float, float, float] | None = FILTER_STALL,
+                 stall_test: str = "tumbling") -> None:  # fmt: skip
+        super().__init__(view="observation", stall=stall, stall_test=stall_test)
 
     def _start(self, env) -> None:  # type: ignore[override]
         super()._start(env)
         self._mark_time, self._mark_dist, self._handover_until = -math.inf, math.inf, -math.inf
+        self._seen: deque[tuple[float, float]] = deque()  # (time, distance): the sliding window
 
     def new_flight(self) -> None:
         """Start afresh at the next call (a new goal, or the same goal flown again)."""
@@ -89,12 +92,35 @@ class OnboardFilter(PlannerFilter):
         window, progress, handover = self.stall
         t, d = env.time, float((env.goal[0] - env.pos[0]).norm())
         eps = 1e-6  # seconds: 100 steps of 0.1 s are 10 s, whatever the rounding of the clock
+        if self.stall_test == "sliding":
+            return self._sliding_handover_s(t, d, window, progress, handover, eps)
         if not math.isfinite(self._mark_time) or t < self._mark_time:  # a new flight's window
             self._mark_time, self._mark_dist, self._handover_until = t, d, -math.inf
         elif t - self._mark_time >= window - eps:
             if self._mark_dist - d < progress:
                 self._handover_until = t + handover
             self._mark_time, self._mark_dist = t, d
+        handing = t < self._handover_until - eps
+        self.handovers += int(handing)
+        return torch.tensor([handing])
+
+    def _sliding_handover_s(self, t: float, d: float, window: float, progress: float,
+                            handover: float, eps: float) -> torch.Tensor:  # fmt: skip
+        """The ``"sliding"`` test in seconds: the distance now against the last one at least
+        ``window`` s old, every call, once ``window`` s have passed since the flight's start or
+        the last handover's end (``PlannerFilter._sliding_handover`` on the env's steps)."""
+        if not math.isfinite(self._mark_time) or (self._seen and t < self._seen[-1][0]):
+            self._mark_time, self._handover_until = t, -math.inf  # a new flight: its clock from 0
+            self._seen.clear()
+        self._seen.append((t, d))
+        while len(self._seen) > 1 and self._seen[1][0] <= t - window + eps:
+            self._seen.popleft()  # keep one entry at least ``window`` old
+        then_t, then_d = self._seen[0]
+        free = t >= self._handover_until - eps
+        due = free and t - self._mark_time >= window - eps and then_t <= t - window + eps
+        if due and then_d - d < progress:
+            self._handover_until = t + handover
+            self._mark_time = t + handover  # a full window after it ends
         handing = t < self._handover_until - eps
         self.handovers += int(handing)
         return torch.tensor([handing])
