@@ -92,23 +92,32 @@ class OnboardFilter(PlannerFilter):
         window, progress, handover = self.stall
         t, d = env.time, float((env.goal[0] - env.pos[0]).norm())
         eps = 1e-6  # seconds: 100 steps of 0.1 s are 10 s, whatever the rounding of the clock
-        if self.stall_test == "sliding":
-            return self._sliding_handover_s(t, d, window, progress, handover, eps)
-        if not math.isfinite(self._mark_time) or t < self._mark_time:  # a new flight's window
-            self._mark_time, self._mark_dist, self._handover_until = t, d, -math.inf
-        elif t - self._mark_time >= window - eps:
-            if self._mark_dist - d < progress:
-                self._handover_until = t + handover
-            self._mark_time, self._mark_dist = t, d
+        test = self._sliding_stalled_s if self.stall_test == "sliding" else self._tumbling_stalled_s
+        if test(t, d, window, progress, handover, eps):
+            self._handover_until = t + handover
+            if self.stall_test == "sliding":
+                self._mark_time = t + handover  # a full window after it ends
         handing = t < self._handover_until - eps
         self.handovers += int(handing)
         return torch.tensor([handing])
 
-    def _sliding_handover_s(self, t: float, d: float, window: float, progress: float,
-                            handover: float, eps: float) -> torch.Tensor:  # fmt: skip
+    def _tumbling_stalled_s(self, t: float, d: float, window: float, progress: float,
+                            handover: float, eps: float) -> bool:  # fmt: skip
+        """The ``"tumbling"`` test in seconds: at the end of each window, progress over it."""
+        if not math.isfinite(self._mark_time) or t < self._mark_time:  # a new flight's window
+            self._mark_time, self._mark_dist, self._handover_until = t, d, -math.inf
+            return False
+        if t - self._mark_time < window - eps:
+            return False
+        stalled = self._mark_dist - d < progress
+        self._mark_time, self._mark_dist = t, d
+        return stalled
+
+    def _sliding_stalled_s(self, t: float, d: float, window: float, progress: float,
+                           handover: float, eps: float) -> bool:  # fmt: skip
         """The ``"sliding"`` test in seconds: the distance now against the last one at least
         ``window`` s old, every call, once ``window`` s have passed since the flight's start or
-        the last handover's end (``PlannerFilter._sliding_handover`` on the env's steps)."""
+        the last handover's end (``PlannerFilter._sliding_stalled`` on the env's steps)."""
         if not math.isfinite(self._mark_time) or (self._seen and t < self._seen[-1][0]):
             self._mark_time, self._handover_until = t, -math.inf  # a new flight: its clock from 0
             self._seen.clear()
@@ -118,12 +127,7 @@ class OnboardFilter(PlannerFilter):
         then_t, then_d = self._seen[0]
         free = t >= self._handover_until - eps
         due = free and t - self._mark_time >= window - eps and then_t <= t - window + eps
-        if due and then_d - d < progress:
-            self._handover_until = t + handover
-            self._mark_time = t + handover  # a full window after it ends
-        handing = t < self._handover_until - eps
-        self.handovers += int(handing)
-        return torch.tensor([handing])
+        return due and then_d - d < progress
 
 
 def check_planner_filter(planner_filter: bool, cfg: EnvConfig | None, what: str) -> None:

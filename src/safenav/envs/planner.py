@@ -728,38 +728,40 @@ class PlannerFilter(OraclePlanner):
         """``stall``'s test for episodes ``ids``: ``(n,)`` True where the planner flies now."""
         window, progress, handover = self.stall
         to_steps = lambda s: max(1, round(s / env.cfg.dt))  # noqa: E731
+        w, h = to_steps(window), to_steps(handover)
         d = (env.goal[ids] - env.pos[ids]).norm(dim=-1)
         t = env.steps[ids].to(torch.long)
+        test = self._sliding_stalled if self.stall_test == "sliding" else self._tumbling_stalled
+        stalled = test(ids, d, t, w, progress)
+        self._handover_left[ids[stalled]] = h
         if self.stall_test == "sliding":
-            return self._sliding_handover(ids, d, t, to_steps(window), progress, to_steps(handover))
-        begun = (t == 0) | torch.isinf(self._mark[ids])  # a new episode: its window starts now
-        due = ~begun & (t - self._mark_step[ids] >= to_steps(window))
-        stalled = due & (self._mark[ids] - d < progress)
-        self._handover_left[ids[stalled]] = to_steps(handover)
-        restart = begun | due
-        self._mark[ids[restart]] = d[restart]
-        self._mark_step[ids[restart]] = t[restart]
+            self._mark_step[ids[stalled]] = t[stalled] + h  # a full window after it ends
         handing = self._handover_left[ids] > 0
         self._handover_left[ids[handing]] -= 1
         self.handovers += int(handing.sum())
         return handing
 
-    def _sliding_handover(self, ids: torch.Tensor, d: torch.Tensor, t: torch.Tensor, w: int,
-                          progress: float, handover: int) -> torch.Tensor:  # fmt: skip
-        """The ``"sliding"`` stall test: distance now against ``w`` steps ago, every step, once
-        ``w`` steps of this episode have passed since its start or its last handover's end."""
+    def _tumbling_stalled(self, ids: torch.Tensor, d: torch.Tensor, t: torch.Tensor, w: int,
+                          progress: float) -> torch.Tensor:  # fmt: skip
+        """The ``"tumbling"`` test: at the end of each ``w``-step window, progress over it."""
+        begun = (t == 0) | torch.isinf(self._mark[ids])  # a new episode: its window starts now
+        due = ~begun & (t - self._mark_step[ids] >= w)
+        stalled = due & (self._mark[ids] - d < progress)
+        restart = begun | due
+        self._mark[ids[restart]] = d[restart]
+        self._mark_step[ids[restart]] = t[restart]
+        return stalled
+
+    def _sliding_stalled(self, ids: torch.Tensor, d: torch.Tensor, t: torch.Tensor, w: int,
+                         progress: float) -> torch.Tensor:  # fmt: skip
+        """The ``"sliding"`` test: distance now against ``w`` steps ago, every step, once ``w``
+        steps of this episode have passed since its start or its last handover's end."""
         slots = self._history.shape[1]  # w + 1: now and w steps ago
         self._history[ids, t % slots] = d
         before = self._history[ids, (t - w) % slots]
         self._mark_step[ids[t == 0]] = 0
         free = self._handover_left[ids] == 0
-        stalled = free & (t - self._mark_step[ids] >= w) & (before - d < progress)
-        self._handover_left[ids[stalled]] = handover
-        self._mark_step[ids[stalled]] = t[stalled] + handover  # a full window after it ends
-        handing = self._handover_left[ids] > 0
-        self._handover_left[ids[handing]] -= 1
-        self.handovers += int(handing.sum())
-        return handing
+        return free & (t - self._mark_step[ids] >= w) & (before - d < progress)
 
     @torch.no_grad()
     def __call__(  # type: ignore[override]  (a shield's signature, not a policy's)
