@@ -7,8 +7,10 @@ shows, in numbers (docs/csac-v1.md, "The two-thread re-derivation, finished").
         --env-seed 12345 --episode 62 --from-s 20 --to-s 56
 
 The flight is ``safenav render``'s (the same frames and outcome): behind the recipe's flight
-shield (memory 1, map scan, 0.3 m mover margin, braking cap) and the filter's observed view with
-the stall handover (``FILTER_STALL``). Validation maps only (12345-12348) for a diagnosis that
+shield (memory 1, map scan, 0.3 m mover margin, braking cap) and the planner filter the policy
+records (else, or with ``--adopted``, the adopted one: the observed view with the stall
+handover ``FILTER_STALL``).
+Validation maps only (12345-12348) for a diagnosis that
 guides a choice.
 """
 
@@ -20,13 +22,23 @@ from pathlib import Path
 import safenav.experiments.flight as flight
 
 
-def trace(checkpoint: Path, env_seed: int, episode: int) -> tuple[dict, list[dict]]:
-    """The episode's stats and one row per control step."""
+def trace(checkpoint: Path, env_seed: int, episode: int, adopted: bool = False,
+          short_moves: bool = False) -> tuple[dict, list[dict]]:  # fmt: skip
+    """The episode's stats and one row per control step; ``adopted``: behind the adopted
+    filter (``filter_spec()``) whatever the policy records; ``short_moves``: the adopted filter
+    with its planner's short moves (``filter_spec(short_moves=True)``)."""
+    from safenav.algos.policy import load_policy
+    from safenav.envs.planner import filter_spec
+
+    loaded = load_policy(checkpoint)
+    spec = (None if adopted or short_moves else loaded.meta.get("flight_filter")) or filter_spec(
+        short_moves=short_moves
+    )
     rows: list[dict] = []
     build = flight.flight_filter
 
-    def traced(view, cfg):
-        the_filter = build(view, cfg)
+    def traced(spec, cfg):
+        the_filter = build(spec, cfg)
 
         def call(env, obs, action):
             out = the_filter(env, obs, action)
@@ -45,7 +57,8 @@ def trace(checkpoint: Path, env_seed: int, episode: int) -> tuple[dict, list[dic
     try:
         _, stats = flight.fly_frames(checkpoint, env_seed=env_seed, episode=episode,
                                      shield_memory=1, shield_map=True, shield_mover_margin=0.3,
-                                     shield_brake=True, planner_filter="observation")  # fmt: skip
+                                     shield_brake=True, loaded=loaded,
+                                     planner_filter=spec)  # fmt: skip
     finally:
         flight.flight_filter = build
     return stats, rows
@@ -58,8 +71,13 @@ def main() -> None:
     parser.add_argument("--episode", type=int, default=0)
     parser.add_argument("--from-s", type=float, default=0.0)
     parser.add_argument("--to-s", type=float, default=60.0)
+    parser.add_argument("--adopted", action="store_true",
+                        help="behind the adopted filter, not the one the policy records")  # fmt: skip
+    parser.add_argument("--short-moves", action="store_true",
+                        help="behind the adopted filter with its planner's short moves")  # fmt: skip
     args = parser.parse_args()
-    stats, rows = trace(args.checkpoint, args.env_seed, args.episode)
+    stats, rows = trace(args.checkpoint, args.env_seed, args.episode, args.adopted,
+                        args.short_moves)  # fmt: skip
     print(stats)
     print(
         "| t (s) | position (m) | to goal (m) | planner flies | handover steps left | action | flown |"

@@ -21,10 +21,11 @@ fraction of the policy's horizontal speed), e.g. ``1map-mover0.3-brake-keep0.5``
 (:class:`safenav.envs.planner.PlannerFilter`, the pillar planner's view of the simulator), e.g.
 ``1map-mover0.3-brake-filter``, or ``-filterobs`` the same filter seeing only what the vehicle
 has on board (the observation's pillar list and movers: ``view="observation"``), either with
-``-stall`` the planner's handover where a flight stalls (``stall=FILTER_STALL``), or ``-stallP``
+``-stall`` the planner's handover where a flight stalls (``stall=FILTER_STALL_TUMBLING``), or ``-stallP``
 the same with P metres of progress in its window (e.g. ``-stall4``: ``(10, 4, 5)``), or
 ``-stallslide`` the handover's sliding test (``stall_test="sliding"``), ``-stallslideW`` the same
-over a W s window with the same progress per second (e.g. ``-stallslide5``: ``(5, 1, 5)``).
+over a W s window with the same progress per second (e.g. ``-stallslide5``: ``(5, 1, 5)``);
+``-short`` last: the filter's planner also weighs short moves (``short_moves=True``).
 One JSON per
 (policy, setting, map) in OUT
 (a rerun skips those that exist), then a table of the mean over maps per (policy, setting) on
@@ -44,7 +45,7 @@ import torch
 from safenav.algos.policy import load_policy
 from safenav.common.jsonout import write_json
 from safenav.deploy.shield import shield_for_memory
-from safenav.envs.planner import FILTER_STALL, PlannerFilter, behind_filter
+from safenav.envs.planner import FILTER_STALL_TUMBLING, PlannerFilter, behind_filter
 from safenav.experiments.evaluate import evaluate
 from safenav.experiments.selection import HELDOUT_SEEDS, TEST_SEED, VALIDATION_SEEDS
 from safenav.experiments.stats import outcomes_string
@@ -72,10 +73,10 @@ def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str, flo
     ``-slide``: its sliding form, ``"slide"`` there; ``-keep0.5``: ``ShieldConfig.keep_moving``
     0.5; ``-filter``, last: the planner filter after the shield (its view last: ``"simulator"``;
     ``-filterobs``: ``"observation"``; None without; ``-stall`` or ``-stallP`` after either:
-    ``"...-stall"``, ``"...-stallP"``)."""
+    ``"...-stall"``, ``"...-stallP"``; ``-short`` last: ``"...-short"``)."""
     found = re.fullmatch(
         r"(\d+)(map)?(?:-mover([0-9.]+))?(-lag)?(-brake|-slide)?(?:-keep([0-9.]+))?"
-        r"(-filter(?:obs)?(?:-stall(?:slide)?(?:[0-9.]+)?)?)?",
+        r"(-filter(?:obs)?(?:-stall(?:slide)?(?:[0-9.]+)?)?(?:-short)?)?",
         setting,
     )
     if found is None:
@@ -85,22 +86,27 @@ def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str, flo
     keep = float(found[6] or 0.0)
     if not 0.0 <= keep <= 1.0:
         raise SystemExit(f"shield setting {setting!r}: -keepK takes K in [0, 1]")
-    head, stall, progress = (found[7] or "").partition("-stall")
+    filtered = found[7] or ""
+    short = filtered.endswith("-short")
+    head, stall, progress = filtered.removesuffix("-short").partition("-stall")
     view = {"": None, "-filter": "simulator", "-filterobs": "observation"}[head]
     if stall:
         view += "-stall" + progress
+    if short:
+        view += "-short"
     return (int(found[1]), found[2] is not None, float(found[3] or 0.0), found[4] is not None,
             brake, keep, view)  # fmt: skip
 
 
 def stall_of(setting: str) -> tuple[tuple[float, float, float] | None, str]:
     """The filter's ``(stall, stall_test)``: ``""`` -> None (no handover); ``"stall"`` ->
-    ``FILTER_STALL``; ``"stallP"`` -> its window and handover with P metres of progress; with
-    ``"slide"`` after ``"stall"`` the sliding test, and its number the window W s (progress 0.2 W
-    m, FILTER_STALL's 2 m in 10 s)."""
+    ``FILTER_STALL_TUMBLING`` (the first handover, 2 m in tumbling 10 s windows, which these
+    settings were named after); ``"stallP"`` -> its window and handover with P metres of progress;
+    with ``"slide"`` after ``"stall"`` the sliding test, and its number the window W s (progress
+    0.2 W m): ``"stallslide5"`` is the adopted ``FILTER_STALL``."""
     if not setting:
         return None, "tumbling"
-    window, progress, handover = FILTER_STALL
+    window, progress, handover = FILTER_STALL_TUMBLING
     number = setting.removeprefix("stall")
     if number.startswith("slide"):
         number = number.removeprefix("slide")
@@ -127,10 +133,12 @@ def run(
                     shield = shield_for_memory(memory, scan, mover, lag, brake, keep)
                     extra = {"keep_moving": keep} if keep else {}
                     if filtered:
-                        view, _, stall = filtered.partition("-")
+                        short = filtered.endswith("-short")
+                        view, _, stall = filtered.removesuffix("-short").partition("-")
                         stall_setting, stall_test = stall_of(stall)
                         planner_filter = PlannerFilter(view=view, stall=stall_setting,
-                                                       stall_test=stall_test)  # fmt: skip
+                                                       stall_test=stall_test,
+                                                       short_moves=short)  # fmt: skip
                         shield = behind_filter(shield, planner_filter)
                     started = time.perf_counter()
                     r = evaluate(fn, cfg, env_seed=seed, episodes=episodes, shield=shield)

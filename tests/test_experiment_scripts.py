@@ -313,6 +313,12 @@ def test_shield_memory_parses_the_braking_and_filter_settings():
     )
     assert sm.stall_of("stallslide") == ((10.0, 2.0, 5.0), "sliding")
     assert sm.stall_of("stallslide5") == ((5.0, 1.0, 5.0), "sliding")
+    tk = script("timeout_kinds")
+    assert [tk.kind(0.3, 0.2), tk.kind(8.6, 0.1), tk.kind(6.6, 3.6)] == ["frozen", "dithering",
+                                                                          "moving"]  # fmt: skip
+    assert sm.parse_setting("1map-mover0.3-brake-filterobs-stallslide5-short")[-1] == (
+        "observation-stallslide5-short"
+    )
     with pytest.raises(SystemExit, match="-filterobs"):
         sm.parse_setting("1map-stall")
     with pytest.raises(SystemExit, match="-slide"):

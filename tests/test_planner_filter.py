@@ -145,9 +145,11 @@ def test_the_observed_view_needs_the_pillar_list():
         PlannerFilter(view="lidar")
 
 
-def test_a_stalled_flight_is_handed_to_the_planner_for_a_while():
+@pytest.mark.parametrize("stall_test", ["sliding", "tumbling"])
+def test_a_stalled_flight_is_handed_to_the_planner_for_a_while(stall_test):
     env, obs = _env(4, num_static=0, num_dynamic=0)
-    filt = PlannerFilter(stall=(2.0, 1.0, 1.0))  # < 1 m nearer in 2 s: the planner flies 1 s
+    # < 1 m nearer in 2 s: the planner flies 1 s
+    filt = PlannerFilter(stall=(2.0, 1.0, 1.0), stall_test=stall_test)
     hover = to_action(torch.zeros(4, 3), env.cos_yaw, env.sin_yaw, env.cfg.v_max)
     start = (env.goal - env.pos).norm(dim=-1)
     handed = []
@@ -211,14 +213,28 @@ def test_the_observed_view_refuses_a_flight_without_the_pillar_list(tmp_path, ca
 def test_a_spec_round_trips_and_refuses_an_unknown_view():
     from safenav.envs.planner import filter_from_spec, filter_spec
 
-    assert filter_spec() == {"view": "observation", "stall": [10.0, 2.0, 5.0]}
+    # the adopted filter (docs/csac-v1.md, "A sliding stall test")
+    assert filter_spec() == {"view": "observation", "stall": [5.0, 1.0, 5.0],
+                             "stall_test": "sliding"}  # fmt: skip
     the_filter = filter_from_spec(filter_spec())
-    assert the_filter.view == "observation" and the_filter.stall == (10.0, 2.0, 5.0)
+    assert the_filter.view == "observation" and the_filter.stall == (5.0, 1.0, 5.0)
+    assert the_filter.stall_test == "sliding"
     assert filter_from_spec(filter_spec("simulator", None)).stall is None
-    sliding = filter_spec(stall_test="sliding")
-    assert sliding["stall_test"] == "sliding" and filter_from_spec(sliding).stall_test == "sliding"
+    tumbling = filter_spec(stall_test="tumbling")
+    assert filter_from_spec(tumbling).stall_test == "tumbling"
+    # a policy's record from before the sliding test (no "stall_test") flies as it was reported
+    old = filter_from_spec({"view": "observation", "stall": [10.0, 2.0, 5.0]})
+    assert old.stall == (10.0, 2.0, 5.0) and old.stall_test == "tumbling"
     with pytest.raises(ValueError, match="view"):
         filter_spec("camera")
+    for bad in (
+        {"view": "camera", "stall": None},
+        {"view": "observation", "stall": [1.0]},
+        {"view": "observation", "stall": None, "stall_test": "hourly"},
+        "observation",
+    ):
+        with pytest.raises(ValueError):
+            filter_from_spec(bad)
 
 
 def test_one_predicate_says_whether_a_config_observes_the_pillar_list():
@@ -271,6 +287,7 @@ def test_a_run_trained_with_flight_filter_is_reported_and_evaluated_behind_it(tm
         assert ("flies behind the planner filter" in err) is expected
         view = extra[-1] if len(extra) == 2 else "observation" if expected else None
         assert result.get("planner_filter_view") == view
+        assert result.get("planner_filter_spec") == (filter_spec(view) if expected else None)
 
 
 def test_flight_filter_needs_the_pillar_list_and_a_safenav_env(tmp_path, capsys):
@@ -298,3 +315,45 @@ def test_a_graze_no_beam_reads_ends_an_episode_only_under_the_body_rule(rule):
     planner._start(env)
     planner._update_finished(env)
     assert bool(planner.finished[0]) is (rule == "body")
+
+
+def _pocket() -> tuple[SafeNavVectorEnv, dict]:
+    """Env 0's UAV boxed in by four tall pillars 1 m from it on each side (none elsewhere): every
+    command held 2 s collides but a hover."""
+    env, obs = _env(2, num_dynamic=0)
+    w, p, half = int(env.world_idx[0]), env.pos[0, :2], 0.5
+    env.pillar_xy[w, : env.n_static] = 1e3
+    for i, side in enumerate([(1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0)]):
+        env.pillar_xy[w, i] = p + torch.tensor(side, dtype=p.dtype) * (1.0 + half)
+        env.pillar_half[w, i], env.pillar_height[w, i] = half, 10.0
+    return env, obs
+
+
+def test_short_moves_take_the_planner_out_of_a_pocket_where_it_would_hover():
+    env, obs = _pocket()
+    filt = PlannerFilter()
+    filt._start(env)
+    ids = torch.tensor([0])
+    scene, cmds = filt.scene(obs, env, ids), filt.candidates(obs, env, ids)
+    assert torch.equal(filt.choose(scene, cmds), torch.zeros(1, 3))  # held 2 s: only a hover
+    short = filt.short_move_candidates(env, ids)
+    chosen = filt.choose(scene, cmds, short)
+    assert chosen.norm() > 0.4 and bool((short[0] - chosen).norm(dim=-1).amin() < 1e-6)
+    to_goal = env.goal[0, :2] - env.pos[0, :2]
+    assert float(chosen[0, :2] @ to_goal) > 0  # a step towards the goal
+    # each short move is held 0.5 s and then stopped: no collision in the pocket
+    n, k = short.shape[:2]
+    start = (scene["pos"][:, None].expand(n, k, 3).contiguous(),
+             scene["vel"][:, None].expand(n, k, 3).contiguous())  # fmt: skip
+    brief = filt.move_then_stop(scene, short, *start, 5)
+    assert bool((brief["first_hit"] == filt.cfg.horizon + 1).all())
+    assert float(brief["v"].norm(dim=-1).amax()) < 0.05  # stopped by the horizon's end
+
+
+def test_short_moves_are_recorded_in_the_spec_only_where_set():
+    from safenav.envs.planner import filter_from_spec, filter_spec
+
+    assert "short_moves" not in filter_spec()
+    spec = filter_spec(short_moves=True)
+    assert spec["short_moves"] is True and filter_from_spec(spec).short_moves
+    assert not filter_from_spec(filter_spec()).short_moves

@@ -58,9 +58,9 @@ def eval_(
         planner_filter: After the shield (if any), the model-predictive safety filter: each
             command is rolled out 2 s through the vehicle's velocity response against the
             pillars, wall and moving obstacles within 4 m, and the pillar planner flies where it
-            leaves no way out, and for 5 s where a flight came less than 2 m nearer its goal in
-            10 s (beyond the paper; docs/csac-v1.md). A policy trained with --flight-filter
-            flies behind it unless --no-planner-filter.
+            leaves no way out, and for 5 s where a flight came less than 1 m nearer its goal
+            over the last 5 s (beyond the paper; docs/csac-v1.md). A policy trained with
+            --flight-filter flies behind the filter it records unless --no-planner-filter.
         planner_filter_view: What the filter sees: observation (what the vehicle has on board:
             the observation's pillar list and tracked movers, for policies trained with it) or
             simulator (the pillars and movers within 4 m, read from the simulator: any policy).
@@ -97,9 +97,9 @@ def eval_(
         memory, shield_map, shield_mover_margin, shield_brake = own_shield_settings(
             fn, checkpoint, memory, shield_map, shield_mover_margin, shield_brake)  # fmt: skip
         shield = memory > 0
-        planner_filter, planner_filter_view = own_planner_filter(fn, checkpoint, planner_filter,
-                                                                 planner_filter_view)  # fmt: skip
-    the_filter = flight_filter(planner_filter_view, cfg) if planner_filter else None
+    spec = own_planner_filter(fn if policy == "checkpoint" else None, checkpoint, planner_filter,
+                              planner_filter_view)  # fmt: skip
+    the_filter = flight_filter(spec, cfg) if spec else None
     shield_fn = None
     if memory:  # the shield's module loads Numba (~0.35 s): only when it flies
         from safenav.deploy.shield import shield_for_memory
@@ -118,9 +118,10 @@ def eval_(
         result["shield_map"] = shield_map
         result["shield_mover_margin"] = shield_mover_margin
         result["shield_brake"] = shield_brake
-    result["planner_filter"] = planner_filter
+    result["planner_filter"] = the_filter is not None
     if the_filter is not None:  # and the share of the flown steps where the planner flew
-        result["planner_filter_view"] = planner_filter_view
+        result["planner_filter_view"] = spec["view"]
+        result["planner_filter_spec"] = spec
         result["planner_filter_override_share"] = the_filter.override_share
         result["planner_filter_handover_share"] = the_filter.handover_share
     result["env"] = ENV_ID
@@ -211,32 +212,44 @@ def own_shield_settings(policy, checkpoint, memory: int, shield_map: bool, mover
     return memory, shield_map, mover_margin, brake
 
 
-def own_planner_filter(policy, checkpoint, planner_filter: bool, view: str) -> tuple[bool, str]:
-    """The planner filter a flight gets: a policy that records one (``safenav train
-    --flight-filter``: ``meta["flight_filter"]``) flies behind it unless ``--planner-filter`` /
+def own_planner_filter(policy, checkpoint, planner_filter: bool, view: str) -> dict | None:
+    """The planner filter a flight gets, as a :func:`~safenav.envs.planner.filter_spec` (None:
+    none): a policy that records one (``safenav train --flight-filter``: ``meta["flight_filter"]``)
+    flies behind that one, as it was reported, unless ``--planner-filter`` /
     ``--no-planner-filter`` is given (``--planner-filter-view`` alone changes only what it sees);
-    otherwise the options' ``(planner_filter, view)`` as they are."""
+    otherwise the options' filter: with ``--planner-filter``, the adopted one seeing ``view``."""
     from safenav.cli import ARGS
     from safenav.commands.train import given_flag
-    from safenav.errors import SafenavError
+    from safenav.envs.planner import filter_from_spec, filter_spec
 
-    spec = policy.meta.get("flight_filter")
+    spec = policy.meta.get("flight_filter") if policy is not None else None
     if not spec or given_flag("planner-filter", ARGS.get()):
-        return planner_filter, view
+        return filter_spec(view) if planner_filter else None
     from rich.console import Console
 
-    from safenav.envs.planner import FILTER_STALL, FILTER_VIEWS, filter_spec
+    from safenav.errors import SafenavError
 
-    if spec.get("view") not in FILTER_VIEWS or spec != filter_spec(spec["view"]):
-        raise SafenavError(f"{checkpoint} records a planner filter {spec}; eval and render fly "
-                           f"its observation or simulator view with the stall handover "
-                           f"{list(FILTER_STALL)} tested in tumbling windows: pass "
-                           "--planner-filter or --no-planner-filter")  # fmt: skip
-    if not given_flag("planner-filter-view", ARGS.get()):
-        view = str(spec["view"])
-    Console(stderr=True).print(f"note: {checkpoint} flies behind the planner filter "
-                               f"({view} view; --no-planner-filter: without)")  # fmt: skip
-    return True, view
+    try:
+        filter_from_spec(spec)
+    except ValueError as err:
+        raise SafenavError(f"{checkpoint} records {err}: pass --planner-filter (the adopted "
+                           "filter) or --no-planner-filter") from None  # fmt: skip
+    if given_flag("planner-filter-view", ARGS.get()):
+        spec = {**spec, "view": view}
+    Console(stderr=True).print(f"note: {checkpoint} flies behind the planner filter it records "
+                               f"({describe_filter(spec)}; --no-planner-filter: without)")  # fmt: skip
+    return spec
+
+
+def describe_filter(spec: dict) -> str:
+    """``"observation view, stall handover 1 m in 5 s sliding, 5 s"``: a filter spec in words."""
+    stall = spec.get("stall")
+    if stall is None:
+        return f"{spec['view']} view, no stall handover"
+    window, progress, handover = stall
+    test = spec.get("stall_test", "tumbling")
+    return (f"{spec['view']} view, stall handover under {progress:g} m in {window:g} s {test}, "
+            f"{handover:g} s")  # fmt: skip
 
 
 def check_eval_args(env_seed: int, episodes: int, json_out: Path | None, device: str,

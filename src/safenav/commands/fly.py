@@ -82,7 +82,8 @@ def fly(
         planner_filter: After the shield (if any), the model-predictive safety filter on
             board, as safenav eval --planner-filter flies it (beyond the paper). The pillar
             planner flies where the command leaves no way out in a 2 s rollout, and for 5 s
-            where the flight came less than 2 m nearer its goal in 10 s. Needs a policy with
+            where the flight came less than 1 m nearer its goal over the last 5 s (the adopted
+            filter, which a --flight-filter policy records). Needs a policy with
             the pillar list (static_tracked > 0).
         takeoff_altitude: Takeoff altitude above home, metres.
         origin: World ENU position of PX4's local NED origin.

@@ -67,7 +67,7 @@ def render(
         planner_filter: After the shield (if any), the model-predictive safety filter: the
             pillar planner flies where the command leaves no way out, and 5 s where a flight
             stalls (beyond the paper; docs/csac-v1.md). A policy trained with --flight-filter
-            flies behind it unless --no-planner-filter.
+            flies behind the filter it records unless --no-planner-filter.
         planner_filter_view: What the filter sees: observation (the observation's pillar list
             and tracked movers) or simulator (the pillars and movers within 4 m).
     """
@@ -103,19 +103,20 @@ def render(
                                            [k for k, v in safenav_only.items() if v])  # fmt: skip
         if loaded is None:
             return
-        from safenav.commands.eval import own_planner_filter, own_shield_settings
+        from safenav.commands.eval import own_shield_settings
 
         # a policy trained behind the shield flies behind it, and behind its planner filter
         memory, shield_map, shield_mover_margin, shield_brake = own_shield_settings(
             loaded, checkpoint, memory, shield_map, shield_mover_margin, shield_brake)  # fmt: skip
-        planner_filter, planner_filter_view = own_planner_filter(
-            loaded, checkpoint, planner_filter, planner_filter_view)  # fmt: skip
+    from safenav.commands.eval import own_planner_filter
+
+    spec = own_planner_filter(loaded, checkpoint, planner_filter, planner_filter_view)
     stats = render_episode(out, checkpoint=checkpoint, policy=policy, preset=preset,
                            env_seed=env_seed, episode=episode, fps=fps, record=record,
                            shield_memory=memory, shield_map=shield_map,
                            shield_mover_margin=shield_mover_margin,
                            shield_brake=shield_brake, loaded=loaded,
-                           planner_filter=planner_filter and planner_filter_view)  # fmt: skip
+                           planner_filter=spec)  # fmt: skip
     print(f"wrote {out}{f' and {record}' if record is not None else ''}: {stats}")
 
 

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from safenav.envs.config import EnvConfig
-from safenav.envs.planner import FILTER_STALL, PlannerFilter, observes_pillars
+from safenav.envs.planner import FILTER_STALL, FILTER_STALL_TEST, PlannerFilter, observes_pillars
 
 
 @dataclass
@@ -60,13 +60,14 @@ class VehicleView:
 
 class OnboardFilter(PlannerFilter):
     """:class:`~safenav.envs.planner.PlannerFilter` (observed view, the stall handover of
-    ``stall``, default :data:`~safenav.envs.planner.FILTER_STALL`) over one vehicle's
+    ``stall`` and ``stall_test``, default the adopted :data:`~safenav.envs.planner.FILTER_STALL`,
+    tested in seconds of flight) over one vehicle's
     :class:`VehicleView`: ``action = filter(view, obs, action)``, ``overridden[0]`` whether the
     planner's command replaced the policy's. A new goal, or :meth:`new_flight`, starts a new
     flight."""
 
     def __init__(self, stall: tuple[float, float, float] | None = FILTER_STALL,
-                 stall_test: str = "tumbling") -> None:  # fmt: skip
+                 stall_test: str = FILTER_STALL_TEST) -> None:  # fmt: skip
         super().__init__(view="observation", stall=stall, stall_test=stall_test)
 
     def _start(self, env) -> None:  # type: ignore[override]

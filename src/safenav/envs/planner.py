@@ -59,6 +59,12 @@ from safenav.envs.world import CUBOID_HEIGHT, CYLINDER_HEIGHT, DYN_WIDTHS, borde
 
 FAR = 1.0e4  # m: where obstacles outside the planner's view are put
 W_MARGIN = 100.0  # cost per metre of intrusion into the margins (1 cm = 1 m of cost-to-go)
+SHORT_MOVE_SPEEDS = (0.5, 1.0)
+"""Horizontal speeds (m/s) of :meth:`OraclePlanner.short_move_candidates`."""
+SHORT_MOVE_CLIMBS = (-0.25, 0.0, 0.25)
+"""Vertical speeds (m/s) of :meth:`OraclePlanner.short_move_candidates`."""
+SHORT_MOVE_STEPS = 5
+"""Control steps a short move is held before its stop (0.5 s at 10 Hz: 0.1-0.4 m of flight)."""
 ScanFn = Callable[[SafeNavVectorEnv, torch.Tensor], torch.Tensor]
 """``scan(env, ids) -> (len(ids), K, 2)``: world ``(x, y)`` of obstacle columns (``FAR`` = none)."""
 
@@ -323,24 +329,42 @@ class OraclePlanner:
     def candidates(self, obs, env, ids: torch.Tensor) -> torch.Tensor:
         """World-frame commands ``(n, K, 3)`` of episodes ``ids``, as the env will apply them."""
         c, ec = self.cfg, env.cfg
-        to_goal = env.goal[ids] - env.pos[ids]
-        bearing = torch.atan2(to_goal[:, 1], to_goal[:, 0])
-        ang = bearing[:, None] + torch.arange(c.headings, device=env.device) * (
-            2 * math.pi / c.headings
-        )
-        sp = torch.tensor(c.speeds, device=env.device)
-        cl = torch.tensor(c.climbs, device=env.device)
-        n, j, s, k = len(ids), c.headings, len(c.speeds), len(c.climbs)
-        vx = (ang.cos()[:, :, None] * sp)[..., None].expand(n, j, s, k)
-        vy = (ang.sin()[:, :, None] * sp)[..., None].expand(n, j, s, k)
-        vz = cl.expand(n, j, s, k)
-        grid = torch.stack([vx, vy, vz], -1).reshape(n, -1, 3)
+        grid = self._command_grid(env, ids, c.speeds, c.climbs)
+        n = len(ids)
         cos_y, sin_y = env.cos_yaw[ids, None], env.sin_yaw[ids, None]
         straight = goal_frame_to_world(go_to_goal({"state": obs["state"][ids]}) * ec.v_max,
                                        cos_y[:, 0], sin_y[:, 0])  # fmt: skip
         cmds = torch.cat([grid, torch.zeros(n, 1, 3, device=env.device), straight[:, None]], 1)
         # Exactly what the env applies: goal frame, clipped per axis, back to the world frame.
         return goal_frame_to_world(to_action(cmds, cos_y, sin_y, ec.v_max) * ec.v_max, cos_y, sin_y)
+
+    def short_move_candidates(self, env, ids: torch.Tensor) -> torch.Tensor:
+        """World-frame commands ``(n, K, 3)`` of episodes ``ids`` that :meth:`choose` holds for
+        :data:`SHORT_MOVE_STEPS` steps and then stops (``short``): the :attr:`OracleConfig.headings`
+        from the goal's bearing at :data:`SHORT_MOVE_SPEEDS` and :data:`SHORT_MOVE_CLIMBS`, as the
+        env will apply them. A held 2 s command leaves a pocket between pillars only where the
+        whole 2 s is free; a step of a few decimetres and a stop finds a way out in steps."""
+        cmds = self._command_grid(env, ids, SHORT_MOVE_SPEEDS, SHORT_MOVE_CLIMBS)
+        cos_y, sin_y, v_max = env.cos_yaw[ids, None], env.sin_yaw[ids, None], env.cfg.v_max
+        return goal_frame_to_world(to_action(cmds, cos_y, sin_y, v_max) * v_max, cos_y, sin_y)
+
+    def _command_grid(self, env, ids: torch.Tensor, speeds: tuple[float, ...],
+                      climbs: tuple[float, ...]) -> torch.Tensor:  # fmt: skip
+        """World-frame commands ``(n, headings * speeds * climbs, 3)``: the
+        :attr:`OracleConfig.headings` evenly spaced from the goal's bearing, at each horizontal
+        speed and climb rate."""
+        c = self.cfg
+        to_goal = env.goal[ids] - env.pos[ids]
+        bearing = torch.atan2(to_goal[:, 1], to_goal[:, 0])
+        ang = bearing[:, None] + torch.arange(c.headings, device=env.device) * (
+            2 * math.pi / c.headings
+        )
+        sp = torch.tensor(speeds, device=env.device)
+        cl = torch.tensor(climbs, device=env.device)
+        n, j, s, k = len(ids), c.headings, len(speeds), len(climbs)
+        vx = (ang.cos()[:, :, None] * sp)[..., None].expand(n, j, s, k)
+        vy = (ang.sin()[:, :, None] * sp)[..., None].expand(n, j, s, k)
+        return torch.stack([vx, vy, cl.expand(n, j, s, k)], -1).reshape(n, -1, 3)
 
     def forecast(self, env: SafeNavVectorEnv) -> torch.Tensor:
         """Moving obstacles' centres after each of the next ``horizon`` steps, ``(H, W, D, 3)``."""
@@ -539,15 +563,35 @@ class OraclePlanner:
         return {"first_hit": first_hit, "reach": reach, "intrude": intrude, "least": least,
                 "p": p, "v": v}  # fmt: skip
 
-    def choose(self, scene: dict, cmds: torch.Tensor) -> torch.Tensor:
+    def move_then_stop(self, scene: dict, cmds: torch.Tensor, p: torch.Tensor, v: torch.Tensor,
+                       steps: int) -> dict[str, torch.Tensor]:  # fmt: skip
+        """:meth:`simulate` of ``cmds`` held for ``steps`` steps and then a zero command for the
+        rest of the horizon (a stop, through the velocity tracker), as one rollout each."""
+        head = self.simulate(scene, cmds, p, v, 0, steps)
+        tail = self.simulate(scene, torch.zeros_like(cmds), head["p"], head["v"], steps)
+        never = self.cfg.horizon + 1
+        done = head["reach"] < never  # at the goal before the stop: the rest does not count
+        both = lambda key, f: torch.where(done, head[key], f(head[key], tail[key]))  # noqa: E731
+        return {"first_hit": both("first_hit", torch.minimum),
+                "reach": torch.where(done, head["reach"], tail["reach"]),
+                "intrude": both("intrude", torch.maximum), "least": both("least", torch.minimum),
+                "p": tail["p"], "v": tail["v"]}  # fmt: skip
+
+    def choose(self, scene: dict, cmds: torch.Tensor,
+               short: torch.Tensor | None = None) -> torch.Tensor:  # fmt: skip
         """The planner's command ``(n, 3)`` among ``cmds`` ``(n, K, 3)``, each held from now for
-        the horizon: the lowest score (module docstring)."""
+        the horizon, and ``short`` ``(n, S, 3)`` (:meth:`short_move_candidates`), each held for
+        :data:`SHORT_MOVE_STEPS` steps and then a stop: the lowest score (module docstring)."""
         c, env = self.cfg, scene["env"]
         ec, ids = env.cfg, scene["ids"]
+        start = lambda m: (scene["pos"][:, None].expand(n, m, 3).contiguous(),  # noqa: E731
+                           scene["vel"][:, None].expand(n, m, 3).contiguous())  # fmt: skip
         n, k = cmds.shape[:2]
-        p = scene["pos"][:, None].expand(n, k, 3).contiguous()
-        v = scene["vel"][:, None].expand(n, k, 3).contiguous()
-        roll = self.simulate(scene, cmds, p, v)
+        roll = self.simulate(scene, cmds, *start(k))
+        if short is not None:
+            brief = self.move_then_stop(scene, short, *start(short.shape[1]), SHORT_MOVE_STEPS)
+            roll = {key: torch.cat([roll[key], brief[key]], 1) for key in roll}
+            cmds = torch.cat([cmds, short], 1)
         first_hit, reach, intrude, least = (
             roll[x] for x in ("first_hit", "reach", "intrude", "least")
         )
@@ -622,9 +666,16 @@ FILTER_VIEWS = ("simulator", "observation")
 """What :class:`PlannerFilter` sees (its ``view``)."""
 STALL_TESTS = ("tumbling", "sliding")
 """When :class:`PlannerFilter`'s stall handover tests for a stall (its ``stall_test``)."""
-FILTER_STALL = (10.0, 2.0, 5.0)
-"""The stall handover of ``safenav eval --planner-filter``: less than 2 m nearer the goal in 10 s
-and the planner flies 5 s (set before its validation screen, adopted by it: docs/csac-v1.md)."""
+FILTER_STALL = (5.0, 1.0, 5.0)
+"""The stall handover of ``safenav train --flight-filter`` and ``eval --planner-filter``: less than
+1 m nearer the goal over the last 5 s (:data:`FILTER_STALL_TEST`) and the planner flies 5 s.
+Adopted by its validation screen (2026-12-05; docs/csac-v1.md, "A sliding stall test"), after
+the first handover, 2 m in tumbling 10 s windows (:data:`FILTER_STALL_TUMBLING`)."""
+FILTER_STALL_TEST = "sliding"
+"""The adopted ``stall_test`` of :data:`FILTER_STALL`."""
+FILTER_STALL_TUMBLING = (10.0, 2.0, 5.0)
+"""The first adopted handover (tested in tumbling windows): what a policy's recorded filter
+without a ``"stall_test"`` (trained before 2026-12-05) flies."""
 
 
 def observes_pillars(cfg) -> bool:
@@ -636,23 +687,32 @@ def observes_pillars(cfg) -> bool:
 
 def filter_spec(view: str = "observation",
                 stall: tuple[float, float, float] | None = FILTER_STALL,
-                stall_test: str = "tumbling") -> dict:  # fmt: skip
+                stall_test: str = FILTER_STALL_TEST, short_moves: bool = False) -> dict:  # fmt: skip
     """A :class:`PlannerFilter` as a policy's ``meta["flight_filter"]`` records it (``safenav
-    train --flight-filter``): ``{"view": ..., "stall": [window, progress, handover] or None}``,
-    and ``"stall_test"`` where it is not the adopted ``"tumbling"``."""
+    train --flight-filter``): ``{"view": ..., "stall": [window, progress, handover] or None,
+    "stall_test": ...}`` and ``"short_moves": true`` where set; by default the adopted one."""
     if view not in FILTER_VIEWS:
         raise ValueError(f"view={view!r}: choose one of {FILTER_VIEWS}")
     if stall_test not in STALL_TESTS:
         raise ValueError(f"stall_test={stall_test!r}: choose one of {STALL_TESTS}")
-    spec = {"view": view, "stall": None if stall is None else [float(x) for x in stall]}
-    return spec if stall_test == "tumbling" else {**spec, "stall_test": stall_test}
+    stall = None if stall is None else [float(x) for x in stall]
+    spec = {"view": view, "stall": stall, "stall_test": stall_test}
+    return {**spec, "short_moves": True} if short_moves else spec
 
 
 def filter_from_spec(spec: dict) -> PlannerFilter:
-    """A fresh :class:`PlannerFilter` of a :func:`filter_spec`."""
+    """A fresh :class:`PlannerFilter` of a :func:`filter_spec`, as the policy that records it
+    was reported behind (a record without ``"stall_test"``, from before 2026-12-05: tumbling
+    windows). ValueError for a record that names no such filter."""
+    if not isinstance(spec, dict) or spec.get("view") not in FILTER_VIEWS:
+        raise ValueError(f"planner filter {spec!r}: no view among {FILTER_VIEWS}")
     stall = spec.get("stall")
+    if stall is not None and not (isinstance(stall, (list, tuple)) and len(stall) == 3 and
+                                  all(isinstance(x, (int, float)) for x in stall)):  # fmt: skip
+        raise ValueError(f"planner filter {spec!r}: stall is [window s, progress m, handover s]")
     return PlannerFilter(view=spec["view"], stall=None if stall is None else tuple(stall),
-                         stall_test=spec.get("stall_test", "tumbling"))  # fmt: skip
+                         stall_test=spec.get("stall_test", "tumbling"),
+                         short_moves=bool(spec.get("short_moves", False)))  # fmt: skip
 
 
 class PlannerFilter(OraclePlanner):
@@ -683,14 +743,20 @@ class PlannerFilter(OraclePlanner):
     navigation stacks have. Where an episode has come less than ``progress`` metres nearer its
     goal over the last ``window`` seconds, the planner flies the next ``handover`` seconds
     (counted in ``handovers`` and in ``overrides``), then the policy again. ``stall_test``: when
-    that is tested: ``"tumbling"`` (adopted), at the end of back-to-back windows, so a dither is
-    handed over one to two windows after it starts; ``"sliding"`` (under test), every step over
-    the last ``window`` seconds, a full window after the episode's start or the last handover."""
+    that is tested: ``"sliding"`` (adopted, :data:`FILTER_STALL_TEST`), every step over the last
+    ``window`` seconds, a full window after the episode's start or the last handover;
+    ``"tumbling"`` (the first), at the end of back-to-back windows, so a dither is handed over one
+    to two windows after it starts.
+
+    ``short_moves`` (under test, docs/csac-v1.md "Short moves for the filter's planner"): where
+    the planner flies, it also weighs :meth:`~OraclePlanner.short_move_candidates`, each held
+    0.5 s and then a stop: in a pocket between pillars, where every command held 2 s collides,
+    the planner otherwise hovers there (watched on validation)."""
 
     def __init__(self, config: OracleConfig | None = None, hold: int = 1,
                  scan: ScanFn | None = None, view: str = "simulator",
                  stall: tuple[float, float, float] | None = None,
-                 stall_test: str = "tumbling") -> None:  # fmt: skip
+                 stall_test: str = FILTER_STALL_TEST, short_moves: bool = False) -> None:  # fmt: skip
         super().__init__(config or PLANNER_PILLARS, scan)
         if not 1 <= hold < self.cfg.horizon:
             raise ValueError(f"hold={hold}: between 1 and the horizon - 1 ({self.cfg.horizon - 1})")
@@ -701,6 +767,7 @@ class PlannerFilter(OraclePlanner):
         if stall_test not in STALL_TESTS:
             raise ValueError(f"stall_test={stall_test!r}: choose one of {STALL_TESTS}")
         self.hold, self.view, self.stall, self.stall_test = int(hold), view, stall, stall_test
+        self.short_moves = bool(short_moves)
         self.overrides = self.steps = self.handovers = 0
         self.overridden: torch.Tensor | None = None
 
@@ -799,7 +866,8 @@ class PlannerFilter(OraclePlanner):
         if len(bad):  # the planner's choice (its smoothness term against the last flown command)
             self.overrides += len(bad)
             self.overridden[ids[bad]] = True
-            chosen = self.choose(_scene_rows(scene, bad), cmds[bad])
+            short = self.short_move_candidates(env, ids[bad]) if self.short_moves else None
+            chosen = self.choose(_scene_rows(scene, bad), cmds[bad], short)
             flown = proposal.clone()
             flown[bad] = chosen
             out[ids[bad]] = to_action(chosen, cos_y[bad], sin_y[bad], ec.v_max).to(out.dtype)
@@ -849,7 +917,9 @@ success / 0.021 collision on 144 validation episodes (with ``keep_band``: 0.896 
 PLANNERS = {"range": PLANNER_B, "pillars": PLANNER_PILLARS}
 """The planners a learner may replay (``CSACConfig.planner_view``), by what they see."""
 
-__all__ = ["FAR", "FILTER_STALL", "FILTER_VIEWS", "PLANNERS", "PLANNER_B", "PLANNER_B_BEAMS",
-           "PLANNER_PILLARS", "AutoresetPlanner", "OracleConfig", "OraclePlanner", "PlannerFilter",
-           "ScanFn", "beam_hits", "behind_filter", "filter_from_spec", "filter_spec",
-           "geodesic_fields", "mover_clearance", "sample_field", "to_action"]  # fmt: skip
+__all__ = ["FAR", "FILTER_STALL", "FILTER_STALL_TEST", "FILTER_STALL_TUMBLING", "FILTER_VIEWS",
+           "PLANNERS", "PLANNER_B", "PLANNER_B_BEAMS", "PLANNER_PILLARS", "SHORT_MOVE_CLIMBS",
+           "SHORT_MOVE_SPEEDS", "SHORT_MOVE_STEPS", "AutoresetPlanner", "OracleConfig",
+           "OraclePlanner", "PlannerFilter", "ScanFn", "beam_hits", "behind_filter",
+           "filter_from_spec", "filter_spec", "geodesic_fields", "mover_clearance", "sample_field",
+           "to_action"]  # fmt: skip

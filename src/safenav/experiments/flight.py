@@ -85,13 +85,13 @@ def render_episode(
     shield_mover_margin: float = 0.0,
     shield_brake: bool = False,
     loaded=None,
-    planner_filter: str | bool = False,
+    planner_filter: dict | None = None,
 ) -> dict:
     """Fly episode ``episode`` of the fixed scenario and write ``out`` (GIF), and ``record``
     (MCAP, stamped with the simulation time) when given; returns its stats. ``loaded``: the
     checkpoint's policy, when already read; ``planner_filter``: behind the model-predictive safety
-    filter (:class:`~safenav.envs.planner.PlannerFilter`) after the shield, its view named
-    (``"observation"``, ``"simulator"``; False: none)."""
+    filter (:class:`~safenav.envs.planner.PlannerFilter`) after the shield, the one this
+    :func:`~safenav.envs.planner.filter_spec` names (None: none)."""
     frames, stats = fly_frames(checkpoint, policy, preset, env_seed, episode, record, shield_memory,
                                shield_map, shield_mover_margin, shield_brake, loaded,
                                planner_filter)  # fmt: skip
@@ -102,17 +102,18 @@ def render_episode(
     return stats
 
 
-def flight_filter(view: str, cfg: EnvConfig):
-    """The planner filter ``safenav eval`` and ``render --planner-filter`` fly behind (the stall
-    handover included), seeing ``view``; refused before the flight where the observed view
-    would find no pillar list in this config's observation."""
-    from safenav.envs.planner import filter_from_spec, filter_spec, observes_pillars
+def flight_filter(spec: dict, cfg: EnvConfig):
+    """The planner filter ``safenav eval`` and ``render`` fly behind: ``spec``, a
+    :func:`~safenav.envs.planner.filter_spec` (the policy's own record, or the adopted filter of
+    ``--planner-filter``); refused before the flight where its observed view would find no
+    pillar list in this config's observation."""
+    from safenav.envs.planner import filter_from_spec, observes_pillars
 
-    if view == "observation" and not observes_pillars(cfg):
+    if spec["view"] == "observation" and not observes_pillars(cfg):
         raise SafenavError("--planner-filter sees the observation's pillar list, which this "
                            "flight's observation lacks (EnvConfig.static_tracked 0): add "
                            "--planner-filter-view simulator")  # fmt: skip
-    return filter_from_spec(filter_spec(view))  # what a --flight-filter policy's report flies
+    return filter_from_spec(spec)
 
 
 BATCH_ROWS = 8
@@ -150,14 +151,15 @@ def fly_frames(
     shield_mover_margin: float = 0.0,
     shield_brake: bool = False,
     loaded=None,
-    planner_filter: str | bool = False,
+    planner_filter: dict | None = None,
 ) -> tuple[list, dict]:
     """The rendered frames (top-down RGB arrays, the last with the outcome) and the stats of
     episode ``episode`` of the fixed scenario of map ``env_seed``, flown by the policy, behind
     the safety shield when ``shield_memory`` is 1 (the memoryless shield) or more (a
     :class:`~safenav.deploy.shield.MemoryShield` of that many range images), with the map scan
     when ``shield_map``, ``shield_mover_margin`` metres more clearance from moving obstacles, the
-    braking cap when ``shield_brake``, then the planner filter when ``planner_filter``;
+    braking cap when ``shield_brake``, then the planner filter ``planner_filter`` (a
+    :func:`~safenav.envs.planner.filter_spec`) when given;
     ``loaded``: the checkpoint's policy, when already read."""
     fn, cfg = resolve_policy(checkpoint, policy, loaded=loaded)
     cfg, starts, goals = fixed_test_scenario(scenario_config(cfg, preset), env_seed, episode + 1)

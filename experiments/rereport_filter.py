@@ -1,0 +1,100 @@
+"""Report finished ``--flight-filter`` runs again behind the planner filter adopted since they
+trained: what the default command would now report for the same policies.
+
+Training and the selection on validation maps fly without the planner filter
+(``RunConfig.flight_filter``): a run's ``policy.pt`` does not depend on it; only the filter the
+policy records (``meta["flight_filter"]``, :func:`~safenav.envs.planner.filter_spec` at the end of
+training) and its report behind it (``final.json``: test, held-out, NavRL's rule, the test without
+the filter; ``eval.json``: ``safenav eval``'s test) do. For each run directory this script
+re-records the filter as the default recipe now writes it (``filter_spec(view)``, the view the
+policy recorded), keeps what it recorded before in ``meta["flight_filter_before"]``, flies the
+report of :func:`~safenav.experiments.selection.report_policy` again into ``final.json`` (the
+selection and its record untouched, the earlier report under ``"report_before"``) and
+``safenav eval``'s test into ``eval.json``; then ``safenav reproduce`` with the sweep's own
+command re-aggregates (every trial done: nothing trains, the sweep's record is kept).
+
+    python experiments/rereport_filter.py results/csac/runs/csac/seed{1..5}
+    safenav reproduce --algos csac --seeds 1-5
+
+A run already recording the adopted filter is skipped; a run directory without a ``--select``
+report, or a policy without a recorded filter, is refused.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+from safenav.common.checkpoint import load_checkpoint, save_checkpoint
+from safenav.common.jsonout import write_json
+from safenav.envs.planner import filter_spec
+from safenav.errors import SafenavError
+from safenav.experiments.aggregate import read_json
+from safenav.experiments.selection import report_policy
+
+REPORT_KEYS = ("test", "heldout", "test_navrl_rule", "shield", "flight_shield", "flight_filter",
+               "test_without_filter")  # fmt: skip
+
+
+def rerecord(policy: Path) -> tuple[dict, dict] | None:
+    """Re-record the adopted filter in ``policy`` (atomically): ``(before, now)``, or None
+    where it records it already."""
+    state = load_checkpoint(policy)
+    meta = state["policy"]["meta"]
+    before = meta.get("flight_filter")
+    if not before:
+        raise SafenavError(f"{policy}: records no planner filter (not a --flight-filter run)")
+    now = filter_spec(before["view"])
+    if before == now:
+        return None
+    meta["flight_filter"] = now
+    meta["flight_filter_before"] = before
+    save_checkpoint(policy, state)
+    return before, now
+
+
+def rereport(run_dir: Path, episodes: int, device: str) -> None:
+    final_path, policy = run_dir / "final.json", run_dir / "policy.pt"
+    final = read_json(final_path)
+    if not final or not policy.exists():
+        raise SafenavError(f"{run_dir}: no --select report (final.json, policy.pt) to redo")
+    changed = rerecord(policy)
+    if changed is None:
+        print(f"{run_dir}: records the adopted filter already; skipped")
+        return
+    t0 = time.perf_counter()
+    report = report_policy(policy, episodes=episodes, device=device)
+    final["report_before"] = {k: final.pop(k) for k in REPORT_KEYS if k in final}
+    final |= report | {"rereported": {
+        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "why": "the planner filter adopted since the run trained (docs/csac-v1.md)",
+        "command": f"python experiments/rereport_filter.py {run_dir}",
+        "flight_filter_before": changed[0], "report_wall_clock_s": 0.0}}  # fmt: skip
+    final["rereported"]["report_wall_clock_s"] = round(time.perf_counter() - t0, 1)
+    write_json(final_path, final)
+    subprocess.run([sys.executable, "-m", "safenav", "eval", str(policy), "--env-seed", "1",
+                    "--episodes", str(episodes), "--device", device, "--json",
+                    str(run_dir / "eval.json")], check=True)  # fmt: skip
+    test, held = report["test"], report["heldout"]
+    print(f"{run_dir}: test {test['success_rate']:.3f} / {test['collision_rate']:.3f}, held-out "
+          f"{held['success_rate']:.3f} / {held['collision_rate']:.3f} (was "
+          f"{final['report_before']['test']['success_rate']:.3f} / "
+          f"{final['report_before']['test']['collision_rate']:.3f})")  # fmt: skip
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("run_dirs", nargs="+", type=Path)
+    parser.add_argument("--episodes", type=int, default=200)
+    parser.add_argument("--device", default="cpu")
+    args = parser.parse_args()
+    for run_dir in args.run_dirs:
+        rereport(run_dir, args.episodes, args.device)
+
+
+if __name__ == "__main__":
+    main()
