@@ -357,3 +357,37 @@ def test_short_moves_are_recorded_in_the_spec_only_where_set():
     spec = filter_spec(short_moves=True)
     assert spec["short_moves"] is True and filter_from_spec(spec).short_moves
     assert not filter_from_spec(filter_spec()).short_moves
+
+
+def test_a_flight_flies_the_filter_its_policy_records_unless_told_otherwise():
+    """``safenav eval`` / ``render``: the recorded filter (a record from before the sliding test
+    flies tumbling windows, as it was reported); ``--planner-filter`` the adopted one;
+    ``--no-planner-filter`` none; an unreadable record is refused."""
+    from types import SimpleNamespace
+
+    from safenav.cli import ARGS
+    from safenav.commands.eval import describe_filter, own_planner_filter
+    from safenav.envs.planner import filter_spec
+    from safenav.errors import SafenavError
+
+    old = {"view": "observation", "stall": [10.0, 2.0, 5.0]}
+    policy = SimpleNamespace(meta={"flight_filter": old})
+    cases = [((), old), (("--planner-filter",), filter_spec()), (("--no-planner-filter",), None),
+             (("--planner-filter-view", "simulator"), {**old, "view": "simulator"})]  # fmt: skip
+    for args, expected in cases:
+        token = ARGS.set(args)
+        try:
+            given = "--planner-filter" in args
+            view = args[-1] if "--planner-filter-view" in args else "observation"
+            assert own_planner_filter(policy, "p.pt", given, view) == expected, args
+        finally:
+            ARGS.reset(token)
+    assert own_planner_filter(SimpleNamespace(meta={}), "p.pt", False, "observation") is None
+    assert "under 2 m in 10 s tumbling" in describe_filter(old)
+    token = ARGS.set(())
+    try:
+        with pytest.raises(SafenavError, match="--no-planner-filter"):
+            own_planner_filter(SimpleNamespace(meta={"flight_filter": {"view": "x"}}), "p.pt",
+                               False, "observation")  # fmt: skip
+    finally:
+        ARGS.reset(token)
