@@ -242,14 +242,16 @@ def own_planner_filter(policy, checkpoint, planner_filter: bool, view: str) -> d
 
 
 def describe_filter(spec: dict) -> str:
-    """``"observation view, stall handover 1 m in 5 s sliding, 5 s"``: a filter spec in words."""
+    """``"observation view, stall handover under 1 m in 5 s sliding, 5 s"``: a filter spec in
+    words."""
+    short = ", short moves" if spec.get("short_moves") else ""
     stall = spec.get("stall")
     if stall is None:
-        return f"{spec['view']} view, no stall handover"
+        return f"{spec['view']} view, no stall handover{short}"
     window, progress, handover = stall
     test = spec.get("stall_test", "tumbling")
     return (f"{spec['view']} view, stall handover under {progress:g} m in {window:g} s {test}, "
-            f"{handover:g} s")  # fmt: skip
+            f"{handover:g} s{short}")  # fmt: skip
 
 
 def check_eval_args(env_seed: int, episodes: int, json_out: Path | None, device: str,
