@@ -466,3 +466,28 @@ def test_filter_report_pools_the_test_episodes_and_pairs_them(tmp_path, capsys):
     assert "McNemar (collision, paired episodes): only with the filter 0, only without 100" in out
     assert "| default-s5 (5) | 0.800 | 0.100 | 0.950 | 0.050 |" in out
     assert (tmp_path / f"report-{setting}.md").exists()
+
+
+def test_rereport_filter_rerecords_the_adopted_filter_once(tiny_run, tmp_path):
+    """experiments/rereport_filter.py (docs/csac-v1.md, "The sliding test in the default
+    recipe"): a policy recording the first (tumbling) filter records the adopted one after it,
+    the earlier kept beside it; a second call leaves it; a policy without a filter is refused."""
+    from safenav.algos.policy import load_policy, save_policy_only
+    from safenav.common.checkpoint import load_checkpoint, save_checkpoint
+    from safenav.envs.planner import filter_spec
+    from safenav.errors import SafenavError
+
+    rr = script("rereport_filter")
+    policy = save_policy_only(tiny_run / "best.pt", tmp_path / "policy.pt")
+    with pytest.raises(SafenavError, match="no planner filter"):
+        rr.rerecord(policy)
+    old = {"view": "observation", "stall": [10.0, 2.0, 5.0]}
+    state = load_checkpoint(policy)
+    state["policy"]["meta"]["flight_filter"] = old
+    save_checkpoint(policy, state)
+    assert rr.rerecord(policy) == (old, filter_spec())
+    meta = load_policy(policy).meta
+    assert meta["flight_filter"] == filter_spec() and meta["flight_filter_before"] == old
+    assert rr.rerecord(policy) is None
+    with pytest.raises(SafenavError, match="no --select report"):
+        rr.rereport(tmp_path, episodes=1, device="cpu")
