@@ -8,7 +8,8 @@ shows, in numbers (docs/csac-v1.md, "The two-thread re-derivation, finished").
 
 The flight is ``safenav render``'s (the same frames and outcome): behind the recipe's flight
 shield (memory 1, map scan, 0.3 m mover margin, braking cap) and the planner filter the policy
-records (else, or with ``--adopted``, the adopted one: the observed view with the stall
+records (else, or with ``--adopted``, the sliding filter adopted before short moves, and with
+``--short-moves`` the filter adopted now: the observed view with the stall
 handover ``FILTER_STALL``).
 Validation maps only (12345-12348) for a diagnosis that
 guides a choice.
@@ -24,9 +25,9 @@ import safenav.experiments.flight as flight
 
 def trace(checkpoint: Path, env_seed: int, episode: int, adopted: bool = False,
           short_moves: bool = False) -> tuple[dict, list[dict]]:  # fmt: skip
-    """The episode's stats and one row per control step; ``adopted``: behind the adopted
-    filter (``filter_spec()``) whatever the policy records; ``short_moves``: the adopted filter
-    with its planner's short moves (``filter_spec(short_moves=True)``)."""
+    """The episode's stats and one row per control step; ``adopted``: behind the sliding filter
+    (``filter_spec(short_moves=False)``) whatever the policy records; ``short_moves``: the filter
+    adopted now, with its planner's short moves (``filter_spec()``)."""
     from safenav.algos.policy import load_policy
     from safenav.envs.planner import filter_spec
 
@@ -72,9 +73,10 @@ def main() -> None:
     parser.add_argument("--from-s", type=float, default=0.0)
     parser.add_argument("--to-s", type=float, default=60.0)
     parser.add_argument("--adopted", action="store_true",
-                        help="behind the adopted filter, not the one the policy records")  # fmt: skip
+                        help="behind the sliding filter (adopted before short moves), not the "
+                        "one the policy records")  # fmt: skip
     parser.add_argument("--short-moves", action="store_true",
-                        help="behind the adopted filter with its planner's short moves")  # fmt: skip
+                        help="behind the filter adopted now, with its planner's short moves")  # fmt: skip
     args = parser.parse_args()
     stats, rows = trace(args.checkpoint, args.env_seed, args.episode, args.adopted,
                         args.short_moves)  # fmt: skip

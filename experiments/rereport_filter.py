@@ -16,8 +16,9 @@ command re-aggregates (every trial done: nothing trains, the sweep's record is k
     python experiments/rereport_filter.py results/csac/runs/csac/seed{1..5}
     safenav reproduce --algos csac --seeds 1-5
 
-A run already recording the adopted filter is skipped; a run directory without a ``--select``
-report, or a policy without a recorded filter, is refused.
+Each step is skipped where it is done already (the policy's record, the report, the test), so a
+killed run resumes; a run directory without a ``--select`` report, or a policy without a
+recorded filter, is refused.
 """
 
 from __future__ import annotations
@@ -58,28 +59,33 @@ def rerecord(policy: Path) -> tuple[dict, dict] | None:
 
 
 def rereport(run_dir: Path, episodes: int, device: str) -> None:
-    final_path, policy = run_dir / "final.json", run_dir / "policy.pt"
+    """Each step skipped where it is done (a killed run resumes where it stopped): the policy's
+    record, then ``final.json``'s report, then ``eval.json``, each behind the adopted filter."""
+    final_path, policy, eval_path = (
+        run_dir / name for name in ("final.json", "policy.pt", "eval.json")
+    )
     final = read_json(final_path)
     if not final or not policy.exists():
         raise SafenavError(f"{run_dir}: no --select report (final.json, policy.pt) to redo")
     changed = rerecord(policy)
-    if changed is None:
-        print(f"{run_dir}: records the adopted filter already; skipped")
-        return
-    t0 = time.perf_counter()
-    report = report_policy(policy, episodes=episodes, device=device)
-    final["report_before"] = {k: final.pop(k) for k in REPORT_KEYS if k in final}
-    final |= report | {"rereported": {
-        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "why": "the planner filter adopted since the run trained (docs/csac-v1.md)",
-        "command": f"python experiments/rereport_filter.py {run_dir}",
-        "flight_filter_before": changed[0], "report_wall_clock_s": 0.0}}  # fmt: skip
-    final["rereported"]["report_wall_clock_s"] = round(time.perf_counter() - t0, 1)
-    write_json(final_path, final)
-    subprocess.run([sys.executable, "-m", "safenav", "eval", str(policy), "--env-seed", "1",
-                    "--episodes", str(episodes), "--device", device, "--json",
-                    str(run_dir / "eval.json")], check=True)  # fmt: skip
-    test, held = report["test"], report["heldout"]
+    now = load_checkpoint(policy)["policy"]["meta"]["flight_filter"]
+    if final.get("flight_filter") != now:
+        before = changed[0] if changed else final.get("flight_filter")
+        t0 = time.perf_counter()
+        report = report_policy(policy, episodes=episodes, device=device)
+        final["report_before"] = {k: final.pop(k) for k in REPORT_KEYS if k in final}
+        final |= report | {"rereported": {
+            "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "why": "the planner filter adopted since the run was reported (docs/csac-v1.md)",
+            "command": f"python experiments/rereport_filter.py {run_dir}",
+            "flight_filter_before": before,
+            "report_wall_clock_s": round(time.perf_counter() - t0, 1)}}  # fmt: skip
+        write_json(final_path, final)
+    if (read_json(eval_path) or {}).get("planner_filter_spec") != now:
+        subprocess.run([sys.executable, "-m", "safenav", "eval", str(policy), "--env-seed", "1",
+                        "--episodes", str(episodes), "--device", device, "--json",
+                        str(eval_path)], check=True)  # fmt: skip
+    test, held = final["test"], final["heldout"]
     print(f"{run_dir}: test {test['success_rate']:.3f} / {test['collision_rate']:.3f}, held-out "
           f"{held['success_rate']:.3f} / {held['collision_rate']:.3f} (was "
           f"{final['report_before']['test']['success_rate']:.3f} / "

@@ -1,7 +1,8 @@
 """What a policy's timeouts on one map look like behind the recipe's flight shield and the
-adopted planner filter: per timeout episode, the path flown in its last 20 s, the net
-displacement over them, and the share of those steps where the filter's planner flew. Frozen:
-< 0.5 m flown; dithering: flown > 4x the net displacement; else still moving (a long route).
+sliding planner filter (with ``--short-moves``, the filter adopted now): per timeout episode,
+the path flown in its last 20 s, the net displacement over them, and the share of those steps
+where the filter's planner flew. Frozen: < 0.5 m flown; dithering: flown > 4x the net
+displacement; else still moving (a long route).
 Validation maps only (12345-12348) for a diagnosis that guides a choice.
 
     .venv/bin/python experiments/timeout_kinds.py results/csac-v1/filter/policies/csac.pt \\

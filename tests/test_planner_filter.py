@@ -215,7 +215,7 @@ def test_a_spec_round_trips_and_refuses_an_unknown_view():
 
     # the adopted filter (docs/csac-v1.md, "A sliding stall test")
     assert filter_spec() == {"view": "observation", "stall": [5.0, 1.0, 5.0],
-                             "stall_test": "sliding"}  # fmt: skip
+                             "stall_test": "sliding", "short_moves": True}  # fmt: skip
     the_filter = filter_from_spec(filter_spec())
     assert the_filter.view == "observation" and the_filter.stall == (5.0, 1.0, 5.0)
     assert the_filter.stall_test == "sliding"
@@ -353,10 +353,11 @@ def test_short_moves_take_the_planner_out_of_a_pocket_where_it_would_hover():
 def test_short_moves_are_recorded_in_the_spec_only_where_set():
     from safenav.envs.planner import filter_from_spec, filter_spec
 
-    assert "short_moves" not in filter_spec()
-    spec = filter_spec(short_moves=True)
+    assert "short_moves" not in filter_spec(short_moves=False)
+    spec = filter_spec()  # adopted (docs/csac-v1.md, "Short moves for the filter's planner")
     assert spec["short_moves"] is True and filter_from_spec(spec).short_moves
-    assert not filter_from_spec(filter_spec()).short_moves
+    assert not filter_from_spec(filter_spec(short_moves=False)).short_moves
+    assert not filter_from_spec({"view": "observation", "stall": None}).short_moves
 
 
 def test_a_flight_flies_the_filter_its_policy_records_unless_told_otherwise():

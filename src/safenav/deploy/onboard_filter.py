@@ -19,7 +19,13 @@ import numpy as np
 import torch
 
 from safenav.envs.config import EnvConfig
-from safenav.envs.planner import FILTER_STALL, FILTER_STALL_TEST, PlannerFilter, observes_pillars
+from safenav.envs.planner import (
+    FILTER_SHORT_MOVES,
+    FILTER_STALL,
+    FILTER_STALL_TEST,
+    PlannerFilter,
+    observes_pillars,
+)
 
 
 @dataclass
@@ -61,13 +67,15 @@ class VehicleView:
 class OnboardFilter(PlannerFilter):
     """:class:`~safenav.envs.planner.PlannerFilter` (observed view, the stall handover of
     ``stall`` and ``stall_test``, default the adopted :data:`~safenav.envs.planner.FILTER_STALL`,
-    tested in seconds of flight; ``short_moves`` as the env's, under test) over one vehicle's
+    tested in seconds of flight; the planner's ``short_moves``, default the adopted
+    :data:`~safenav.envs.planner.FILTER_SHORT_MOVES`) over one vehicle's
     :class:`VehicleView`: ``action = filter(view, obs, action)``, ``overridden[0]`` whether the
     planner's command replaced the policy's. A new goal, or :meth:`new_flight`, starts a new
     flight."""
 
     def __init__(self, stall: tuple[float, float, float] | None = FILTER_STALL,
-                 stall_test: str = FILTER_STALL_TEST, short_moves: bool = False) -> None:  # fmt: skip
+                 stall_test: str = FILTER_STALL_TEST,
+                 short_moves: bool = FILTER_SHORT_MOVES) -> None:  # fmt: skip
         super().__init__(view="observation", stall=stall, stall_test=stall_test,
                          short_moves=short_moves)  # fmt: skip
 

@@ -673,6 +673,10 @@ Adopted by its validation screen (2026-12-05; docs/csac-v1.md, "A sliding stall 
 the first handover, 2 m in tumbling 10 s windows (:data:`FILTER_STALL_TUMBLING`)."""
 FILTER_STALL_TEST = "sliding"
 """The adopted ``stall_test`` of :data:`FILTER_STALL`."""
+FILTER_SHORT_MOVES = True
+"""Whether the adopted filter's planner weighs short moves (``PlannerFilter(short_moves=...)``;
+adopted by its validation screen, 2026-12-05: docs/csac-v1.md, "Short moves for the filter's
+planner")."""
 FILTER_STALL_TUMBLING = (10.0, 2.0, 5.0)
 """The first adopted handover (tested in tumbling windows): what a policy's recorded filter
 without a ``"stall_test"`` (trained before 2026-12-05) flies."""
@@ -687,7 +691,8 @@ def observes_pillars(cfg) -> bool:
 
 def filter_spec(view: str = "observation",
                 stall: tuple[float, float, float] | None = FILTER_STALL,
-                stall_test: str = FILTER_STALL_TEST, short_moves: bool = False) -> dict:  # fmt: skip
+                stall_test: str = FILTER_STALL_TEST,
+                short_moves: bool = FILTER_SHORT_MOVES) -> dict:  # fmt: skip
     """A :class:`PlannerFilter` as a policy's ``meta["flight_filter"]`` records it (``safenav
     train --flight-filter``): ``{"view": ..., "stall": [window, progress, handover] or None,
     "stall_test": ...}`` and ``"short_moves": true`` where set; by default the adopted one."""
@@ -748,7 +753,8 @@ class PlannerFilter(OraclePlanner):
     ``"tumbling"`` (the first), at the end of back-to-back windows, so a dither is handed over one
     to two windows after it starts.
 
-    ``short_moves`` (under test, docs/csac-v1.md "Short moves for the filter's planner"): where
+    ``short_moves`` (adopted, :data:`FILTER_SHORT_MOVES`; docs/csac-v1.md "Short moves for the
+    filter's planner"): where
     the planner flies, it also weighs :meth:`~OraclePlanner.short_move_candidates`, each held
     0.5 s and then a stop: in a pocket between pillars, where every command held 2 s collides,
     the planner otherwise hovers there (watched on validation)."""
@@ -917,7 +923,7 @@ success / 0.021 collision on 144 validation episodes (with ``keep_band``: 0.896 
 PLANNERS = {"range": PLANNER_B, "pillars": PLANNER_PILLARS}
 """The planners a learner may replay (``CSACConfig.planner_view``), by what they see."""
 
-__all__ = ["FAR", "FILTER_STALL", "FILTER_STALL_TEST", "FILTER_STALL_TUMBLING", "FILTER_VIEWS",
+__all__ = ["FAR", "FILTER_SHORT_MOVES", "FILTER_STALL", "FILTER_STALL_TEST", "FILTER_STALL_TUMBLING", "FILTER_VIEWS",
            "PLANNERS", "PLANNER_B", "PLANNER_B_BEAMS", "PLANNER_PILLARS", "SHORT_MOVE_CLIMBS",
            "SHORT_MOVE_SPEEDS", "SHORT_MOVE_STEPS", "AutoresetPlanner", "OracleConfig",
            "OraclePlanner", "PlannerFilter", "ScanFn", "beam_hits", "behind_filter",
