@@ -9,10 +9,8 @@ shows, in numbers (docs/csac-v1.md, "The two-thread re-derivation, finished").
 The flight is ``safenav render``'s (the same frames and outcome): behind the recipe's flight
 shield (memory 1, map scan, 0.3 m mover margin, braking cap) and the planner filter the policy
 records (else, or with ``--adopted``, the sliding filter adopted before short moves, and with
-``--short-moves`` the filter adopted now: the observed view with the stall
-handover ``FILTER_STALL``).
-Validation maps only (12345-12348) for a diagnosis that
-guides a choice.
+``--short-moves`` the filter adopted now: the observed view with the stall handover
+``FILTER_STALL``). Validation maps only (12345-12348) for a diagnosis that guides a choice.
 """
 
 from __future__ import annotations
@@ -76,7 +74,8 @@ def main() -> None:
                         help="behind the sliding filter (adopted before short moves), not the "
                         "one the policy records")  # fmt: skip
     parser.add_argument("--short-moves", action="store_true",
-                        help="behind the filter adopted now, with its planner's short moves")  # fmt: skip
+                        help="behind the filter adopted now, with its planner's short "
+                        "moves")  # fmt: skip
     args = parser.parse_args()
     stats, rows = trace(args.checkpoint, args.env_seed, args.episode, args.adopted,
                         args.short_moves)  # fmt: skip

@@ -21,8 +21,8 @@ fraction of the policy's horizontal speed), e.g. ``1map-mover0.3-brake-keep0.5``
 (:class:`safenav.envs.planner.PlannerFilter`, the pillar planner's view of the simulator), e.g.
 ``1map-mover0.3-brake-filter``, or ``-filterobs`` the same filter seeing only what the vehicle
 has on board (the observation's pillar list and movers: ``view="observation"``), either with
-``-stall`` the planner's handover where a flight stalls (``stall=FILTER_STALL_TUMBLING``), or ``-stallP``
-the same with P metres of progress in its window (e.g. ``-stall4``: ``(10, 4, 5)``), or
+``-stall`` the planner's handover where a flight stalls (``stall=FILTER_STALL_TUMBLING``), or
+``-stallP`` the same with P metres of progress in its window (e.g. ``-stall4``: ``(10, 4, 5)``), or
 ``-stallslide`` the handover's sliding test (``stall_test="sliding"``), ``-stallslideW`` the same
 over a W s window with the same progress per second (e.g. ``-stallslide5``: ``(5, 1, 5)``);
 ``-short`` last: the filter's planner also weighs short moves (``short_moves=True``).

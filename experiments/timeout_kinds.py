@@ -1,4 +1,4 @@
-"""What a policy's timeouts on one map look like behind the recipe's flight shield and the
+"""What a policy's timeouts on one map look like behind its own flight shield and the
 sliding planner filter (with ``--short-moves``, the filter adopted now): per timeout episode,
 the path flown in its last 20 s, the net displacement over them, and the share of those steps
 where the filter's planner flew. Frozen: < 0.5 m flown; dithering: flown > 4x the net
@@ -17,9 +17,9 @@ from pathlib import Path
 import torch
 
 from safenav.algos.policy import load_policy
-from safenav.deploy.shield import shield_for_memory
-from safenav.envs.planner import filter_from_spec, filter_spec
+from safenav.envs.planner import behind_filter, filter_from_spec, filter_spec
 from safenav.experiments.evaluate import evaluate
+from safenav.experiments.selection import own_shield
 
 LAST_STEPS = 200  # the last 20 s at 10 Hz
 
@@ -36,11 +36,11 @@ def timeouts(checkpoint: Path, env_seed: int, episodes: int,
     """The evaluation's result and one row per timeout episode."""
     fn = load_policy(checkpoint)
     the_filter = filter_from_spec(filter_spec(short_moves=short_moves))
-    shield = shield_for_memory(1, True, 0.3, brake=True)  # the default recipe's flight shield
+    shielded = behind_filter(own_shield(fn), the_filter)  # as the policy's report flies
     track: list[tuple[torch.Tensor, torch.Tensor]] = []
 
     def flown(env, obs, action):
-        out = the_filter(env, obs, shield(env, obs, action))
+        out = shielded(env, obs, action)
         track.append((env.pos.clone(), the_filter.overridden.clone()))
         return out
 
@@ -56,7 +56,8 @@ def timeouts(checkpoint: Path, env_seed: int, episodes: int,
         net = float((pos[-1, i] - pos[0, i]).norm())
         rows.append({"episode": i, "path_m": round(path, 2), "net_m": round(net, 2),
                      "planner_share": round(float(planner[:, i].mean()), 2),
-                     "kind": kind(path, net), "end": [round(x, 1) for x in pos[-1, i].tolist()]})  # fmt: skip
+                     "kind": kind(path, net),
+                     "end": [round(x, 1) for x in pos[-1, i].tolist()]})  # fmt: skip
     return result, rows
 
 

@@ -118,7 +118,8 @@ class RuntimeConfig:
     """After the shield, the planner filter (:class:`~safenav.deploy.onboard_filter.OnboardFilter`,
     beyond the paper; ``safenav eval --planner-filter``'s observed view with the stall handover):
     the pillar planner flies where the command leaves no way out, and for 5 s where the flight
-    came less than 1 m nearer its goal over the last 5 s (``FILTER_STALL``). Needs the policy's pillar list (``EnvConfig.static_tracked`` > 0)."""
+    came less than 1 m nearer its goal over the last 5 s (``FILTER_STALL``). Needs the policy's
+    pillar list (``EnvConfig.static_tracked`` > 0)."""
     geofence: bool = True
     """Mark the env's arena border as a wall in the onboard map, as the simulator does (SafeNav-v1
     trains policies in a closed arena): the flight area is a geofence the policy sees coming. As

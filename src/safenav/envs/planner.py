@@ -762,7 +762,8 @@ class PlannerFilter(OraclePlanner):
     def __init__(self, config: OracleConfig | None = None, hold: int = 1,
                  scan: ScanFn | None = None, view: str = "simulator",
                  stall: tuple[float, float, float] | None = None,
-                 stall_test: str = FILTER_STALL_TEST, short_moves: bool = False) -> None:  # fmt: skip
+                 stall_test: str = FILTER_STALL_TEST,
+                 short_moves: bool = False) -> None:  # fmt: skip
         super().__init__(config or PLANNER_PILLARS, scan)
         if not 1 <= hold < self.cfg.horizon:
             raise ValueError(f"hold={hold}: between 1 and the horizon - 1 ({self.cfg.horizon - 1})")
@@ -923,9 +924,9 @@ success / 0.021 collision on 144 validation episodes (with ``keep_band``: 0.896 
 PLANNERS = {"range": PLANNER_B, "pillars": PLANNER_PILLARS}
 """The planners a learner may replay (``CSACConfig.planner_view``), by what they see."""
 
-__all__ = ["FAR", "FILTER_SHORT_MOVES", "FILTER_STALL", "FILTER_STALL_TEST", "FILTER_STALL_TUMBLING", "FILTER_VIEWS",
-           "PLANNERS", "PLANNER_B", "PLANNER_B_BEAMS", "PLANNER_PILLARS", "SHORT_MOVE_CLIMBS",
-           "SHORT_MOVE_SPEEDS", "SHORT_MOVE_STEPS", "AutoresetPlanner", "OracleConfig",
-           "OraclePlanner", "PlannerFilter", "ScanFn", "beam_hits", "behind_filter",
-           "filter_from_spec", "filter_spec", "geodesic_fields", "mover_clearance", "sample_field",
-           "to_action"]  # fmt: skip
+__all__ = ["FAR", "FILTER_SHORT_MOVES", "FILTER_STALL", "FILTER_STALL_TEST",
+           "FILTER_STALL_TUMBLING", "FILTER_VIEWS", "PLANNERS", "PLANNER_B", "PLANNER_B_BEAMS",
+           "PLANNER_PILLARS", "SHORT_MOVE_CLIMBS", "SHORT_MOVE_SPEEDS", "SHORT_MOVE_STEPS",
+           "AutoresetPlanner", "OracleConfig", "OraclePlanner", "PlannerFilter", "ScanFn",
+           "beam_hits", "behind_filter", "filter_from_spec", "filter_spec", "geodesic_fields",
+           "mover_clearance", "sample_field", "to_action"]  # fmt: skip
