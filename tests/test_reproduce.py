@@ -455,6 +455,9 @@ def test_trial_fresh_then_skipped_then_resumed_for_more_steps(tmp_path, fake_pyt
     assert kept["env_steps"] == 2000 and kept["budget_env_steps"] == 2000
     assert "--select" in kept["train_command"] and kept["heldout"]["seeds"] == [2, 3, 4, 5, 6]
     assert kept["test_navrl_rule"]["collision_rate"] == pytest.approx(0.05)
+    # with the evaluated policy beside it, so that a fresh clone can fly it again
+    assert kept["policy"] == "trials/csac-s0.pt"
+    assert (tmp_path / "trials" / "csac-s0.pt").read_bytes() == longer.policy.read_bytes()
     # Training wall-clock: the measured attempts (the run logged no elapsed-time column).
     assert rec["wall_clock_s"] == marker["train_wall_clock_s"] > 0
 

@@ -28,6 +28,7 @@ from __future__ import annotations
 import contextlib
 import os
 import shlex
+import shutil
 import signal
 import socket
 import subprocess
@@ -156,6 +157,13 @@ class Trial:
     def record_path(self) -> Path:
         """``OUT/trials/<label>-s<S>.json``: the finished trial's record, small enough to commit."""
         return self.log_dir.parent / "trials" / f"{self.label}-s{self.seed}.json"
+
+    @property
+    def kept_policy_path(self) -> Path:
+        """``OUT/trials/<label>-s<S>.pt``: the evaluated policy without optimisers or critics,
+        committed with the record so that a fresh clone can evaluate it again (behind another
+        filter, on other maps) without training it again."""
+        return self.record_path.with_suffix(".pt")
 
     def log(self, kind: str) -> Path:
         """``OUT/logs/<label>-seed<S>.<kind>``."""
@@ -437,8 +445,10 @@ def report_order(rec: dict[str, Any]) -> tuple[int, str, int]:
 def write_trial_record(trial: Trial, rec: dict[str, Any] | None = None) -> dict[str, Any]:
     """``OUT/trials/<label>-s<S>.json``: the trial's row of the results (test, held-out,
     selection, budget, wall-clock, arena metrics; ``rec``, the run's :func:`seed_record` when the
-    caller has it, is not modified) and the commands that made it; commit it as each trial
-    finishes (the run directory itself is large and ignored)."""
+    caller has it, is not modified) and the commands that made it, and beside it the evaluated
+    ``policy.pt`` of a ``--select`` trial (:attr:`Trial.kept_policy_path`, named in the record's
+    ``"policy"``); commit both as each trial finishes (the run directory itself is large and
+    ignored, and a re-evaluation needs the policy)."""
     rec = dict(rec) if rec is not None else seed_record(trial.run_dir, algo=trial.label,
                                                          seed=trial.seed)  # fmt: skip
     marker = read_json(trial.run_dir / "reproduce.json") or {}
@@ -448,6 +458,11 @@ def write_trial_record(trial: Trial, rec: dict[str, Any] | None = None) -> dict[
             "eval_command": shlex.join(trial.eval_command()[1:]),
             "recipe": (read_json(trial.run_dir / "config.json") or {}).get("recipe", {}).get("name")}  # fmt: skip
     trial.record_path.parent.mkdir(parents=True, exist_ok=True)
+    if trial.select and trial.policy.exists():  # policy.pt of --select: policy-only, ~0.7 MB
+        part = trial.kept_policy_path.with_suffix(".pt.part")
+        shutil.copyfile(trial.policy, part)
+        os.replace(part, trial.kept_policy_path)  # atomic: a killed sweep leaves no half file
+        rec["policy"] = os.path.relpath(trial.kept_policy_path, out)
     write_json(trial.record_path, rec)
     return rec
 
