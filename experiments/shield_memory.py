@@ -25,7 +25,8 @@ has on board (the observation's pillar list and movers: ``view="observation"``),
 ``-stallP`` the same with P metres of progress in its window (e.g. ``-stall4``: ``(10, 4, 5)``), or
 ``-stallslide`` the handover's sliding test (``stall_test="sliding"``), ``-stallslideW`` the same
 over a W s window with the same progress per second (e.g. ``-stallslide5``: ``(5, 1, 5)``);
-``-short`` last: the filter's planner also weighs short moves (``short_moves=True``).
+``-short`` last: the filter's planner also weighs short moves (``short_moves=True``), and
+``-mapped`` after it plans each stall handover on the pillars seen (``handover_map=True``).
 One JSON per
 (policy, setting, map) in OUT
 (a rerun skips those that exist), then a table of the mean over maps per (policy, setting) on
@@ -73,10 +74,11 @@ def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str, flo
     ``-slide``: its sliding form, ``"slide"`` there; ``-keep0.5``: ``ShieldConfig.keep_moving``
     0.5; ``-filter``, last: the planner filter after the shield (its view last: ``"simulator"``;
     ``-filterobs``: ``"observation"``; None without; ``-stall`` or ``-stallP`` after either:
-    ``"...-stall"``, ``"...-stallP"``; ``-short`` last: ``"...-short"``)."""
+    ``"...-stall"``, ``"...-stallP"``; ``-short`` last: ``"...-short"``, ``-mapped`` after it:
+    ``"...-mapped"``)."""
     found = re.fullmatch(
         r"(\d+)(map)?(?:-mover([0-9.]+))?(-lag)?(-brake|-slide)?(?:-keep([0-9.]+))?"
-        r"(-filter(?:obs)?(?:-stall(?:slide)?(?:[0-9.]+)?)?(?:-short)?)?",
+        r"(-filter(?:obs)?(?:-stall(?:slide)?(?:[0-9.]+)?)?(?:-short)?(?:-mapped)?)?",
         setting,
     )
     if found is None:
@@ -87,13 +89,19 @@ def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str, flo
     if not 0.0 <= keep <= 1.0:
         raise SystemExit(f"shield setting {setting!r}: -keepK takes K in [0, 1]")
     filtered = found[7] or ""
+    mapped = filtered.endswith("-mapped")
+    filtered = filtered.removesuffix("-mapped")
     short = filtered.endswith("-short")
     head, stall, progress = filtered.removesuffix("-short").partition("-stall")
     view = {"": None, "-filter": "simulator", "-filterobs": "observation"}[head]
+    if mapped and not stall:
+        raise SystemExit(f"shield setting {setting!r}: -mapped plans the stall handovers (-stall)")
     if stall:
         view += "-stall" + progress
     if short:
         view += "-short"
+    if mapped:
+        view += "-mapped"
     return (int(found[1]), found[2] is not None, float(found[3] or 0.0), found[4] is not None,
             brake, keep, view)  # fmt: skip
 
@@ -133,12 +141,14 @@ def run(
                     shield = shield_for_memory(memory, scan, mover, lag, brake, keep)
                     extra = {"keep_moving": keep} if keep else {}
                     if filtered:
-                        short = filtered.endswith("-short")
-                        view, _, stall = filtered.removesuffix("-short").partition("-")
+                        mapped = filtered.endswith("-mapped")
+                        short = filtered.removesuffix("-mapped").endswith("-short")
+                        view, _, stall = (filtered.removesuffix("-mapped").removesuffix("-short")
+                                          .partition("-"))  # fmt: skip
                         stall_setting, stall_test = stall_of(stall)
                         planner_filter = PlannerFilter(view=view, stall=stall_setting,
-                                                       stall_test=stall_test,
-                                                       short_moves=short)  # fmt: skip
+                                                       stall_test=stall_test, short_moves=short,
+                                                       handover_map=mapped)  # fmt: skip
                         shield = behind_filter(shield, planner_filter)
                     started = time.perf_counter()
                     r = evaluate(fn, cfg, env_seed=seed, episodes=episodes, shield=shield)

@@ -319,6 +319,11 @@ def test_shield_memory_parses_the_braking_and_filter_settings():
     assert sm.parse_setting("1map-mover0.3-brake-filterobs-stallslide5-short")[-1] == (
         "observation-stallslide5-short"
     )
+    assert sm.parse_setting("1map-mover0.3-brake-filterobs-stallslide5-short-mapped")[-1] == (
+        "observation-stallslide5-short-mapped"
+    )
+    with pytest.raises(SystemExit, match="-mapped"):
+        sm.parse_setting("1map-mover0.3-brake-filterobs-mapped")
     with pytest.raises(SystemExit, match="-filterobs"):
         sm.parse_setting("1map-stall")
     with pytest.raises(SystemExit, match="-slide"):

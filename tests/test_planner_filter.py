@@ -392,3 +392,61 @@ def test_a_flight_flies_the_filter_its_policy_records_unless_told_otherwise():
                                False, "observation")  # fmt: skip
     finally:
         ARGS.reset(token)
+
+
+def _cup() -> tuple[SafeNavVectorEnv, dict]:
+    """Env 0's UAV at the arena's centre, its goal 8 m ahead (+x), inside a cup of tall pillars
+    that opens away from the goal: a row across the way 2 m ahead (y from -3 to 3) and an arm
+    back along each side (x from -1 to 2); no other pillar. The straight distance to the goal
+    has its minimum at the cup's bottom."""
+    env, obs = _env(2, num_dynamic=0, map_size=50.0, num_static=40)
+    w, z = int(env.world_idx[0]), float(env.pos[0, 2])
+    env.pos[0] = torch.tensor([0.0, 0.0, z])
+    env.vel[0] = 0.0
+    env.goal[0] = torch.tensor([8.0, 0.0, z])
+    spots = [(2.0, 0.8 * k) for k in range(-4, 5)]
+    spots += [(x, side * 3.2) for x in (-1.2, -0.4, 0.4, 1.2) for side in (-1, 1)]
+    env.pillar_xy[w, : env.n_static] = 1e3
+    for i, xy in enumerate(spots):
+        env.pillar_xy[w, i] = torch.tensor(xy, dtype=env.pillar_xy.dtype)
+        env.pillar_half[w, i], env.pillar_height[w, i] = 0.5, 10.0
+    return env, obs
+
+
+def _fly_the_cup(handover_map: bool, seconds: float = 40.0) -> torch.Tensor:
+    """Hover behind a (1 s, 1 m, 3 s) stall handover in the cup; env 0's path (T, 3)."""
+    env, obs = _cup()
+    filt = PlannerFilter(stall=(1.0, 1.0, 3.0), stall_test="sliding", short_moves=True,
+                         handover_map=handover_map)  # fmt: skip
+    hover = torch.zeros(env.num_envs, 3)
+    path = []
+    for _ in range(int(seconds / env.cfg.dt)):
+        obs, *_ = env.step(filt(env, obs, to_action(hover, env.cos_yaw, env.sin_yaw,
+                                                     env.cfg.v_max)))  # fmt: skip
+        path.append(env.pos[0].clone())
+        if bool(filt.finished[0]):
+            break
+    return torch.stack(path)
+
+
+def test_a_map_of_the_pillars_seen_takes_the_handover_out_of_a_cup():
+    straight = _fly_the_cup(handover_map=False)
+    # the straight distance's planner flies to the cup's bottom and stays in the cup
+    assert float(straight[:, 0].amax()) < 2.0 and float(straight[:, 1].abs().amax()) < 3.2
+    mapped = _fly_the_cup(handover_map=True)
+    # around an arm and past the row: at the goal (the episode ends there)
+    assert float((mapped[-1] - torch.tensor([8.0, 0.0, float(mapped[0, 2])])).norm()) < 1.0
+    assert float(mapped[:, 0].amin()) < -1.2  # out by the cup's open end
+
+
+def test_the_handover_map_is_recorded_in_the_spec_only_where_set():
+    from safenav.envs.planner import filter_from_spec, filter_spec
+
+    assert "handover_map" not in filter_spec()
+    spec = filter_spec(handover_map=True)
+    assert spec["handover_map"] is True and filter_from_spec(spec).handover_map
+    assert not filter_from_spec(filter_spec()).handover_map
+    with pytest.raises(ValueError, match="stall"):
+        filter_spec(stall=None, handover_map=True)
+    with pytest.raises(ValueError, match="stall"):
+        PlannerFilter(handover_map=True)

@@ -65,6 +65,11 @@ SHORT_MOVE_CLIMBS = (-0.25, 0.0, 0.25)
 """Vertical speeds (m/s) of :meth:`OraclePlanner.short_move_candidates`."""
 SHORT_MOVE_STEPS = 5
 """Control steps a short move is held before its stop (0.5 s at 10 Hz: 0.1-0.4 m of flight)."""
+MAP_PILLARS = 512
+"""Pillars a :class:`PlannerFilter` with ``handover_map`` remembers per episode (the paper's
+arena holds 350)."""
+MAP_MATCH = 0.05
+"""Distance (m, per axis) within which two sightings of a pillar's centre are the same pillar."""
 ScanFn = Callable[[SafeNavVectorEnv, torch.Tensor], torch.Tensor]
 """``scan(env, ids) -> (len(ids), K, 2)``: world ``(x, y)`` of obstacle columns (``FAR`` = none)."""
 
@@ -206,17 +211,15 @@ def to_action(v_world: torch.Tensor, cos_yaw, sin_yaw, v_max: float) -> torch.Te
     return (world_to_goal_frame(v_world, cos_yaw, sin_yaw) / v_max).clamp(-1.0, 1.0)
 
 
-def geodesic_fields(
-    env: SafeNavVectorEnv, res: float, block_penalty: float, margin: float
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Cost-to-go to each episode's goal around the pillars: ``(fields (F, G, G), index (N,))``,
-    ``fields[index[i], ix, iy]`` the path length (m) from the cell centre ``(ix, iy)`` to env
-    ``i``'s goal over an 8-connected grid whose cells near a pillar (any height) or the wall cost
-    ``1 + block_penalty`` times more (finite: a field with no unreachable cell)."""
+def grid_graph(pxy: np.ndarray, half: np.ndarray, cfg, res: float, block_penalty: float,
+               margin: float):  # fmt: skip
+    """The 8-connected grid over the arena (cells of side ``res``, ``G = ceil(map_size / res)``
+    a side) as a sparse graph for :func:`scipy.sparse.csgraph.dijkstra`: each edge as long as it
+    is, times ``1 + block_penalty`` where a cell lies within ``uav_radius + margin`` of a pillar's
+    footprint ``pxy (P, 2)``, ``half (P,)`` (any height) or of the wall (finite: no cell is
+    unreachable). Returns ``(graph, G)``."""
     from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import dijkstra
 
-    cfg = env.cfg
     g = int(math.ceil(cfg.map_size / res))
     centres = -cfg.half + (np.arange(g) + 0.5) * res
     cx, cy = np.meshgrid(centres, centres, indexing="ij")
@@ -224,30 +227,49 @@ def geodesic_fields(
     ids = np.arange(g * g).reshape(g, g)
     pairs = [(ids[:, :-1], ids[:, 1:], 1.0), (ids[:-1, :], ids[1:, :], 1.0),
              (ids[:-1, :-1], ids[1:, 1:], math.sqrt(2)), (ids[:-1, 1:], ids[1:, :-1], math.sqrt(2))]  # fmt: skip
-    goals = env.goal[:, :2].cpu().numpy()
-    goal_cell = np.clip(((goals + cfg.half) / res).astype(np.int64), 0, g - 1)
-    goal_id = goal_cell[:, 0] * g + goal_cell[:, 1]
+    clear = np.full(len(cells), np.inf)
+    for i in range(0, len(pxy), 64):  # footprint distance of every cell, 64 pillars at a time
+        d = np.clip(
+            np.abs(cells[:, None] - pxy[None, i : i + 64]) - half[None, i : i + 64, None],
+            0,
+            None,
+        )
+        clear = np.minimum(clear, np.linalg.norm(d, axis=-1).min(-1))
+    clear = np.minimum(clear, cfg.half - np.abs(cells).max(-1))
+    cost = 1.0 + block_penalty * (clear <= cfg.uav_radius + margin)
+    rows, cols, vals = [], [], []
+    for a, b, length in pairs:
+        a, b = a.ravel(), b.ravel()
+        rows.append(a), cols.append(b), vals.append(length * res * (cost[a] + cost[b]) / 2)
+    graph = coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                       shape=(g * g, g * g)).tocsr()  # fmt: skip
+    return graph, g
+
+
+def goal_cells(goals: np.ndarray, cfg, res: float) -> np.ndarray:
+    """The grid cell index (of :func:`grid_graph`) of each goal ``(N, 2)``."""
+    g = int(math.ceil(cfg.map_size / res))
+    cell = np.clip(((goals + cfg.half) / res).astype(np.int64), 0, g - 1)
+    return cell[:, 0] * g + cell[:, 1]
+
+
+def geodesic_fields(
+    env: SafeNavVectorEnv, res: float, block_penalty: float, margin: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Cost-to-go to each episode's goal around the pillars: ``(fields (F, G, G), index (N,))``,
+    ``fields[index[i], ix, iy]`` the path length (m) from the cell centre ``(ix, iy)`` to env
+    ``i``'s goal over :func:`grid_graph` (cells near a pillar, any height, or the wall cost
+    ``1 + block_penalty`` times more)."""
+    from scipy.sparse.csgraph import dijkstra
+
+    cfg = env.cfg
+    goal_id = goal_cells(env.goal[:, :2].cpu().numpy(), cfg, res)
     worlds = env.world_idx.cpu().numpy()
     fields, index = [], np.zeros(env.num_envs, dtype=np.int64)
     for w in range(env.num_worlds):
         pxy = env.pillar_xy[w, : env.n_static].cpu().numpy()
         half = env.pillar_half[w, : env.n_static].cpu().numpy()
-        clear = np.full(len(cells), np.inf)
-        for i in range(0, len(pxy), 64):  # footprint distance of every cell, 64 pillars at a time
-            d = np.clip(
-                np.abs(cells[:, None] - pxy[None, i : i + 64]) - half[None, i : i + 64, None],
-                0,
-                None,
-            )
-            clear = np.minimum(clear, np.linalg.norm(d, axis=-1).min(-1))
-        clear = np.minimum(clear, cfg.half - np.abs(cells).max(-1))
-        cost = 1.0 + block_penalty * (clear <= cfg.uav_radius + margin)
-        rows, cols, vals = [], [], []
-        for a, b, length in pairs:
-            a, b = a.ravel(), b.ravel()
-            rows.append(a), cols.append(b), vals.append(length * res * (cost[a] + cost[b]) / 2)
-        graph = coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                           shape=(g * g, g * g)).tocsr()  # fmt: skip
+        graph, g = grid_graph(pxy, half, cfg, res, block_penalty, margin)
         mine = np.nonzero(worlds == w)[0]
         sources, inverse = np.unique(goal_id[mine], return_inverse=True)
         dist = dijkstra(graph, directed=False, indices=sources)
@@ -577,11 +599,13 @@ class OraclePlanner:
                 "intrude": both("intrude", torch.maximum), "least": both("least", torch.minimum),
                 "p": tail["p"], "v": tail["v"]}  # fmt: skip
 
-    def choose(self, scene: dict, cmds: torch.Tensor,
-               short: torch.Tensor | None = None) -> torch.Tensor:  # fmt: skip
+    def choose(self, scene: dict, cmds: torch.Tensor, short: torch.Tensor | None = None,
+               field: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:  # fmt: skip
         """The planner's command ``(n, 3)`` among ``cmds`` ``(n, K, 3)``, each held from now for
         the horizon, and ``short`` ``(n, S, 3)`` (:meth:`short_move_candidates`), each held for
-        :data:`SHORT_MOVE_STEPS` steps and then a stop: the lowest score (module docstring)."""
+        :data:`SHORT_MOVE_STEPS` steps and then a stop: the lowest score (module docstring).
+        ``field``: ``(fields (n, G, G), use (n,))``, a geodesic cost-to-go of its own for the
+        episodes where ``use`` (:class:`PlannerFilter`'s ``handover_map``)."""
         c, env = self.cfg, scene["env"]
         ec, ids = env.cfg, scene["ids"]
         start = lambda m: (scene["pos"][:, None].expand(n, m, 3).contiguous(),  # noqa: E731
@@ -611,6 +635,11 @@ class OraclePlanner:
         else:
             horiz = flat
             ctg = delta.norm(dim=-1)
+        if field is not None:
+            grid, use = field
+            geo = torch.maximum(sample_field(grid, p[..., :2], ec.half, c.grid_resolution), flat)
+            horiz = torch.where(use[:, None], geo, horiz)
+            ctg = torch.where(use[:, None], (geo * geo + delta[..., 2] ** 2).sqrt(), ctg)
         if c.cruise is not None:  # far from the goal: horizontal cost-to-go + |z - cruise|
             far = flat > c.cruise_until
             ctg = torch.where(far, horiz + (c.cruise - p[..., 2]).abs(), ctg)
@@ -692,17 +721,25 @@ def observes_pillars(cfg) -> bool:
 def filter_spec(view: str = "observation",
                 stall: tuple[float, float, float] | None = FILTER_STALL,
                 stall_test: str = FILTER_STALL_TEST,
-                short_moves: bool = FILTER_SHORT_MOVES) -> dict:  # fmt: skip
+                short_moves: bool = FILTER_SHORT_MOVES,
+                handover_map: bool = False) -> dict:  # fmt: skip
     """A :class:`PlannerFilter` as a policy's ``meta["flight_filter"]`` records it (``safenav
     train --flight-filter``): ``{"view": ..., "stall": [window, progress, handover] or None,
-    "stall_test": ...}`` and ``"short_moves": true`` where set; by default the adopted one."""
+    "stall_test": ...}`` and ``"short_moves": true``, ``"handover_map": true`` where set; by
+    default the adopted one."""
     if view not in FILTER_VIEWS:
         raise ValueError(f"view={view!r}: choose one of {FILTER_VIEWS}")
     if stall_test not in STALL_TESTS:
         raise ValueError(f"stall_test={stall_test!r}: choose one of {STALL_TESTS}")
+    if handover_map and stall is None:
+        raise ValueError("handover_map plans the stall handovers: it needs a stall setting")
     stall = None if stall is None else [float(x) for x in stall]
     spec = {"view": view, "stall": stall, "stall_test": stall_test}
-    return {**spec, "short_moves": True} if short_moves else spec
+    if short_moves:
+        spec["short_moves"] = True
+    if handover_map:
+        spec["handover_map"] = True
+    return spec
 
 
 def filter_from_spec(spec: dict) -> PlannerFilter:
@@ -717,7 +754,8 @@ def filter_from_spec(spec: dict) -> PlannerFilter:
         raise ValueError(f"planner filter {spec!r}: stall is [window s, progress m, handover s]")
     return PlannerFilter(view=spec["view"], stall=None if stall is None else tuple(stall),
                          stall_test=spec.get("stall_test", "tumbling"),
-                         short_moves=bool(spec.get("short_moves", False)))  # fmt: skip
+                         short_moves=bool(spec.get("short_moves", False)),
+                         handover_map=bool(spec.get("handover_map", False)))  # fmt: skip
 
 
 class PlannerFilter(OraclePlanner):
@@ -757,13 +795,19 @@ class PlannerFilter(OraclePlanner):
     filter's planner"): where
     the planner flies, it also weighs :meth:`~OraclePlanner.short_move_candidates`, each held
     0.5 s and then a stop: in a pocket between pillars, where every command held 2 s collides,
-    the planner otherwise hovers there (watched on validation)."""
+    the planner otherwise hovers there (watched on validation).
+
+    ``handover_map`` (docs/csac-v1.md, "A map for the stall handover"): the filter remembers
+    every pillar its view has shown in the episode (up to :data:`MAP_PILLARS`), and at the start
+    of each stall handover plans the handover on a geodesic cost-to-go to the goal around them
+    (:func:`grid_graph`, Dijkstra) instead of the straight distance, whose local minima (a goal
+    behind a row of pillars) are where the stalls were watched to dither."""
 
     def __init__(self, config: OracleConfig | None = None, hold: int = 1,
                  scan: ScanFn | None = None, view: str = "simulator",
                  stall: tuple[float, float, float] | None = None,
                  stall_test: str = FILTER_STALL_TEST,
-                 short_moves: bool = False) -> None:  # fmt: skip
+                 short_moves: bool = False, handover_map: bool = False) -> None:  # fmt: skip
         super().__init__(config or PLANNER_PILLARS, scan)
         if not 1 <= hold < self.cfg.horizon:
             raise ValueError(f"hold={hold}: between 1 and the horizon - 1 ({self.cfg.horizon - 1})")
@@ -774,7 +818,9 @@ class PlannerFilter(OraclePlanner):
         if stall_test not in STALL_TESTS:
             raise ValueError(f"stall_test={stall_test!r}: choose one of {STALL_TESTS}")
         self.hold, self.view, self.stall, self.stall_test = int(hold), view, stall, stall_test
-        self.short_moves = bool(short_moves)
+        if handover_map and stall is None:
+            raise ValueError("handover_map plans the stall handovers: it needs stall=")
+        self.short_moves, self.handover_map = bool(short_moves), bool(handover_map)
         self.overrides = self.steps = self.handovers = 0
         self.overridden: torch.Tensor | None = None
 
@@ -797,6 +843,40 @@ class PlannerFilter(OraclePlanner):
         if self.stall is not None and self.stall_test == "sliding":  # the last window's distances
             w = max(1, round(self.stall[0] / env.cfg.dt))
             self._history = torch.full((n, w + 1), math.inf, device=env.device)
+        if self.handover_map:  # the pillars seen in each episode, and each handover's field
+            self._map_xy = torch.full((n, MAP_PILLARS, 2), FAR, device=env.device)
+            self._map_half = torch.zeros(n, MAP_PILLARS, device=env.device)
+            self._fields: dict[int, torch.Tensor] = {}
+
+    def _remember(self, env: SafeNavVectorEnv, ids: torch.Tensor, scene: dict) -> None:
+        """Add the pillars in view (``scene``'s rows above ground) to episodes ``ids``' maps; an
+        episode at its first step starts an empty map. A pillar within :data:`MAP_MATCH` of one
+        remembered (both centres) is the same pillar."""
+        fresh = ids[env.steps[ids] == 0]
+        self._map_xy[fresh], self._map_half[fresh] = FAR, 0.0
+        xy, half = scene["pxy"].to(self._map_xy.dtype), scene["phalf"].to(self._map_xy.dtype)
+        known = self._map_xy[ids]  # (n, M, 2)
+        same = ((xy[:, :, None] - known[:, None]).abs().amax(-1) < MAP_MATCH).any(-1)
+        new = (scene["ph"] > -FAR / 2) & ~same  # (n, m)
+        count = (known[..., 0] < FAR / 2).sum(-1)
+        slot = count[:, None] + new.long().cumsum(-1) - 1
+        rows, cols = (new & (slot < MAP_PILLARS)).nonzero(as_tuple=True)
+        self._map_xy[ids[rows], slot[rows, cols]] = xy[rows, cols]
+        self._map_half[ids[rows], slot[rows, cols]] = half[rows, cols]
+
+    def _plan_handover(self, env: SafeNavVectorEnv, i: int) -> None:
+        """Episode ``i``'s geodesic cost-to-go to its goal around the pillars it has seen."""
+        from scipy.sparse.csgraph import dijkstra
+
+        c = self.cfg
+        known = self._map_xy[i, :, 0] < FAR / 2
+        pxy = self._map_xy[i, known].cpu().double().numpy()
+        half = self._map_half[i, known].cpu().double().numpy()
+        graph, g = grid_graph(pxy, half, env.cfg, c.grid_resolution, c.block_penalty, c.margin)
+        goal = goal_cells(env.goal[i : i + 1, :2].cpu().numpy(), env.cfg, c.grid_resolution)
+        dist = dijkstra(graph, directed=False, indices=int(goal[0]))
+        self._fields[i] = torch.as_tensor(dist.reshape(g, g), dtype=torch.float32,
+                                          device=env.device)  # fmt: skip
 
     def _handing_over(self, env: SafeNavVectorEnv, ids: torch.Tensor) -> torch.Tensor:
         """``stall``'s test for episodes ``ids``: ``(n,)`` True where the planner flies now."""
@@ -807,6 +887,9 @@ class PlannerFilter(OraclePlanner):
         t = env.steps[ids].to(torch.long)
         test = self._sliding_stalled if self.stall_test == "sliding" else self._tumbling_stalled
         stalled = test(ids, d, t, w, progress)
+        if self.handover_map:
+            for i in ids[stalled].tolist():
+                self._plan_handover(env, i)
         self._handover_left[ids[stalled]] = h
         if self.stall_test == "sliding":
             self._mark_step[ids[stalled]] = t[stalled] + h  # a full window after it ends
@@ -852,6 +935,8 @@ class PlannerFilter(OraclePlanner):
         proposal = goal_frame_to_world(action[ids].clamp(-1.0, 1.0) * ec.v_max, cos_y, sin_y)
         cmds = self.candidates(obs, env, ids)  # (n, K, 3)
         scene = (self.scene if self.view == "simulator" else self.observed_scene)(obs, env, ids)
+        if self.handover_map:
+            self._remember(env, ids, scene)
         n, k = cmds.shape[:2]
         clean = lambda r: (r["first_hit"] == never) & (r["intrude"] <= 0)  # noqa: E731
         start = lambda sc: (sc["pos"][:, None], sc["vel"][:, None])  # noqa: E731  one rollout each
@@ -865,8 +950,10 @@ class PlannerFilter(OraclePlanner):
             tail = self.simulate(sub, cmds[rest], head["p"].expand(-1, k, 3).contiguous(),
                                  head["v"].expand(-1, k, 3).contiguous(), self.hold)  # fmt: skip
             safe[rest] = clean(head)[:, 0] & clean(tail).any(-1)
+        handing = torch.zeros_like(safe)
         if self.stall is not None:
-            safe = safe & ~self._handing_over(env, ids)
+            handing = self._handing_over(env, ids)
+            safe = safe & ~handing
         flown = proposal
         self.steps += n
         bad = (~safe).nonzero().squeeze(-1)
@@ -874,7 +961,14 @@ class PlannerFilter(OraclePlanner):
             self.overrides += len(bad)
             self.overridden[ids[bad]] = True
             short = self.short_move_candidates(env, ids[bad]) if self.short_moves else None
-            chosen = self.choose(_scene_rows(scene, bad), cmds[bad], short)
+            field = None
+            if self.handover_map and bool(handing[bad].any()):  # handovers fly their own field
+                mapped = [int(i) in self._fields for i in ids[bad].tolist()]
+                use = handing[bad] & torch.tensor(mapped, device=env.device)
+                grids = [self._fields.get(int(i)) for i in ids[bad].tolist()]
+                blank = torch.zeros_like(next(x for x in grids if x is not None))
+                field = (torch.stack([blank if x is None else x for x in grids]), use)
+            chosen = self.choose(_scene_rows(scene, bad), cmds[bad], short, field)
             flown = proposal.clone()
             flown[bad] = chosen
             out[ids[bad]] = to_action(chosen, cos_y[bad], sin_y[bad], ec.v_max).to(out.dtype)
@@ -925,8 +1019,9 @@ PLANNERS = {"range": PLANNER_B, "pillars": PLANNER_PILLARS}
 """The planners a learner may replay (``CSACConfig.planner_view``), by what they see."""
 
 __all__ = ["FAR", "FILTER_SHORT_MOVES", "FILTER_STALL", "FILTER_STALL_TEST",
-           "FILTER_STALL_TUMBLING", "FILTER_VIEWS", "PLANNERS", "PLANNER_B", "PLANNER_B_BEAMS",
-           "PLANNER_PILLARS", "SHORT_MOVE_CLIMBS", "SHORT_MOVE_SPEEDS", "SHORT_MOVE_STEPS",
-           "AutoresetPlanner", "OracleConfig", "OraclePlanner", "PlannerFilter", "ScanFn",
-           "beam_hits", "behind_filter", "filter_from_spec", "filter_spec", "geodesic_fields",
+           "FILTER_STALL_TUMBLING", "FILTER_VIEWS", "MAP_MATCH", "MAP_PILLARS", "PLANNERS",
+           "PLANNER_B", "PLANNER_B_BEAMS", "PLANNER_PILLARS", "SHORT_MOVE_CLIMBS",
+           "SHORT_MOVE_SPEEDS", "SHORT_MOVE_STEPS", "AutoresetPlanner", "OracleConfig",
+           "OraclePlanner", "PlannerFilter", "ScanFn", "beam_hits", "behind_filter",
+           "filter_from_spec", "filter_spec", "geodesic_fields", "goal_cells", "grid_graph",
            "mover_clearance", "sample_field", "to_action"]  # fmt: skip
