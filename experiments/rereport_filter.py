@@ -16,14 +16,23 @@ command re-aggregates (every trial done: nothing trains, the sweep's record is k
     python experiments/rereport_filter.py results/csac/runs/csac/seed{1..5}
     safenav reproduce --algos csac --seeds 1-5
 
+A fresh clone has no run directories (they are ignored), but ``safenav reproduce`` commits each
+trial's record and its policy (``OUT/trials/<label>-s<S>.json`` and ``.pt``): given those
+records, the script flies the committed policy the same way and rewrites the record's report
+fields (:data:`~safenav.experiments.aggregate.REPORT_FIELDS`; the earlier ones under
+``"report_before"``), and ``safenav reproduce`` re-aggregates them:
+
+    python experiments/rereport_filter.py results/csac/trials/csac-s{1..5}.json
+
 Each step is skipped where it is done already (the policy's record, the report, the test), so a
-killed run resumes; a run directory without a ``--select`` report, or a policy without a
-recorded filter, is refused.
+killed run resumes; a run directory without a ``--select`` report, a record without its policy,
+or a policy without a recorded filter, is refused.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import subprocess
 import sys
 import time
@@ -34,7 +43,7 @@ from safenav.common.checkpoint import load_checkpoint, save_checkpoint
 from safenav.common.jsonout import write_json
 from safenav.envs.planner import filter_spec
 from safenav.errors import SafenavError
-from safenav.experiments.aggregate import read_json
+from safenav.experiments.aggregate import REPORT_FIELDS, read_json, report_fields
 from safenav.experiments.selection import report_policy
 
 REPORT_KEYS = ("test", "heldout", "test_navrl_rule", "shield", "flight_shield", "flight_filter",
@@ -92,14 +101,68 @@ def rereport(run_dir: Path, episodes: int, device: str) -> None:
           f"{final['report_before']['test']['collision_rate']:.3f})")  # fmt: skip
 
 
+def rereport_record(record_path: Path, episodes: int, device: str) -> None:
+    """:func:`rereport` for a committed trial record and its policy (a fresh clone): the report
+    and the test are written beside the record (``trials/rereport/<name>-final.json`` and
+    ``-eval.json``, so that a killed run resumes), then folded into it and removed."""
+    rec = read_json(record_path)
+    if not rec or not rec.get("policy"):
+        raise SafenavError(f"{record_path}: no trial record naming its policy (safenav reproduce "
+                           "keeps it since 2026-12-05)")  # fmt: skip
+    policy = record_path.parent.parent / rec["policy"]  # relative to the sweep's OUT
+    if not policy.exists():
+        raise SafenavError(f"{record_path}: its policy {policy} is missing")
+    changed = rerecord(policy)
+    now = load_checkpoint(policy)["policy"]["meta"]["flight_filter"]
+    if rec.get("planner_filter") == now:
+        print(f"{record_path}: reported behind {now} already")
+        return
+    side = record_path.parent / "rereport"  # not OUT/trials/*.json: no record of a sweep
+    side.mkdir(exist_ok=True)
+    final_path, eval_path = (
+        side / f"{record_path.stem}-final.json",
+        side / f"{record_path.stem}-eval.json",
+    )
+    t0 = time.perf_counter()
+    final = read_json(final_path)
+    if (final or {}).get("flight_filter") != now:
+        final = report_policy(policy, episodes=episodes, device=device)
+        write_json(final_path, final)
+    if (read_json(eval_path) or {}).get("planner_filter_spec") != now:
+        subprocess.run([sys.executable, "-m", "safenav", "eval", str(policy), "--env-seed", "1",
+                        "--episodes", str(episodes), "--device", device, "--json",
+                        str(eval_path)], check=True)  # fmt: skip
+    before = {k: rec.get(k) for k in REPORT_FIELDS}
+    rec |= report_fields(read_json(eval_path) or {}, final) | {
+        "report_before": before,
+        "rereported": {
+            "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "why": "the planner filter adopted since the trial was reported (docs/csac-v1.md)",
+            "command": f"python experiments/rereport_filter.py {record_path}",
+            "flight_filter_before": changed[0] if changed else before["planner_filter"],
+            "report_wall_clock_s": round(time.perf_counter() - t0, 1)}}  # fmt: skip
+    write_json(record_path, rec)
+    final_path.unlink()
+    eval_path.unlink()
+    with contextlib.suppress(OSError):
+        side.rmdir()  # where no other record's re-report is under way
+    print(f"{record_path}: test {rec['success_rate']:.3f} / {rec['collision_rate']:.3f}, "
+          f"held-out {rec['heldout']['success_rate']:.3f} / {rec['heldout']['collision_rate']:.3f} "
+          f"(was {before['success_rate']:.3f} / {before['collision_rate']:.3f})")  # fmt: skip
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("run_dirs", nargs="+", type=Path)
+    parser.add_argument("run_dirs", nargs="+", type=Path,
+                        help="run directories, or trial records (OUT/trials/*.json)")  # fmt: skip
     parser.add_argument("--episodes", type=int, default=200)
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args()
-    for run_dir in args.run_dirs:
-        rereport(run_dir, args.episodes, args.device)
+    for path in args.run_dirs:
+        if path.suffix == ".json":
+            rereport_record(path, args.episodes, args.device)
+        else:
+            rereport(path, args.episodes, args.device)
 
 
 if __name__ == "__main__":

@@ -496,3 +496,55 @@ def test_rereport_filter_rerecords_the_adopted_filter_once(tiny_run, tmp_path):
     assert rr.rerecord(policy) is None
     with pytest.raises(SafenavError, match="no --select report"):
         rr.rereport(tmp_path, episodes=1, device="cpu")
+
+
+def test_rereport_filter_refolds_a_committed_trial_record(tiny_run, tmp_path, monkeypatch):
+    """A fresh clone has the trial records and their policies, not the run directories: the
+    record's report fields are flown again behind the adopted filter (here the flights are
+    stand-ins that say what they flew), the earlier ones kept under "report_before"."""
+    from safenav.algos.policy import save_policy_only
+    from safenav.common.checkpoint import load_checkpoint, save_checkpoint
+    from safenav.envs.planner import filter_spec
+    from safenav.errors import SafenavError
+    from safenav.experiments.aggregate import REPORT_FIELDS
+
+    rr = script("rereport_filter")
+    trials = tmp_path / "trials"
+    policy = save_policy_only(tiny_run / "best.pt", trials / "csac-s3.pt")
+    old = {"view": "observation", "stall": [10.0, 2.0, 5.0]}
+    state = load_checkpoint(policy)
+    state["policy"]["meta"]["flight_filter"] = old
+    save_checkpoint(policy, state)
+    record = trials / "csac-s3.json"
+    record.write_text(json.dumps({"algo": "csac", "seed": 3, "success_rate": 0.5,
+                                  "collision_rate": 0.1, "planner_filter": old,
+                                  "wall_clock_s": 900.0, "policy": "trials/csac-s3.pt"}))  # fmt: skip
+    flights = []
+
+    def report(path, episodes, device):
+        flights.append("report")
+        return {"flight_filter": filter_spec(), "heldout": {"seeds": [2, 3, 4, 5, 6],
+                "success_rate": 0.9, "collision_rate": 0.02, "timeout_rate": 0.08}}  # fmt: skip
+
+    def safenav_eval(cmd, check):
+        flights.append("eval")
+        out = Path(cmd[cmd.index("--json") + 1])
+        out.write_text(json.dumps({"success_rate": 0.8, "collision_rate": 0.05,
+                                   "timeout_rate": 0.15, "episodes": 200,
+                                   "planner_filter_spec": filter_spec()}))  # fmt: skip
+
+    monkeypatch.setattr(rr, "report_policy", report)
+    monkeypatch.setattr(rr.subprocess, "run", safenav_eval)
+    rr.rereport_record(record, episodes=200, device="cpu")
+    rec = json.loads(record.read_text())
+    assert flights == ["report", "eval"] and set(REPORT_FIELDS) <= set(rec)
+    assert rec["success_rate"] == 0.8 and rec["heldout"]["success_rate"] == 0.9
+    assert rec["planner_filter"] == filter_spec() and rec["wall_clock_s"] == 900.0
+    assert rec["report_before"]["success_rate"] == 0.5
+    assert rec["rereported"]["flight_filter_before"] == old
+    assert not (trials / "rereport").exists()  # the side files folded in and removed
+    rr.rereport_record(record, episodes=200, device="cpu")  # done: nothing flies again
+    assert flights == ["report", "eval"]
+    record.write_text(json.dumps({"algo": "csac", "seed": 4}))
+    with pytest.raises(SafenavError, match="naming its policy"):
+        rr.rereport_record(record, episodes=200, device="cpu")

@@ -282,12 +282,43 @@ def seed_record(
         algo = algo or ident_algo
         seed = ident_seed if seed is None else seed
 
+    final = read_json(run_dir / "final.json") or {}
+    selection = read_json(run_dir / "selection.json") or {}
+    report = report_fields(ev, final)
+    return {
+        "algo": algo,
+        "seed": seed,
+        "run_dir": str(run_dir),
+        **{k: report[k] for k in REPORT_FIELDS[:8]},
+        "selection": "validation" if (run_dir / "selection.json").exists() else "final checkpoint",
+        **{k: report[k] for k in REPORT_FIELDS[8:-1]},
+        "env_steps": env_steps,
+        "wall_clock_s": wall_clock_s,
+        "selection_wall_clock_s": selection.get("wall_clock_s"),
+        "time_to_target": time_to_target(progress, target) if progress else None,
+        "validation_curve": validation_curve(progress) if progress else [],
+        "test_outcomes": report["test_outcomes"],
+    }
+
+
+REPORT_FIELDS = ("success_rate", "collision_rate", "timeout_rate", "mean_time_to_goal",
+                 "min_clearance", "eval_episodes", "detour_ratio", "border_time_fraction",
+                 "heldout", "test_navrl_rule", "planner_filter", "planner_filter_override_share",
+                 "test_without_filter", "test_outcomes")  # fmt: skip
+"""The fields of a :func:`seed_record` that the policy's reports decide (``safenav eval``'s
+test and ``final.json``'s held-out and side reports): what flying the same policy again behind
+another filter changes (``experiments/rereport_filter.py``)."""
+
+
+def report_fields(ev: dict[str, Any], final: dict[str, Any]) -> dict[str, Any]:
+    """:data:`REPORT_FIELDS` of a seed's record from its test evaluation ``ev`` (``safenav
+    eval --json``) and its ``--select`` report ``final`` (``final.json``; ``{}`` without)."""
+
     def metric(key: str) -> float | None:
         value = ev.get(key)
         ok = isinstance(value, (int, float)) and math.isfinite(value)
         return float(value) if ok else None
 
-    final = read_json(run_dir / "final.json") or {}
     held = final.get("heldout")
     heldout = None
     if isinstance(held, dict):
@@ -298,12 +329,7 @@ def seed_record(
     navrl = {k: navrl.get(k) for k in side} if isinstance(navrl, dict) else None
     unfiltered = final.get("test_without_filter")  # policies reported behind the planner filter
     unfiltered = {k: unfiltered.get(k) for k in side} if isinstance(unfiltered, dict) else None
-    selection = read_json(run_dir / "selection.json") or {}
-
     return {
-        "algo": algo,
-        "seed": seed,
-        "run_dir": str(run_dir),
         "success_rate": metric("success_rate"),
         "collision_rate": metric("collision_rate"),
         "timeout_rate": metric("timeout_rate"),
@@ -312,17 +338,11 @@ def seed_record(
         "eval_episodes": ev.get("episodes"),
         "detour_ratio": metric("detour_ratio"),
         "border_time_fraction": metric("border_time_fraction"),
-        "selection": "validation" if (run_dir / "selection.json").exists() else "final checkpoint",
         "heldout": heldout,
         "test_navrl_rule": navrl,
         "planner_filter": final.get("flight_filter"),
         "planner_filter_override_share": ev.get("planner_filter_override_share"),
         "test_without_filter": unfiltered,
-        "env_steps": env_steps,
-        "wall_clock_s": wall_clock_s,
-        "selection_wall_clock_s": selection.get("wall_clock_s"),
-        "time_to_target": time_to_target(progress, target) if progress else None,
-        "validation_curve": validation_curve(progress) if progress else [],
         "test_outcomes": outcomes_string(ev.get("per_episode")),
     }
 
@@ -769,6 +789,7 @@ def _json_default(value: Any) -> Any:
 __all__ = [
     "DISPLAY_NAMES",
     "PAPER_RESULTS",
+    "REPORT_FIELDS",
     "Target",
     "aggregate",
     "aggregate_algo",
@@ -782,6 +803,7 @@ __all__ = [
     "pct",
     "read_progress",
     "render_markdown",
+    "report_fields",
     "run_identity",
     "seed_record",
     "side_report",
