@@ -26,7 +26,8 @@ has on board (the observation's pillar list and movers: ``view="observation"``),
 ``-stallslide`` the handover's sliding test (``stall_test="sliding"``), ``-stallslideW`` the same
 over a W s window with the same progress per second (e.g. ``-stallslide5``: ``(5, 1, 5)``);
 ``-short`` last: the filter's planner also weighs short moves (``short_moves=True``), and
-``-mapped`` after it plans each stall handover on the pillars seen (``handover_map=True``).
+``-mapped`` after it plans each stall handover on the pillars seen (``handover_map=True``), and
+``-nearer`` after that ends each handover only nearer the goal (``handover_exit="nearer"``).
 One JSON per
 (policy, setting, map) in OUT
 (a rerun skips those that exist), then a table of the mean over maps per (policy, setting) on
@@ -74,11 +75,11 @@ def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str, flo
     ``-slide``: its sliding form, ``"slide"`` there; ``-keep0.5``: ``ShieldConfig.keep_moving``
     0.5; ``-filter``, last: the planner filter after the shield (its view last: ``"simulator"``;
     ``-filterobs``: ``"observation"``; None without; ``-stall`` or ``-stallP`` after either:
-    ``"...-stall"``, ``"...-stallP"``; ``-short`` last: ``"...-short"``, ``-mapped`` after it:
-    ``"...-mapped"``)."""
+    ``"...-stall"``, ``"...-stallP"``; ``-short`` last: ``"...-short"``, ``-mapped`` and
+    ``-nearer`` after it: ``"...-mapped"``, ``"...-nearer"``)."""
     found = re.fullmatch(
         r"(\d+)(map)?(?:-mover([0-9.]+))?(-lag)?(-brake|-slide)?(?:-keep([0-9.]+))?"
-        r"(-filter(?:obs)?(?:-stall(?:slide)?(?:[0-9.]+)?)?(?:-short)?(?:-mapped)?)?",
+        r"(-filter(?:obs)?(?:-stall(?:slide)?(?:[0-9.]+)?)?(?:-short)?(?:-mapped)?(?:-nearer)?)?",
         setting,
     )
     if found is None:
@@ -89,19 +90,24 @@ def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str, flo
     if not 0.0 <= keep <= 1.0:
         raise SystemExit(f"shield setting {setting!r}: -keepK takes K in [0, 1]")
     filtered = found[7] or ""
+    nearer = filtered.endswith("-nearer")
+    filtered = filtered.removesuffix("-nearer")
     mapped = filtered.endswith("-mapped")
     filtered = filtered.removesuffix("-mapped")
     short = filtered.endswith("-short")
     head, stall, progress = filtered.removesuffix("-short").partition("-stall")
     view = {"": None, "-filter": "simulator", "-filterobs": "observation"}[head]
-    if mapped and not stall:
-        raise SystemExit(f"shield setting {setting!r}: -mapped plans the stall handovers (-stall)")
+    if (mapped or nearer) and not stall:
+        raise SystemExit(f"shield setting {setting!r}: -mapped and -nearer shape the stall "
+                         "handovers (-stall)")  # fmt: skip
     if stall:
         view += "-stall" + progress
     if short:
         view += "-short"
     if mapped:
         view += "-mapped"
+    if nearer:
+        view += "-nearer"
     return (int(found[1]), found[2] is not None, float(found[3] or 0.0), found[4] is not None,
             brake, keep, view)  # fmt: skip
 
@@ -141,14 +147,18 @@ def run(
                     shield = shield_for_memory(memory, scan, mover, lag, brake, keep)
                     extra = {"keep_moving": keep} if keep else {}
                     if filtered:
-                        mapped = filtered.endswith("-mapped")
-                        short = filtered.removesuffix("-mapped").endswith("-short")
-                        view, _, stall = (filtered.removesuffix("-mapped").removesuffix("-short")
+                        nearer = filtered.endswith("-nearer")
+                        rest = filtered.removesuffix("-nearer")
+                        mapped = rest.endswith("-mapped")
+                        short = rest.removesuffix("-mapped").endswith("-short")
+                        view, _, stall = (rest.removesuffix("-mapped").removesuffix("-short")
                                           .partition("-"))  # fmt: skip
                         stall_setting, stall_test = stall_of(stall)
                         planner_filter = PlannerFilter(view=view, stall=stall_setting,
                                                        stall_test=stall_test, short_moves=short,
-                                                       handover_map=mapped)  # fmt: skip
+                                                       handover_map=mapped,
+                                                       handover_exit="nearer" if nearer
+                                                       else "time")  # fmt: skip
                         shield = behind_filter(shield, planner_filter)
                     started = time.perf_counter()
                     r = evaluate(fn, cfg, env_seed=seed, episodes=episodes, shield=shield)

@@ -322,6 +322,10 @@ def test_shield_memory_parses_the_braking_and_filter_settings():
     assert sm.parse_setting("1map-mover0.3-brake-filterobs-stallslide5-short-mapped")[-1] == (
         "observation-stallslide5-short-mapped"
     )
+    assert (
+        sm.parse_setting("1map-mover0.3-brake-filterobs-stallslide5-short-mapped-nearer")[-1]
+        == "observation-stallslide5-short-mapped-nearer"
+    )
     with pytest.raises(SystemExit, match="-mapped"):
         sm.parse_setting("1map-mover0.3-brake-filterobs-mapped")
     with pytest.raises(SystemExit, match="-filterobs"):

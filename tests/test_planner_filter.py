@@ -450,3 +450,34 @@ def test_the_handover_map_is_recorded_in_the_spec_only_where_set():
         filter_spec(stall=None, handover_map=True)
     with pytest.raises(ValueError, match="stall"):
         PlannerFilter(handover_map=True)
+    assert "handover_exit" not in filter_spec()
+    spec = filter_spec(handover_map=True, handover_exit="nearer")
+    assert spec["handover_exit"] == "nearer" and filter_from_spec(spec).handover_exit == "nearer"
+    assert filter_from_spec(filter_spec()).handover_exit == "time"
+    with pytest.raises(ValueError, match="handover_exit"):
+        filter_spec(handover_exit="later")
+    with pytest.raises(ValueError, match="stall"):
+        PlannerFilter(handover_exit="nearer")
+
+
+@pytest.mark.parametrize("exit_rule", ["time", "nearer"])
+def test_a_handover_that_ends_nearer_goes_on_until_the_uav_is_nearer(exit_rule):
+    env, obs = _env(4, num_static=0, num_dynamic=0)
+    # < 1 m nearer in 2 s: the planner flies 0.5 s ("time"), or until 1 m nearer ("nearer")
+    filt = PlannerFilter(stall=(2.0, 1.0, 0.5), stall_test="sliding", handover_exit=exit_rule)
+    hover = to_action(torch.zeros(4, 3), env.cos_yaw, env.sin_yaw, env.cfg.v_max)
+    handed, dist = [], []
+    for _ in range(60):
+        out = filt(env, obs, hover)
+        handed.append(filt.overridden.clone())
+        dist.append((env.goal - env.pos).norm(dim=-1))
+        obs, *_ = env.step(out)
+    handed, dist = torch.stack(handed), torch.stack(dist)  # (60, 4)
+    first = int(handed.any(-1).nonzero()[0])
+    length = int(handed[first:].all(-1).int().cumprod(0).sum())
+    if exit_rule == "time":
+        assert length == 5
+    else:  # from a hover, 0.5 s of flight leaves it less than 1 m nearer: it goes on
+        assert 5 < length <= 15
+        assert bool((dist[first + length] <= dist[first] - 1.0).all())
+        assert not handed[first + length : first + length + 20].any()  # a window before the next

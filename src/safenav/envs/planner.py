@@ -68,6 +68,10 @@ SHORT_MOVE_STEPS = 5
 MAP_PILLARS = 512
 """Pillars a :class:`PlannerFilter` with ``handover_map`` remembers per episode (the paper's
 arena holds 350)."""
+HANDOVER_EXITS = ("time", "nearer")
+"""When a :class:`PlannerFilter`'s stall handover ends (its ``handover_exit``)."""
+HANDOVER_CAP = 3
+"""The longest ``handover_exit="nearer"`` handover, in handovers of ``stall``'s length."""
 MAP_MATCH = 0.05
 """Distance (m, per axis) within which two sightings of a pillar's centre are the same pillar."""
 ScanFn = Callable[[SafeNavVectorEnv, torch.Tensor], torch.Tensor]
@@ -722,23 +726,28 @@ def filter_spec(view: str = "observation",
                 stall: tuple[float, float, float] | None = FILTER_STALL,
                 stall_test: str = FILTER_STALL_TEST,
                 short_moves: bool = FILTER_SHORT_MOVES,
-                handover_map: bool = False) -> dict:  # fmt: skip
+                handover_map: bool = False, handover_exit: str = "time") -> dict:  # fmt: skip
     """A :class:`PlannerFilter` as a policy's ``meta["flight_filter"]`` records it (``safenav
     train --flight-filter``): ``{"view": ..., "stall": [window, progress, handover] or None,
-    "stall_test": ...}`` and ``"short_moves": true``, ``"handover_map": true`` where set; by
-    default the adopted one."""
+    "stall_test": ...}`` and ``"short_moves": true``, ``"handover_map": true`` and
+    ``"handover_exit": "nearer"`` where set; by default the adopted one."""
     if view not in FILTER_VIEWS:
         raise ValueError(f"view={view!r}: choose one of {FILTER_VIEWS}")
     if stall_test not in STALL_TESTS:
         raise ValueError(f"stall_test={stall_test!r}: choose one of {STALL_TESTS}")
-    if handover_map and stall is None:
-        raise ValueError("handover_map plans the stall handovers: it needs a stall setting")
+    if (handover_map or handover_exit != "time") and stall is None:
+        raise ValueError("handover_map and handover_exit shape the stall handovers: they need a "
+                         "stall setting")  # fmt: skip
+    if handover_exit not in HANDOVER_EXITS:
+        raise ValueError(f"handover_exit={handover_exit!r}: choose one of {HANDOVER_EXITS}")
     stall = None if stall is None else [float(x) for x in stall]
     spec = {"view": view, "stall": stall, "stall_test": stall_test}
     if short_moves:
         spec["short_moves"] = True
     if handover_map:
         spec["handover_map"] = True
+    if handover_exit != "time":
+        spec["handover_exit"] = handover_exit
     return spec
 
 
@@ -755,7 +764,8 @@ def filter_from_spec(spec: dict) -> PlannerFilter:
     return PlannerFilter(view=spec["view"], stall=None if stall is None else tuple(stall),
                          stall_test=spec.get("stall_test", "tumbling"),
                          short_moves=bool(spec.get("short_moves", False)),
-                         handover_map=bool(spec.get("handover_map", False)))  # fmt: skip
+                         handover_map=bool(spec.get("handover_map", False)),
+                         handover_exit=spec.get("handover_exit", "time"))  # fmt: skip
 
 
 class PlannerFilter(OraclePlanner):
@@ -801,13 +811,19 @@ class PlannerFilter(OraclePlanner):
     every pillar its view has shown in the episode (up to :data:`MAP_PILLARS`), and at the start
     of each stall handover plans the handover on a geodesic cost-to-go to the goal around them
     (:func:`grid_graph`, Dijkstra) instead of the straight distance, whose local minima (a goal
-    behind a row of pillars) are where the stalls were watched to dither."""
+    behind a row of pillars) are where the stalls were watched to dither.
+
+    ``handover_exit``: when a handover ends. ``"time"``: after ``handover`` s. ``"nearer"``
+    (docs/csac-v1.md, "A handover that ends nearer the goal"): not before the UAV is ``progress``
+    m nearer its goal than where it stalled (a Bug algorithm's leave condition), at most
+    :data:`HANDOVER_CAP` times ``handover`` s."""
 
     def __init__(self, config: OracleConfig | None = None, hold: int = 1,
                  scan: ScanFn | None = None, view: str = "simulator",
                  stall: tuple[float, float, float] | None = None,
                  stall_test: str = FILTER_STALL_TEST,
-                 short_moves: bool = False, handover_map: bool = False) -> None:  # fmt: skip
+                 short_moves: bool = False, handover_map: bool = False,
+                 handover_exit: str = "time") -> None:  # fmt: skip
         super().__init__(config or PLANNER_PILLARS, scan)
         if not 1 <= hold < self.cfg.horizon:
             raise ValueError(f"hold={hold}: between 1 and the horizon - 1 ({self.cfg.horizon - 1})")
@@ -818,8 +834,12 @@ class PlannerFilter(OraclePlanner):
         if stall_test not in STALL_TESTS:
             raise ValueError(f"stall_test={stall_test!r}: choose one of {STALL_TESTS}")
         self.hold, self.view, self.stall, self.stall_test = int(hold), view, stall, stall_test
-        if handover_map and stall is None:
-            raise ValueError("handover_map plans the stall handovers: it needs stall=")
+        if (handover_map or handover_exit != "time") and stall is None:
+            raise ValueError("handover_map and handover_exit shape the stall handovers: they "
+                             "need stall=")  # fmt: skip
+        if handover_exit not in HANDOVER_EXITS:
+            raise ValueError(f"handover_exit={handover_exit!r}: choose one of {HANDOVER_EXITS}")
+        self.handover_exit = handover_exit
         self.short_moves, self.handover_map = bool(short_moves), bool(handover_map)
         self.overrides = self.steps = self.handovers = 0
         self.overridden: torch.Tensor | None = None
@@ -843,6 +863,8 @@ class PlannerFilter(OraclePlanner):
         if self.stall is not None and self.stall_test == "sliding":  # the last window's distances
             w = max(1, round(self.stall[0] / env.cfg.dt))
             self._history = torch.full((n, w + 1), math.inf, device=env.device)
+        self._stall_dist = torch.full((n,), math.inf, device=env.device)
+        self._extend_left = torch.zeros(n, dtype=torch.long, device=env.device)
         if self.handover_map:  # the pillars seen in each episode, and each handover's field
             self._map_xy = torch.full((n, MAP_PILLARS, 2), FAR, device=env.device)
             self._map_half = torch.zeros(n, MAP_PILLARS, device=env.device)
@@ -885,18 +907,39 @@ class PlannerFilter(OraclePlanner):
         w, h = to_steps(window), to_steps(handover)
         d = (env.goal[ids] - env.pos[ids]).norm(dim=-1)
         t = env.steps[ids].to(torch.long)
+        if self.handover_exit == "nearer":
+            self._extend(env, ids, d, t, progress, h)
         test = self._sliding_stalled if self.stall_test == "sliding" else self._tumbling_stalled
         stalled = test(ids, d, t, w, progress)
         if self.handover_map:
             for i in ids[stalled].tolist():
                 self._plan_handover(env, i)
         self._handover_left[ids[stalled]] = h
+        if self.handover_exit == "nearer":
+            self._stall_dist[ids[stalled]] = d[stalled]
+            self._extend_left[ids[stalled]] = HANDOVER_CAP * h - h
         if self.stall_test == "sliding":
             self._mark_step[ids[stalled]] = t[stalled] + h  # a full window after it ends
         handing = self._handover_left[ids] > 0
         self._handover_left[ids[handing]] -= 1
         self.handovers += int(handing.sum())
         return handing
+
+    def _extend(self, env: SafeNavVectorEnv, ids: torch.Tensor, d: torch.Tensor, t: torch.Tensor,
+                progress: float, h: int) -> None:  # fmt: skip
+        """``handover_exit="nearer"``: a handover whose time is up goes on, a step at a time, while
+        the UAV is not ``progress`` m nearer its goal than where it stalled, up to
+        :data:`HANDOVER_CAP` handovers long (the next stall test a full window after it ends);
+        with ``handover_map`` its field is planned again where it goes on."""
+        nearer = d <= self._stall_dist[ids] - progress
+        self._extend_left[ids[nearer]] = 0
+        go_on = (self._handover_left[ids] == 0) & (self._extend_left[ids] > 0)
+        if self.handover_map:
+            for i in ids[go_on & (self._extend_left[ids] == HANDOVER_CAP * h - h)].tolist():
+                self._plan_handover(env, i)
+        self._handover_left[ids[go_on]] = 1
+        self._extend_left[ids[go_on]] -= 1
+        self._mark_step[ids[go_on]] = t[go_on] + 1
 
     def _tumbling_stalled(self, ids: torch.Tensor, d: torch.Tensor, t: torch.Tensor, w: int,
                           progress: float) -> torch.Tensor:  # fmt: skip
@@ -1019,9 +1062,9 @@ PLANNERS = {"range": PLANNER_B, "pillars": PLANNER_PILLARS}
 """The planners a learner may replay (``CSACConfig.planner_view``), by what they see."""
 
 __all__ = ["FAR", "FILTER_SHORT_MOVES", "FILTER_STALL", "FILTER_STALL_TEST",
-           "FILTER_STALL_TUMBLING", "FILTER_VIEWS", "MAP_MATCH", "MAP_PILLARS", "PLANNERS",
-           "PLANNER_B", "PLANNER_B_BEAMS", "PLANNER_PILLARS", "SHORT_MOVE_CLIMBS",
-           "SHORT_MOVE_SPEEDS", "SHORT_MOVE_STEPS", "AutoresetPlanner", "OracleConfig",
-           "OraclePlanner", "PlannerFilter", "ScanFn", "beam_hits", "behind_filter",
-           "filter_from_spec", "filter_spec", "geodesic_fields", "goal_cells", "grid_graph",
-           "mover_clearance", "sample_field", "to_action"]  # fmt: skip
+           "FILTER_STALL_TUMBLING", "FILTER_VIEWS", "HANDOVER_CAP", "HANDOVER_EXITS", "MAP_MATCH",
+           "MAP_PILLARS", "PLANNERS", "PLANNER_B", "PLANNER_B_BEAMS", "PLANNER_PILLARS",
+           "SHORT_MOVE_CLIMBS", "SHORT_MOVE_SPEEDS", "SHORT_MOVE_STEPS", "AutoresetPlanner",
+           "OracleConfig", "OraclePlanner", "PlannerFilter", "ScanFn", "beam_hits",
+           "behind_filter", "filter_from_spec", "filter_spec", "geodesic_fields", "goal_cells",
+           "grid_graph", "mover_clearance", "sample_field", "to_action"]  # fmt: skip
