@@ -811,12 +811,13 @@ class PlannerFilter(OraclePlanner):
     every pillar its view has shown in the episode (up to :data:`MAP_PILLARS`), and at the start
     of each stall handover plans the handover on a geodesic cost-to-go to the goal around them
     (:func:`grid_graph`, Dijkstra) instead of the straight distance, whose local minima (a goal
-    behind a row of pillars) are where the stalls were watched to dither.
+    behind a row of pillars) are where the stalls were watched to dither. Screened on
+    validation, not adopted; the onboard filter does not take it (nor ``handover_exit``).
 
     ``handover_exit``: when a handover ends. ``"time"``: after ``handover`` s. ``"nearer"``
     (docs/csac-v1.md, "A handover that ends nearer the goal"): not before the UAV is ``progress``
     m nearer its goal than where it stalled (a Bug algorithm's leave condition), at most
-    :data:`HANDOVER_CAP` times ``handover`` s."""
+    :data:`HANDOVER_CAP` times ``handover`` s (with ``handover_map``: screened, not adopted)."""
 
     def __init__(self, config: OracleConfig | None = None, hold: int = 1,
                  scan: ScanFn | None = None, view: str = "simulator",
