@@ -50,6 +50,13 @@ REPORT_KEYS = ("test", "heldout", "test_navrl_rule", "shield", "flight_shield", 
                "test_without_filter")  # fmt: skip
 
 
+def fly_test(policy: Path, eval_path: Path, episodes: int, device: str) -> None:
+    """``safenav eval``'s test of ``policy`` (behind the filter it records) into ``eval_path``."""
+    subprocess.run([sys.executable, "-m", "safenav", "eval", str(policy), "--env-seed", "1",
+                    "--episodes", str(episodes), "--device", device, "--json", str(eval_path)],
+                   check=True)  # fmt: skip
+
+
 def rerecord(policy: Path) -> tuple[dict, dict] | None:
     """Re-record the adopted filter in ``policy`` (atomically): ``(before, now)``, or None
     where it records it already."""
@@ -91,9 +98,7 @@ def rereport(run_dir: Path, episodes: int, device: str) -> None:
             "report_wall_clock_s": round(time.perf_counter() - t0, 1)}}  # fmt: skip
         write_json(final_path, final)
     if (read_json(eval_path) or {}).get("planner_filter_spec") != now:
-        subprocess.run([sys.executable, "-m", "safenav", "eval", str(policy), "--env-seed", "1",
-                        "--episodes", str(episodes), "--device", device, "--json",
-                        str(eval_path)], check=True)  # fmt: skip
+        fly_test(policy, eval_path, episodes, device)
     test, held = final["test"], final["heldout"]
     print(f"{run_dir}: test {test['success_rate']:.3f} / {test['collision_rate']:.3f}, held-out "
           f"{held['success_rate']:.3f} / {held['collision_rate']:.3f} (was "
@@ -129,9 +134,7 @@ def rereport_record(record_path: Path, episodes: int, device: str) -> None:
         final = report_policy(policy, episodes=episodes, device=device)
         write_json(final_path, final)
     if (read_json(eval_path) or {}).get("planner_filter_spec") != now:
-        subprocess.run([sys.executable, "-m", "safenav", "eval", str(policy), "--env-seed", "1",
-                        "--episodes", str(episodes), "--device", device, "--json",
-                        str(eval_path)], check=True)  # fmt: skip
+        fly_test(policy, eval_path, episodes, device)
     before = {k: rec.get(k) for k in REPORT_FIELDS}
     rec |= report_fields(read_json(eval_path) or {}, final) | {
         "report_before": before,

@@ -89,13 +89,8 @@ def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str, flo
     keep = float(found[6] or 0.0)
     if not 0.0 <= keep <= 1.0:
         raise SystemExit(f"shield setting {setting!r}: -keepK takes K in [0, 1]")
-    filtered = found[7] or ""
-    nearer = filtered.endswith("-nearer")
-    filtered = filtered.removesuffix("-nearer")
-    mapped = filtered.endswith("-mapped")
-    filtered = filtered.removesuffix("-mapped")
-    short = filtered.endswith("-short")
-    head, stall, progress = filtered.removesuffix("-short").partition("-stall")
+    filtered, short, mapped, nearer = filter_suffixes(found[7] or "")
+    head, stall, progress = filtered.partition("-stall")
     view = {"": None, "-filter": "simulator", "-filterobs": "observation"}[head]
     if (mapped or nearer) and not stall:
         raise SystemExit(f"shield setting {setting!r}: -mapped and -nearer shape the stall "
@@ -110,6 +105,18 @@ def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str, flo
         view += "-nearer"
     return (int(found[1]), found[2] is not None, float(found[3] or 0.0), found[4] is not None,
             brake, keep, view)  # fmt: skip
+
+
+def filter_suffixes(text: str) -> tuple[str, bool, bool, bool]:
+    """A filter setting's head and its trailing ``-short``, ``-mapped``, ``-nearer`` (in that
+    order): ``"-filterobs-stallslide5-short-mapped"`` -> ``("-filterobs-stallslide5", True,
+    True, False)``; the same for :func:`parse_setting`'s view ``"observation-stallslide5-..."``."""
+    flags = []
+    for suffix in ("-nearer", "-mapped", "-short"):
+        flags.append(text.endswith(suffix))
+        text = text.removesuffix(suffix)
+    nearer, mapped, short = flags
+    return text, short, mapped, nearer
 
 
 def stall_of(setting: str) -> tuple[tuple[float, float, float] | None, str]:
@@ -147,12 +154,8 @@ def run(
                     shield = shield_for_memory(memory, scan, mover, lag, brake, keep)
                     extra = {"keep_moving": keep} if keep else {}
                     if filtered:
-                        nearer = filtered.endswith("-nearer")
-                        rest = filtered.removesuffix("-nearer")
-                        mapped = rest.endswith("-mapped")
-                        short = rest.removesuffix("-mapped").endswith("-short")
-                        view, _, stall = (rest.removesuffix("-mapped").removesuffix("-short")
-                                          .partition("-"))  # fmt: skip
+                        head, short, mapped, nearer = filter_suffixes(filtered)
+                        view, _, stall = head.partition("-")
                         stall_setting, stall_test = stall_of(stall)
                         planner_filter = PlannerFilter(view=view, stall=stall_setting,
                                                        stall_test=stall_test, short_moves=short,

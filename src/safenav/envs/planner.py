@@ -1007,9 +1007,9 @@ class PlannerFilter(OraclePlanner):
             short = self.short_move_candidates(env, ids[bad]) if self.short_moves else None
             field = None
             if self.handover_map and bool(handing[bad].any()):  # handovers fly their own field
-                mapped = [int(i) in self._fields for i in ids[bad].tolist()]
-                use = handing[bad] & torch.tensor(mapped, device=env.device)
-                grids = [self._fields.get(int(i)) for i in ids[bad].tolist()]
+                grids = [self._fields.get(i) for i in ids[bad].tolist()]
+                planned = torch.tensor([x is not None for x in grids], device=env.device)
+                use = handing[bad] & planned
                 blank = torch.zeros_like(next(x for x in grids if x is not None))
                 field = (torch.stack([blank if x is None else x for x in grids]), use)
             chosen = self.choose(_scene_rows(scene, bad), cmds[bad], short, field)
