@@ -10,7 +10,8 @@ The flight is ``safenav render``'s (the same frames and outcome): behind the rec
 shield (memory 1, map scan, 0.3 m mover margin, braking cap) and the planner filter the policy
 records (else, or with ``--adopted``, the sliding filter adopted before short moves, and with
 ``--short-moves`` the filter adopted now: the observed view with the stall handover
-``FILTER_STALL``). Validation maps only (12345-12348) for a diagnosis that guides a choice.
+``FILTER_STALL``; ``--mapped`` and ``--nearer`` add the screened handover map and its leave
+condition to it). Validation maps only (12345-12348) for a diagnosis that guides a choice.
 """
 
 from __future__ import annotations
@@ -22,17 +23,20 @@ import safenav.experiments.flight as flight
 
 
 def trace(checkpoint: Path, env_seed: int, episode: int, adopted: bool = False,
-          short_moves: bool = False) -> tuple[dict, list[dict]]:  # fmt: skip
+          short_moves: bool = False, mapped: bool = False,
+          nearer: bool = False) -> tuple[dict, list[dict]]:  # fmt: skip
     """The episode's stats and one row per control step; ``adopted``: behind the sliding filter
     (``filter_spec(short_moves=False)``) whatever the policy records; ``short_moves``: the filter
-    adopted now, with its planner's short moves (``filter_spec()``)."""
+    adopted now, with its planner's short moves (``filter_spec()``); ``mapped`` / ``nearer``:
+    that filter with ``handover_map`` / also ``handover_exit="nearer"``."""
     from safenav.algos.policy import load_policy
     from safenav.envs.planner import filter_spec
 
     loaded = load_policy(checkpoint)
+    short_moves = short_moves or mapped or nearer
     spec = (None if adopted or short_moves else loaded.meta.get("flight_filter")) or filter_spec(
-        short_moves=short_moves
-    )
+        short_moves=short_moves, handover_map=mapped or nearer,
+        handover_exit="nearer" if nearer else "time")
     rows: list[dict] = []
     build = flight.flight_filter
 
@@ -76,9 +80,13 @@ def main() -> None:
     parser.add_argument("--short-moves", action="store_true",
                         help="behind the filter adopted now, with its planner's short "
                         "moves")  # fmt: skip
+    parser.add_argument("--mapped", action="store_true",
+                        help="that filter with the handover map (screened, not adopted)")
+    parser.add_argument("--nearer", action="store_true",
+                        help="the map and the 'nearer' leave condition (screened, not adopted)")
     args = parser.parse_args()
     stats, rows = trace(args.checkpoint, args.env_seed, args.episode, args.adopted,
-                        args.short_moves)  # fmt: skip
+                        args.short_moves, args.mapped, args.nearer)  # fmt: skip
     print(stats)
     print(
         "| t (s) | position (m) | to goal (m) | planner flies | handover steps left | action | flown |"

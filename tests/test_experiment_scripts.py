@@ -316,6 +316,18 @@ def test_shield_memory_parses_the_braking_and_filter_settings():
     tk = script("timeout_kinds")
     assert [tk.kind(0.3, 0.2), tk.kind(8.6, 0.1), tk.kind(6.6, 3.6)] == ["frozen", "dithering",
                                                                           "moving"]  # fmt: skip
+    ends = {"time": [12.0, 55.5, 60.0, 51.0, 9.9], "success": [1.0, 1.0, 0.0, 1.0, 1.0]}
+    assert tk.arrival_bins({"per_episode": ends}) == {"0-10": 1, "10-20": 1, "20-30": 0,
+                                                     "30-40": 0, "40-50": 0, "50-60": 2}  # fmt: skip
+    # 3 s at 10 Hz: 1 s straight at the goal (1 m/s), 1 s sideways (1 m/s), 1 s still.
+    xs = [0.1 * i for i in range(11)] + [1.0] * 20
+    ys = [0.0] * 11 + [0.1 * i for i in range(1, 11)] + [1.0] * 10
+    track = torch.tensor([[[x, y, 1.0]] for x, y in zip(xs, ys)])
+    use = tk.time_use(track, torch.tensor([[10.0, 0.0, 1.0]]), {"time": [3.1]},
+                      torch.zeros(31, 1))  # fmt: skip
+    assert use == {"progressing": 0.333, "moving_no_progress": 0.333,
+                   "hovering": 0.333, "planner_share": 0.0, "progressing_speed": 1.0,
+                   "progressing_rate": 1.0}  # fmt: skip
     assert sm.parse_setting("1map-mover0.3-brake-filterobs-stallslide5-short")[-1] == (
         "observation-stallslide5-short"
     )
