@@ -35,8 +35,11 @@ def trace(checkpoint: Path, env_seed: int, episode: int, adopted: bool = False,
     loaded = load_policy(checkpoint)
     short_moves = short_moves or mapped or nearer
     spec = (None if adopted or short_moves else loaded.meta.get("flight_filter")) or filter_spec(
-        short_moves=short_moves, handover_map=mapped or nearer,
-        handover_exit="nearer" if nearer else "time")
+        short_moves=short_moves,
+        handover_map=mapped or nearer,
+        handover_exit="nearer" if nearer else "time",
+        braking_cap=True,
+    )  # as traced: the cap on
     rows: list[dict] = []
     build = flight.flight_filter
 
@@ -80,10 +83,16 @@ def main() -> None:
     parser.add_argument("--short-moves", action="store_true",
                         help="behind the filter adopted now, with its planner's short "
                         "moves")  # fmt: skip
-    parser.add_argument("--mapped", action="store_true",
-                        help="that filter with the handover map (screened, not adopted)")
-    parser.add_argument("--nearer", action="store_true",
-                        help="the map and the 'nearer' leave condition (screened, not adopted)")
+    parser.add_argument(
+        "--mapped",
+        action="store_true",
+        help="that filter with the handover map (screened, not adopted)",
+    )
+    parser.add_argument(
+        "--nearer",
+        action="store_true",
+        help="the map and the 'nearer' leave condition (screened, not adopted)",
+    )
     args = parser.parse_args()
     stats, rows = trace(args.checkpoint, args.env_seed, args.episode, args.adopted,
                         args.short_moves, args.mapped, args.nearer)  # fmt: skip

@@ -38,8 +38,9 @@ def timeouts(checkpoint: Path, env_seed: int, episodes: int,
              short_moves: bool = False) -> tuple[dict, list[dict]]:  # fmt: skip
     """The evaluation's result and one row per timeout episode."""
     fn = load_policy(checkpoint)
-    the_filter = filter_from_spec(filter_spec(short_moves=short_moves))
-    shielded = behind_filter(own_shield(fn), the_filter)  # as the policy's report flies
+    # the stack these diagnoses were run on (2026-12-05/06): the shield keeps its braking cap
+    the_filter = filter_from_spec(filter_spec(short_moves=short_moves, braking_cap=True))
+    shielded = behind_filter(own_shield(fn), the_filter)
     track: list[tuple[torch.Tensor, torch.Tensor]] = []
     goal: list[torch.Tensor] = []
 
@@ -103,7 +104,7 @@ def time_use(pos: torch.Tensor, goal: torch.Tensor, ends: dict, planner: torch.T
 def arrival_bins(result: dict, width: float = 10.0) -> dict[str, int]:
     """The successes' flight times counted in ``width``-second bins (``"50-60"``: ...)."""
     ends = result["per_episode"]
-    times = [t for t, ok in zip(ends["time"], ends["success"]) if ok]
+    times = [t for t, ok in zip(ends["time"], ends["success"], strict=True) if ok]
     top = int(max(times, default=0.0) // width) + 1
     counts = {f"{int(b * width)}-{int((b + 1) * width)}": 0 for b in range(top)}
     for t in times:

@@ -322,7 +322,7 @@ def test_shield_memory_parses_the_braking_and_filter_settings():
     # 3 s at 10 Hz: 1 s straight at the goal (1 m/s), 1 s sideways (1 m/s), 1 s still.
     xs = [0.1 * i for i in range(11)] + [1.0] * 20
     ys = [0.0] * 11 + [0.1 * i for i in range(1, 11)] + [1.0] * 10
-    track = torch.tensor([[[x, y, 1.0]] for x, y in zip(xs, ys)])
+    track = torch.tensor([[[x, y, 1.0]] for x, y in zip(xs, ys, strict=True)])
     use = tk.time_use(track, torch.tensor([[10.0, 0.0, 1.0]]), {"time": [3.1]},
                       torch.zeros(31, 1))  # fmt: skip
     assert use == {"progressing": 0.333, "moving_no_progress": 0.333,

@@ -215,7 +215,8 @@ def test_a_spec_round_trips_and_refuses_an_unknown_view():
 
     # the adopted filter (docs/csac-v1.md, "A sliding stall test")
     assert filter_spec() == {"view": "observation", "stall": [5.0, 1.0, 5.0],
-                             "stall_test": "sliding", "short_moves": True}  # fmt: skip
+                             "stall_test": "sliding", "short_moves": True,
+                             "braking_cap": False}  # fmt: skip
     the_filter = filter_from_spec(filter_spec())
     assert the_filter.view == "observation" and the_filter.stall == (5.0, 1.0, 5.0)
     assert the_filter.stall_test == "sliding"
@@ -358,6 +359,39 @@ def test_short_moves_are_recorded_in_the_spec_only_where_set():
     assert spec["short_moves"] is True and filter_from_spec(spec).short_moves
     assert not filter_from_spec(filter_spec(short_moves=False)).short_moves
     assert not filter_from_spec({"view": "observation", "stall": None}).short_moves
+
+
+def test_behind_the_adopted_filter_the_shield_flies_without_its_braking_cap():
+    """``"braking_cap": false`` (adopted: docs/csac-v1.md, "The braking cap behind the filter")
+    takes the cap off the flight shield before the filter, in the report and in ``safenav eval``
+    / ``render`` unless a shield option is given; a record without it keeps the cap."""
+    from types import SimpleNamespace
+
+    from safenav.cli import ARGS
+    from safenav.commands.eval import brake_under_filter, describe_filter
+    from safenav.envs.planner import filter_from_spec, filter_spec, shield_under_filter
+    from safenav.experiments.selection import own_shield
+
+    assert "braking_cap" not in filter_spec(braking_cap=True)
+    with pytest.raises(ValueError, match="braking_cap"):
+        filter_from_spec({**filter_spec(), "braking_cap": "no"})
+    shield = {"memory": 1, "map": True, "mover_margin": 0.3, "brake": True}
+    assert shield_under_filter(shield, filter_spec()) == {**shield, "brake": False}
+    assert shield_under_filter(shield, filter_spec(braking_cap=True)) == shield
+    assert shield_under_filter(shield, None) == shield and shield["brake"] is True
+    assert shield_under_filter(None, filter_spec()) is None
+    policy = SimpleNamespace(meta={"flight_shield": shield, "flight_filter": filter_spec()})
+    assert own_shield(policy).brake is True  # alone (the selection): the cap flies
+    assert own_shield(policy, filter_spec()).brake is False
+    assert "braking cap off" in describe_filter(filter_spec())
+    for args, expected in (((), False), (("--shield-brake",), True)):
+        token = ARGS.set(args)
+        try:
+            assert brake_under_filter(filter_spec(), True) is expected, args
+            assert brake_under_filter(filter_spec(braking_cap=True), True) is True
+            assert brake_under_filter(None, True) is True
+        finally:
+            ARGS.reset(token)
 
 
 def test_a_flight_flies_the_filter_its_policy_records_unless_told_otherwise():

@@ -99,6 +99,7 @@ def eval_(
         shield = memory > 0
     spec = own_planner_filter(fn if policy == "checkpoint" else None, checkpoint, planner_filter,
                               planner_filter_view)  # fmt: skip
+    shield_brake = brake_under_filter(spec, shield_brake)
     the_filter = flight_filter(spec, cfg) if spec else None
     shield_fn = None
     if memory:  # the shield's module loads Numba (~0.35 s): only when it flies
@@ -212,6 +213,24 @@ def own_shield_settings(policy, checkpoint, memory: int, shield_map: bool, mover
     return memory, shield_map, mover_margin, brake
 
 
+def brake_under_filter(spec: dict | None, brake):
+    """The shield's braking cap before the planner filter ``spec``: off where the filter records
+    ``"braking_cap": false`` (the adopted one: :data:`~safenav.envs.planner.FILTER_BRAKING_CAP`)
+    and no shield option is given, else ``brake`` as it is."""
+    from safenav.cli import ARGS
+    from safenav.commands.train import given_flag
+
+    if not brake or not spec or spec.get("braking_cap", True):
+        return brake
+    if any(given_flag(f, ARGS.get()) for f in SHIELD_FLAGS):
+        return brake
+    from rich.console import Console
+
+    Console(stderr=True).print("note: behind the planner filter the shield flies without its "
+                               "braking cap (the filter's record; --shield-brake: with it)")  # fmt: skip
+    return False
+
+
 def own_planner_filter(policy, checkpoint, planner_filter: bool, view: str) -> dict | None:
     """The planner filter a flight gets, as a :func:`~safenav.envs.planner.filter_spec` (None:
     none): a policy that records one (``safenav train --flight-filter``: ``meta["flight_filter"]``)
@@ -245,6 +264,8 @@ def describe_filter(spec: dict) -> str:
     """``"observation view, stall handover under 1 m in 5 s sliding, 5 s"``: a filter spec in
     words."""
     short = ", short moves" if spec.get("short_moves") else ""
+    if spec.get("braking_cap") is False:
+        short += ", the shield's braking cap off"
     stall = spec.get("stall")
     if stall is None:
         return f"{spec['view']} view, no stall handover{short}"

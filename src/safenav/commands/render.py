@@ -108,9 +108,10 @@ def render(
         # a policy trained behind the shield flies behind it, and behind its planner filter
         memory, shield_map, shield_mover_margin, shield_brake = own_shield_settings(
             loaded, checkpoint, memory, shield_map, shield_mover_margin, shield_brake)  # fmt: skip
-    from safenav.commands.eval import own_planner_filter
+    from safenav.commands.eval import brake_under_filter, own_planner_filter
 
     spec = own_planner_filter(loaded, checkpoint, planner_filter, planner_filter_view)
+    shield_brake = brake_under_filter(spec, shield_brake)
     stats = render_episode(out, checkpoint=checkpoint, policy=policy, preset=preset,
                            env_seed=env_seed, episode=episode, fps=fps, record=record,
                            shield_memory=memory, shield_map=shield_map,

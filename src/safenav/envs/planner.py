@@ -710,6 +710,11 @@ FILTER_SHORT_MOVES = True
 """Whether the adopted filter's planner weighs short moves (``PlannerFilter(short_moves=...)``;
 adopted by its validation screen, 2026-12-05: docs/csac-v1.md, "Short moves for the filter's
 planner")."""
+FILTER_BRAKING_CAP = False
+"""Whether the flight shield keeps its braking cap behind the adopted filter (``"braking_cap":
+false`` in a :func:`filter_spec`: the shield flies without it where the filter flies after it;
+adopted by its validation screen, 2026-12-06: docs/csac-v1.md, "The braking cap behind the
+filter"). The periodic evaluations and the selection, which fly no filter, keep the cap."""
 FILTER_STALL_TUMBLING = (10.0, 2.0, 5.0)
 """The first adopted handover (tested in tumbling windows): what a policy's recorded filter
 without a ``"stall_test"`` (trained before 2026-12-05) flies."""
@@ -726,11 +731,14 @@ def filter_spec(view: str = "observation",
                 stall: tuple[float, float, float] | None = FILTER_STALL,
                 stall_test: str = FILTER_STALL_TEST,
                 short_moves: bool = FILTER_SHORT_MOVES,
-                handover_map: bool = False, handover_exit: str = "time") -> dict:  # fmt: skip
+                handover_map: bool = False, handover_exit: str = "time",
+                braking_cap: bool = FILTER_BRAKING_CAP) -> dict:  # fmt: skip
     """A :class:`PlannerFilter` as a policy's ``meta["flight_filter"]`` records it (``safenav
     train --flight-filter``): ``{"view": ..., "stall": [window, progress, handover] or None,
-    "stall_test": ...}`` and ``"short_moves": true``, ``"handover_map": true`` and
-    ``"handover_exit": "nearer"`` where set; by default the adopted one."""
+    "stall_test": ...}`` and ``"short_moves": true``, ``"handover_map": true``,
+    ``"handover_exit": "nearer"`` and ``"braking_cap": false`` (the flight shield before the
+    filter without its braking cap: :func:`shield_under_filter`) where set; by default the
+    adopted one."""
     if view not in FILTER_VIEWS:
         raise ValueError(f"view={view!r}: choose one of {FILTER_VIEWS}")
     if stall_test not in STALL_TESTS:
@@ -748,7 +756,18 @@ def filter_spec(view: str = "observation",
         spec["handover_map"] = True
     if handover_exit != "time":
         spec["handover_exit"] = handover_exit
+    if not braking_cap:
+        spec["braking_cap"] = False
     return spec
+
+
+def shield_under_filter(shield: dict | None, planner_filter: dict | None) -> dict | None:
+    """The flight shield spec ``shield`` (``meta["flight_shield"]``) as it flies before the
+    filter ``planner_filter`` (a :func:`filter_spec`; None: no filter): without its braking cap
+    where the filter records ``"braking_cap": false``, else unchanged."""
+    if shield is None or planner_filter is None or planner_filter.get("braking_cap", True):
+        return shield
+    return {**shield, "brake": False}
 
 
 def filter_from_spec(spec: dict) -> PlannerFilter:
@@ -761,6 +780,8 @@ def filter_from_spec(spec: dict) -> PlannerFilter:
     if stall is not None and not (isinstance(stall, (list, tuple)) and len(stall) == 3 and
                                   all(isinstance(x, (int, float)) for x in stall)):  # fmt: skip
         raise ValueError(f"planner filter {spec!r}: stall is [window s, progress m, handover s]")
+    if not isinstance(spec.get("braking_cap", True), bool):
+        raise ValueError(f"planner filter {spec!r}: braking_cap is true or false")
     return PlannerFilter(view=spec["view"], stall=None if stall is None else tuple(stall),
                          stall_test=spec.get("stall_test", "tumbling"),
                          short_moves=bool(spec.get("short_moves", False)),
@@ -1062,10 +1083,10 @@ success / 0.021 collision on 144 validation episodes (with ``keep_band``: 0.896 
 PLANNERS = {"range": PLANNER_B, "pillars": PLANNER_PILLARS}
 """The planners a learner may replay (``CSACConfig.planner_view``), by what they see."""
 
-__all__ = ["FAR", "FILTER_SHORT_MOVES", "FILTER_STALL", "FILTER_STALL_TEST",
+__all__ = ["FAR", "FILTER_BRAKING_CAP", "FILTER_SHORT_MOVES", "FILTER_STALL", "FILTER_STALL_TEST",
            "FILTER_STALL_TUMBLING", "FILTER_VIEWS", "HANDOVER_CAP", "HANDOVER_EXITS", "MAP_MATCH",
            "MAP_PILLARS", "PLANNERS", "PLANNER_B", "PLANNER_B_BEAMS", "PLANNER_PILLARS",
            "SHORT_MOVE_CLIMBS", "SHORT_MOVE_SPEEDS", "SHORT_MOVE_STEPS", "AutoresetPlanner",
            "OracleConfig", "OraclePlanner", "PlannerFilter", "ScanFn", "beam_hits",
            "behind_filter", "filter_from_spec", "filter_spec", "geodesic_fields", "goal_cells",
-           "grid_graph", "mover_clearance", "sample_field", "to_action"]  # fmt: skip
+           "grid_graph", "mover_clearance", "sample_field", "shield_under_filter", "to_action"]  # fmt: skip

@@ -57,11 +57,14 @@ def validation_score(episodes: int = 256, device: str = "cpu") -> Callable[[dict
     return score
 
 
-def own_shield(policy):
+def own_shield(policy, planner_filter: dict | None = None):
     """A fresh shield of the kind ``policy`` flies behind (``safenav train --shield``: its
     ``meta["flight_shield"]``, or ``meta["shield"]`` for policies from before it), or None: such a
-    policy is chosen and reported flying behind it."""
-    spec = flight_shield_spec(policy.meta)
+    policy is chosen and reported flying behind it. With ``planner_filter`` (a filter spec) the
+    shield as it flies before that filter (:func:`~safenav.envs.planner.shield_under_filter`)."""
+    from safenav.envs.planner import shield_under_filter
+
+    spec = shield_under_filter(flight_shield_spec(policy.meta), planner_filter)
     if not spec:
         return None
     from safenav.deploy.shield import shield_from_spec  # loads Numba: only for such a policy
@@ -141,7 +144,7 @@ def report_policy(
     planner filter (``meta["flight_filter"]``, ``safenav train --flight-filter``) flies every one
     of them behind it (the shares of steps the planner flew beside each), and the test scenario
     once more behind its shield alone (``test_without_filter``)."""
-    from safenav.envs.planner import behind_filter, filter_from_spec
+    from safenav.envs.planner import behind_filter, filter_from_spec, shield_under_filter
     from safenav.experiments.evaluate import evaluate
     from safenav.experiments.flight import resolve_policy
 
@@ -157,6 +160,7 @@ def report_policy(
     def summary(seed: int, rule: str = "body", planner_filter: bool = True) -> dict[str, Any]:
         shield, the_filter = own_shield(fn), None
         if filter_meta and planner_filter:
+            shield = own_shield(fn, filter_meta)
             the_filter = filter_from_spec(filter_meta)
             shield = behind_filter(shield, the_filter)
         res = evaluate(fn, cfg.replace(collision_rule=rule), env_seed=seed, episodes=episodes,
@@ -180,6 +184,8 @@ def report_policy(
               "flight_shield": flight_shield_spec(fn.meta)}  # fmt: skip
     if filter_meta:  # the system is reported; the policy behind its shield alone beside it
         report |= {"flight_filter": filter_meta,
+                   "shield_under_filter": shield_under_filter(flight_shield_spec(fn.meta),
+                                                              filter_meta),
                    "test_without_filter": summary(TEST_SEED, planner_filter=False)}  # fmt: skip
     return report
 
