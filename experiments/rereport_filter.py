@@ -132,8 +132,10 @@ def rereport_record(record_path: Path, episodes: int, device: str) -> None:
     final = read_json(final_path)
     if (final or {}).get("flight_filter") != now:
         final = report_policy(policy, episodes=episodes, device=device)
+        side.mkdir(exist_ok=True)  # again: another record's run may have removed it meanwhile
         write_json(final_path, final)
     if (read_json(eval_path) or {}).get("planner_filter_spec") != now:
+        side.mkdir(exist_ok=True)
         fly_test(policy, eval_path, episodes, device)
     before = {k: rec.get(k) for k in REPORT_FIELDS}
     rec |= report_fields(read_json(eval_path) or {}, final) | {

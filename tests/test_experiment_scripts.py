@@ -539,6 +539,7 @@ def test_rereport_filter_refolds_a_committed_trial_record(tiny_run, tmp_path, mo
 
     def report(path, episodes, device):
         flights.append("report")
+        (trials / "rereport").rmdir()  # another record's run, finished meanwhile, tidies up
         return {"flight_filter": filter_spec(), "heldout": {"seeds": [2, 3, 4, 5, 6],
                 "success_rate": 0.9, "collision_rate": 0.02, "timeout_rate": 0.08}}  # fmt: skip
 
