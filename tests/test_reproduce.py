@@ -462,6 +462,32 @@ def test_trial_fresh_then_skipped_then_resumed_for_more_steps(tmp_path, fake_pyt
     assert rec["wall_clock_s"] == marker["train_wall_clock_s"] > 0
 
 
+def test_a_record_reported_again_since_its_run_is_not_overwritten_by_the_run(tmp_path):
+    """``experiments/rereport_filter.py`` flies a committed record's policy again: that record is
+    newer than its run directory's report, and a later sweep keeps it (the run directory's files
+    would bring the older report back); a record reported before the run's is not kept."""
+    import json
+    import os
+    from datetime import datetime, timezone
+
+    trial = make_trial(tmp_path, sys.executable)
+    trial.run_dir.mkdir(parents=True)
+    evaluated = trial.run_dir / "eval.json"
+    evaluated.write_text("{}")
+    os.utime(evaluated, (1.0e9, 1.0e9))  # the run's report: 2001
+    trial.record_path.parent.mkdir(parents=True)
+    assert rep.rereported_record(trial) is None  # no record
+    now = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    rec = {"algo": "csac", "seed": 0, "success_rate": 0.9, "rereported": {"date": now}}
+    trial.record_path.write_text(json.dumps(rec))
+    assert rep.rereported_record(trial) == rec
+    os.utime(evaluated, None)  # the run reported again after it
+    trial.record_path.write_text(json.dumps({**rec, "rereported": {"date": "2001-01-01T00:00:00+00:00"}}))
+    assert rep.rereported_record(trial) is None
+    trial.record_path.write_text(json.dumps({"algo": "csac", "seed": 0}))
+    assert rep.rereported_record(trial) is None  # never reported again
+
+
 def test_trial_evaluates_only_when_trained_but_not_evaluated(tmp_path, fake_python):
     trial = make_trial(tmp_path, fake_python)
     rep.run_trial(trial)

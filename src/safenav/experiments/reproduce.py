@@ -417,6 +417,22 @@ def committed_record(trial: Trial) -> dict[str, Any] | None:
     return rec
 
 
+def rereported_record(trial: Trial) -> dict[str, Any] | None:
+    """The trial's ``OUT/trials/`` record where its report was flown again from its committed
+    policy (``experiments/rereport_filter.py``: ``"rereported"``) after the run directory's own
+    report (``eval.json``): that record, which the run directory's older files must not
+    overwrite; else None."""
+    rec = read_json(trial.record_path)
+    evaluated = trial.run_dir / "eval.json"
+    if not rec or not isinstance(rec.get("rereported"), dict) or not evaluated.exists():
+        return None
+    try:
+        when = datetime.fromisoformat(str(rec["rereported"].get("date"))).timestamp()
+    except ValueError:
+        return None
+    return rec if when > evaluated.stat().st_mtime else None
+
+
 def earlier_trial_records(out: Path) -> list[dict[str, Any]]:
     """The records in ``OUT/trials/`` (each names its label and seed; its own commands say how
     it was made), e.g. of earlier sweeps into the same OUT."""
@@ -696,7 +712,9 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
 
     records = []
     for t in trials:
-        if t.name not in failures and (t.run_dir / "eval.json").exists():
+        if t.name not in outcomes and (newer := rereported_record(t)) is not None:
+            records.append(newer)  # flown again since the run directory's report
+        elif t.name not in failures and (t.run_dir / "eval.json").exists():
             rec = seed_record(t.run_dir, algo=t.label, seed=t.seed)
             # declared, as in the trial files: labels of different budgets are not compared
             rec["budget_env_steps"] = t.total_steps
