@@ -482,7 +482,9 @@ def test_a_record_reported_again_since_its_run_is_not_overwritten_by_the_run(tmp
     trial.record_path.write_text(json.dumps(rec))
     assert rep.rereported_record(trial) == rec
     os.utime(evaluated, None)  # the run reported again after it
-    trial.record_path.write_text(json.dumps({**rec, "rereported": {"date": "2001-01-01T00:00:00+00:00"}}))
+    trial.record_path.write_text(
+        json.dumps({**rec, "rereported": {"date": "2001-01-01T00:00:00+00:00"}})
+    )
     assert rep.rereported_record(trial) is None
     trial.record_path.write_text(json.dumps({"algo": "csac", "seed": 0}))
     assert rep.rereported_record(trial) is None  # never reported again
