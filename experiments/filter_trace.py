@@ -24,22 +24,23 @@ import safenav.experiments.flight as flight
 
 def trace(checkpoint: Path, env_seed: int, episode: int, adopted: bool = False,
           short_moves: bool = False, mapped: bool = False,
-          nearer: bool = False) -> tuple[dict, list[dict]]:  # fmt: skip
+          nearer: bool = False, no_cap: bool = False) -> tuple[dict, list[dict]]:  # fmt: skip
     """The episode's stats and one row per control step; ``adopted``: behind the sliding filter
     (``filter_spec(short_moves=False)``) whatever the policy records; ``short_moves``: the filter
     adopted now, with its planner's short moves (``filter_spec()``); ``mapped`` / ``nearer``:
-    that filter with ``handover_map`` / also ``handover_exit="nearer"``."""
+    that filter with ``handover_map`` / also ``handover_exit="nearer"``; ``no_cap``: the shield
+    without its braking cap (as the adopted filter flies it since 2026-12-06)."""
     from safenav.algos.policy import load_policy
     from safenav.envs.planner import filter_spec
 
     loaded = load_policy(checkpoint)
-    short_moves = short_moves or mapped or nearer
+    short_moves = short_moves or mapped or nearer or no_cap
     spec = (None if adopted or short_moves else loaded.meta.get("flight_filter")) or filter_spec(
         short_moves=short_moves,
         handover_map=mapped or nearer,
         handover_exit="nearer" if nearer else "time",
-        braking_cap=True,
-    )  # as traced: the cap on
+        braking_cap=not no_cap,
+    )
     rows: list[dict] = []
     build = flight.flight_filter
 
@@ -53,6 +54,7 @@ def trace(checkpoint: Path, env_seed: int, episode: int, adopted: bool = False,
                          "to_goal": round(float((env.goal[0] - env.pos[0]).norm()), 2),
                          "planner": bool(the_filter.overridden[0]),
                          "handover_left": int(the_filter._handover_left[0]),
+                         "mover": nearest_mover(env),
                          "action": [round(x, 2) for x in action[0].tolist()],
                          "flown": [round(x, 2) for x in out[0].tolist()]})  # fmt: skip
             return out
@@ -63,11 +65,22 @@ def trace(checkpoint: Path, env_seed: int, episode: int, adopted: bool = False,
     try:
         _, stats = flight.fly_frames(checkpoint, env_seed=env_seed, episode=episode,
                                      shield_memory=1, shield_map=True, shield_mover_margin=0.3,
-                                     shield_brake=True, loaded=loaded,
+                                     shield_brake=not no_cap, loaded=loaded,
                                      planner_filter=spec)  # fmt: skip
     finally:
         flight.flight_filter = build
     return stats, rows
+
+
+def nearest_mover(env) -> str:
+    """Episode 0's nearest moving obstacle: horizontal centre distance (m) and its velocity."""
+    w, nd = int(env.world_idx[0]), env.n_dynamic
+    if nd == 0:
+        return "-"
+    rel = env.dyn_pos[w, :nd, :2] - env.pos[0, :2]
+    i = int(rel.norm(dim=-1).argmin())
+    v = env.dyn_vel[w, i, :2].tolist()
+    return f"{float(rel[i].norm()):.2f} m, v ({v[0]:.1f}, {v[1]:.1f})"
 
 
 def main() -> None:
@@ -93,19 +106,26 @@ def main() -> None:
         action="store_true",
         help="the map and the 'nearer' leave condition (screened, not adopted)",
     )
+    parser.add_argument("--every-step", action="store_true", help="a row per 0.1 s step")
+    parser.add_argument(
+        "--no-cap",
+        action="store_true",
+        help="the filter adopted now with the shield's braking cap off",
+    )
     args = parser.parse_args()
     stats, rows = trace(args.checkpoint, args.env_seed, args.episode, args.adopted,
-                        args.short_moves, args.mapped, args.nearer)  # fmt: skip
+                        args.short_moves, args.mapped, args.nearer, args.no_cap)  # fmt: skip
     print(stats)
     print(
-        "| t (s) | position (m) | to goal (m) | planner flies | handover steps left | action | flown |"
+        "| t (s) | position (m) | to goal (m) | planner flies | handover steps left | nearest mover "
+        "| action | flown |"
     )
-    print("|---:|---|---:|---|---:|---|---|")
+    print("|---:|---|---:|---|---:|---|---|---|")
     for r in rows:
         whole = abs(r["t"] - round(r["t"])) < 1e-6
-        if whole and args.from_s <= r["t"] <= args.to_s:
-            print(f"| {r['t']:.0f} | {r['pos']} | {r['to_goal']} | {r['planner']} | "
-                  f"{r['handover_left']} | {r['action']} | {r['flown']} |")  # fmt: skip
+        if (whole or args.every_step) and args.from_s <= r["t"] <= args.to_s:
+            print(f"| {r['t']:.1f} | {r['pos']} | {r['to_goal']} | {r['planner']} | "
+                  f"{r['handover_left']} | {r['mover']} | {r['action']} | {r['flown']} |")  # fmt: skip
     planner = sum(r["planner"] for r in rows)
     print(f"\nthe planner flew {planner} of {len(rows)} steps")
 

@@ -565,3 +565,17 @@ def test_rereport_filter_refolds_a_committed_trial_record(tiny_run, tmp_path, mo
     record.write_text(json.dumps({"algo": "csac", "seed": 4}))
     with pytest.raises(SafenavError, match="naming its policy"):
         rr.rereport_record(record, episodes=200, device="cpu")
+
+
+def test_filter_trace_names_the_nearest_mover_and_its_velocity():
+    from types import SimpleNamespace
+
+    ft = script("filter_trace")
+    env = SimpleNamespace(world_idx=torch.tensor([1]), n_dynamic=2,
+                          pos=torch.tensor([[0.0, 0.0, 1.0]]),
+                          dyn_pos=torch.tensor([[[9.0, 9.0, 1.0], [9.0, 9.0, 1.0]],
+                                                [[3.0, 4.0, 1.0], [1.0, 0.0, 1.0]]]),
+                          dyn_vel=torch.tensor([[[0.0, 0.0, 0.0]] * 2,
+                                                [[1.0, 0.0, 0.0], [-0.5, 1.25, 0.0]]]))  # fmt: skip
+    assert ft.nearest_mover(env) == "1.00 m, v (-0.5, 1.2)"
+    assert ft.nearest_mover(SimpleNamespace(world_idx=torch.tensor([0]), n_dynamic=0)) == "-"
