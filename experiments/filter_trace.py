@@ -19,6 +19,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import torch
+
 import safenav.experiments.flight as flight
 
 
@@ -54,7 +56,7 @@ def trace(checkpoint: Path, env_seed: int, episode: int, adopted: bool = False,
                          "to_goal": round(float((env.goal[0] - env.pos[0]).norm()), 2),
                          "planner": bool(the_filter.overridden[0]),
                          "handover_left": int(the_filter._handover_left[0]),
-                         "mover": nearest_mover(env),
+                         "mover": nearest_mover(env), "movers": movers_of(env),
                          "action": [round(x, 2) for x in action[0].tolist()],
                          "flown": [round(x, 2) for x in out[0].tolist()]})  # fmt: skip
             return out
@@ -70,6 +72,28 @@ def trace(checkpoint: Path, env_seed: int, episode: int, adopted: bool = False,
     finally:
         flight.flight_filter = build
     return stats, rows
+
+
+def movers_of(env) -> torch.Tensor | None:
+    """Episode 0's moving obstacles: ``(D, 4)`` horizontal centre offset from the UAV and
+    velocity, or None without any."""
+    w, nd = int(env.world_idx[0]), env.n_dynamic
+    if nd == 0:
+        return None
+    return torch.cat([env.dyn_pos[w, :nd, :2] - env.pos[0, :2], env.dyn_vel[w, :nd, :2]], -1)
+
+
+def last_nearest(rows: list[dict]) -> list[str]:
+    """Per row, the mover nearest at the last row (the one a collision with a mover struck):
+    its centre distance (m) and velocity, so a turn or its first approach shows."""
+    if not rows or rows[-1]["movers"] is None:
+        return ["-"] * len(rows)
+    i = int(rows[-1]["movers"][:, :2].norm(dim=-1).argmin())
+    out = []
+    for r in rows:
+        m = r["movers"][i].tolist()
+        out.append(f"#{i} {float(r['movers'][i, :2].norm()):.2f} m, v ({m[2]:.1f}, {m[3]:.1f})")
+    return out
 
 
 def nearest_mover(env) -> str:
@@ -118,14 +142,15 @@ def main() -> None:
     print(stats)
     print(
         "| t (s) | position (m) | to goal (m) | planner flies | handover steps left | nearest mover "
-        "| action | flown |"
+        "| the mover nearest at the end | action | flown |"
     )
-    print("|---:|---|---:|---|---:|---|---|---|")
-    for r in rows:
+    print("|---:|---|---:|---|---:|---|---|---|---|")
+    struck = last_nearest(rows)
+    for r, last in zip(rows, struck, strict=True):
         whole = abs(r["t"] - round(r["t"])) < 1e-6
         if (whole or args.every_step) and args.from_s <= r["t"] <= args.to_s:
             print(f"| {r['t']:.1f} | {r['pos']} | {r['to_goal']} | {r['planner']} | "
-                  f"{r['handover_left']} | {r['mover']} | {r['action']} | {r['flown']} |")  # fmt: skip
+                  f"{r['handover_left']} | {r['mover']} | {last} | {r['action']} | {r['flown']} |")  # fmt: skip
     planner = sum(r["planner"] for r in rows)
     print(f"\nthe planner flew {planner} of {len(rows)} steps")
 
