@@ -158,9 +158,9 @@ def report_policy(
     filter_meta = fn.meta.get("flight_filter")
 
     def summary(seed: int, rule: str = "body", planner_filter: bool = True) -> dict[str, Any]:
-        shield, the_filter = own_shield(fn), None
-        if filter_meta and planner_filter:
-            shield = own_shield(fn, filter_meta)
+        flies_filter = bool(filter_meta) and planner_filter
+        shield, the_filter = own_shield(fn, filter_meta if flies_filter else None), None
+        if flies_filter:
             the_filter = filter_from_spec(filter_meta)
             shield = behind_filter(shield, the_filter)
         res = evaluate(fn, cfg.replace(collision_rule=rule), env_seed=seed, episodes=episodes,
