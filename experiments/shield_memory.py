@@ -37,6 +37,7 @@ stdout and in OUT/table-MAPS.md.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import re
 import time
@@ -47,7 +48,12 @@ import torch
 from safenav.algos.policy import load_policy
 from safenav.common.jsonout import write_json
 from safenav.deploy.shield import shield_for_memory
-from safenav.envs.planner import FILTER_STALL_TUMBLING, PlannerFilter, behind_filter
+from safenav.envs.planner import (
+    FILTER_STALL_TUMBLING,
+    PLANNER_PILLARS,
+    PlannerFilter,
+    behind_filter,
+)
 from safenav.experiments.evaluate import evaluate
 from safenav.experiments.selection import HELDOUT_SEEDS, TEST_SEED, VALIDATION_SEEDS
 from safenav.experiments.stats import outcomes_string
@@ -76,10 +82,12 @@ def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str, flo
     0.5; ``-filter``, last: the planner filter after the shield (its view last: ``"simulator"``;
     ``-filterobs``: ``"observation"``; None without; ``-stall`` or ``-stallP`` after either:
     ``"...-stall"``, ``"...-stallP"``; ``-short`` last: ``"...-short"``, ``-mapped`` and
-    ``-nearer`` after it: ``"...-mapped"``, ``"...-nearer"``)."""
+    ``-nearer`` after it: ``"...-mapped"``, ``"...-nearer"``; ``-turnT`` last: the filter's
+    ``OracleConfig.mover_turn`` T s, ``"...-turnT"``)."""
     found = re.fullmatch(
         r"(\d+)(map)?(?:-mover([0-9.]+))?(-lag)?(-brake|-slide)?(?:-keep([0-9.]+))?"
-        r"(-filter(?:obs)?(?:-stall(?:slide)?(?:[0-9.]+)?)?(?:-short)?(?:-mapped)?(?:-nearer)?)?",
+        r"(-filter(?:obs)?(?:-stall(?:slide)?(?:[0-9.]+)?)?(?:-short)?(?:-mapped)?(?:-nearer)?"
+        r"(?:-turn[0-9.]+)?)?",
         setting,
     )
     if found is None:
@@ -89,7 +97,8 @@ def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str, flo
     keep = float(found[6] or 0.0)
     if not 0.0 <= keep <= 1.0:
         raise SystemExit(f"shield setting {setting!r}: -keepK takes K in [0, 1]")
-    filtered, short, mapped, nearer = filter_suffixes(found[7] or "")
+    filtered, _, turn = (found[7] or "").partition("-turn")
+    filtered, short, mapped, nearer = filter_suffixes(filtered)
     head, stall, progress = filtered.partition("-stall")
     view = {"": None, "-filter": "simulator", "-filterobs": "observation"}[head]
     if (mapped or nearer) and not stall:
@@ -103,6 +112,8 @@ def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str, flo
         view += "-mapped"
     if nearer:
         view += "-nearer"
+    if turn:
+        view += "-turn" + turn
     return (int(found[1]), found[2] is not None, float(found[3] or 0.0), found[4] is not None,
             brake, keep, view)  # fmt: skip
 
@@ -154,10 +165,13 @@ def run(
                     shield = shield_for_memory(memory, scan, mover, lag, brake, keep)
                     extra = {"keep_moving": keep} if keep else {}
                     if filtered:
+                        filtered, _, turn = filtered.partition("-turn")
                         head, short, mapped, nearer = filter_suffixes(filtered)
                         view, _, stall = head.partition("-")
                         stall_setting, stall_test = stall_of(stall)
-                        planner_filter = PlannerFilter(view=view, stall=stall_setting,
+                        config = (dataclasses.replace(PLANNER_PILLARS, mover_turn=float(turn))
+                                  if turn else None)  # fmt: skip
+                        planner_filter = PlannerFilter(config, view=view, stall=stall_setting,
                                                        stall_test=stall_test, short_moves=short,
                                                        handover_map=mapped,
                                                        handover_exit="nearer" if nearer

@@ -338,6 +338,10 @@ def test_shield_memory_parses_the_braking_and_filter_settings():
         sm.parse_setting("1map-mover0.3-brake-filterobs-stallslide5-short-mapped-nearer")[-1]
         == "observation-stallslide5-short-mapped-nearer"
     )
+    assert sm.parse_setting("1map-mover0.3-filterobs-stallslide5-short-turn0.5")[-1] == (
+        "observation-stallslide5-short-turn0.5"
+    )
+    assert sm.parse_setting("1map-mover0.3-filterobs-stallslide5-short-turn0.5")[4] is False
     with pytest.raises(SystemExit, match="-mapped"):
         sm.parse_setting("1map-mover0.3-brake-filterobs-mapped")
     with pytest.raises(SystemExit, match="-filterobs"):

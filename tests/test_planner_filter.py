@@ -515,3 +515,38 @@ def test_a_handover_that_ends_nearer_goes_on_until_the_uav_is_nearer(exit_rule):
         assert 5 < length <= 15
         assert bool((dist[first + length] <= dist[first] - 1.0).all())
         assert not handed[first + length : first + length + 20].any()  # a window before the next
+
+
+def test_mover_turn_grows_each_movers_reach_over_the_first_seconds():
+    """``OracleConfig.mover_turn``: a mover 1.6 m beside a hovering UAV, flying past it at
+    1.3 m/s, never comes near under the constant-velocity forecast; allowed to turn for 0.5 s it
+    may reach 0.65 m further, into the UAV's margin."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    from safenav.envs.planner import PLANNER_PILLARS, OraclePlanner
+
+    cfg = make_config("paper")
+    h = PLANNER_PILLARS.horizon
+    t = torch.arange(1, h + 1, dtype=torch.float32)[:, None, None, None]
+    mover = torch.tensor([0.0, 1.6, 1.0]) + t * cfg.dt * torch.tensor([1.3, 0.0, 0.0])
+    scene = {"env": SimpleNamespace(cfg=cfg), "pxy": torch.zeros(1, 0, 2),
+             "phalf": torch.zeros(1, 0), "ph": torch.zeros(1, 0), "nd": 1, "hits": None,
+             "columns": None, "hit_r": None, "wall_seen": torch.zeros(1, 1, 4, dtype=torch.bool),
+             "band": (torch.tensor([0.3]), torch.tensor([2.7])),
+             "goal": torch.tensor([[20.0, 0.0, 1.0]]), "future": mover.expand(h, 1, 1, 3),
+             "width": torch.tensor([[[0.4]]]), "cuboid": torch.tensor([[[False]]])}  # fmt: skip
+    start = (torch.tensor([[[0.0, 0.0, 1.0]]]), torch.zeros(1, 1, 3))
+    hover = torch.zeros(1, 1, 3)
+    plain = OraclePlanner(PLANNER_PILLARS).simulate(scene, hover, *start)
+    turning = OraclePlanner(dataclasses.replace(PLANNER_PILLARS, mover_turn=0.5)).simulate(
+        scene, hover, *start
+    )
+    # clearance after the 0.2 m radius and the UAV's 0.3 m, at each step's forecast
+    steps = torch.arange(1, h + 1, dtype=torch.float32)
+    gap = torch.sqrt((1.3 * cfg.dt * steps) ** 2 + 1.6**2) - 0.2 - cfg.uav_radius
+    assert float(plain["least"]) == pytest.approx(float(gap.min()), abs=1e-4)  # 1.105 m, at once
+    assert float(plain["intrude"]) == 0.0  # beyond the 0.7 m margin
+    reach = 1.3 * torch.clamp(steps * cfg.dt, max=0.5)
+    assert float(turning["least"]) == pytest.approx(float((gap - reach).min()), abs=1e-4)
+    assert float(turning["intrude"]) > 0.1  # 0.577 m at 0.5 s: inside the margin

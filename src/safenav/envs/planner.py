@@ -154,6 +154,11 @@ class OracleConfig:
     near_movers: int = 12
     """Moving obstacles checked per episode with full view: the nearest (12 cover about 10 m at
     the paper density; UAV and obstacle close at most 3.5 m/s)."""
+    mover_turn: float = 0.0
+    """Seconds (0: off) in which a moving obstacle may turn any way at its speed: its clearance at
+    forecast time t is reduced by its speed x min(t, mover_turn), a reachable set around the
+    constant-velocity forecast (beyond NavRL; screened on validation: docs/csac-v1.md, "A forecast
+    that lets movers turn")."""
     grid_resolution: float = 0.25
     """Cell side (m) of the geodesic cost-to-go grid."""
     block_penalty: float = 20.0
@@ -549,6 +554,10 @@ class OraclePlanner:
         reach = torch.full((n, k), never, device=dev)  # first step at the goal
         intrude = torch.zeros(n, k, device=dev)  # deepest intrusion into the margins (m)
         least = torch.full((n, k), math.inf, device=dev)  # least clearance (m)
+        turn_speed = None  # (n, 1, D): each mover's speed, for mover_turn's reachable set
+        if nd and c.mover_turn > 0:
+            future = scene["future"]
+            turn_speed = ((future[1, ..., :2] - future[0, ..., :2]).norm(dim=-1) / ec.dt)[:, None]
         for t in range(t0, t0 + steps):
             p, v = velocity_tracker(p, v, cmds, ec.dt, ec.physics_substeps,
                                     ec.velocity_time_constant, ec.max_acceleration)  # fmt: skip
@@ -571,8 +580,10 @@ class OraclePlanner:
             static = static - ec.uav_radius
             mover = torch.full_like(static, math.inf)
             if nd:
-                mover = (mover_clearance(scene["future"][t], scene["width"], scene["cuboid"], p)
-                         .amin(-1) - ec.uav_radius)  # fmt: skip
+                gap = mover_clearance(scene["future"][t], scene["width"], scene["cuboid"], p)
+                if turn_speed is not None:
+                    gap = gap - turn_speed * min((t + 1) * ec.dt, c.mover_turn)
+                mover = gap.amin(-1) - ec.uav_radius
             band = torch.minimum(p[..., 2] - ec.z_min, ec.z_max - p[..., 2])
             clear = torch.minimum(static, mover)
             going = reach == never  # not at the goal before this step
