@@ -56,7 +56,7 @@ def trace(checkpoint: Path, env_seed: int, episode: int, adopted: bool = False,
                          "to_goal": round(float((env.goal[0] - env.pos[0]).norm()), 2),
                          "planner": bool(the_filter.overridden[0]),
                          "handover_left": int(the_filter._handover_left[0]),
-                         "mover": nearest_mover(env), "movers": movers_of(env),
+                         "movers": movers_of(env),
                          "action": [round(x, 2) for x in action[0].tolist()],
                          "flown": [round(x, 2) for x in out[0].tolist()]})  # fmt: skip
             return out
@@ -83,28 +83,24 @@ def movers_of(env) -> torch.Tensor | None:
     return torch.cat([env.dyn_pos[w, :nd, :2] - env.pos[0, :2], env.dyn_vel[w, :nd, :2]], -1)
 
 
+def describe_mover(movers: torch.Tensor | None, i: int | None = None) -> str:
+    """Mover ``i`` of a :func:`movers_of` row (default: the nearest): its horizontal centre
+    distance (m) and velocity; ``"-"`` without movers."""
+    if movers is None:
+        return "-"
+    dist = movers[:, :2].norm(dim=-1)
+    i = int(dist.argmin()) if i is None else i
+    vx, vy = movers[i, 2:].tolist()
+    return f"{float(dist[i]):.2f} m, v ({vx:.1f}, {vy:.1f})"
+
+
 def last_nearest(rows: list[dict]) -> list[str]:
-    """Per row, the mover nearest at the last row (the one a collision with a mover struck):
-    its centre distance (m) and velocity, so a turn or its first approach shows."""
+    """Per row, the mover nearest at the last row (the one a collision with a mover struck), as
+    :func:`describe_mover` says it, so a turn or its first approach shows."""
     if not rows or rows[-1]["movers"] is None:
         return ["-"] * len(rows)
     i = int(rows[-1]["movers"][:, :2].norm(dim=-1).argmin())
-    out = []
-    for r in rows:
-        m = r["movers"][i].tolist()
-        out.append(f"#{i} {float(r['movers'][i, :2].norm()):.2f} m, v ({m[2]:.1f}, {m[3]:.1f})")
-    return out
-
-
-def nearest_mover(env) -> str:
-    """Episode 0's nearest moving obstacle: horizontal centre distance (m) and its velocity."""
-    w, nd = int(env.world_idx[0]), env.n_dynamic
-    if nd == 0:
-        return "-"
-    rel = env.dyn_pos[w, :nd, :2] - env.pos[0, :2]
-    i = int(rel.norm(dim=-1).argmin())
-    v = env.dyn_vel[w, i, :2].tolist()
-    return f"{float(rel[i].norm()):.2f} m, v ({v[0]:.1f}, {v[1]:.1f})"
+    return [f"#{i} {describe_mover(r['movers'], i)}" for r in rows]
 
 
 def main() -> None:
@@ -150,7 +146,7 @@ def main() -> None:
         whole = abs(r["t"] - round(r["t"])) < 1e-6
         if (whole or args.every_step) and args.from_s <= r["t"] <= args.to_s:
             print(f"| {r['t']:.1f} | {r['pos']} | {r['to_goal']} | {r['planner']} | "
-                  f"{r['handover_left']} | {r['mover']} | {last} | {r['action']} | {r['flown']} |")  # fmt: skip
+                  f"{r['handover_left']} | {describe_mover(r['movers'])} | {last} | {r['action']} | {r['flown']} |")  # fmt: skip
     planner = sum(r["planner"] for r in rows)
     print(f"\nthe planner flew {planner} of {len(rows)} steps")
 

@@ -581,5 +581,8 @@ def test_filter_trace_names_the_nearest_mover_and_its_velocity():
                                                 [[3.0, 4.0, 1.0], [1.0, 0.0, 1.0]]]),
                           dyn_vel=torch.tensor([[[0.0, 0.0, 0.0]] * 2,
                                                 [[1.0, 0.0, 0.0], [-0.5, 1.25, 0.0]]]))  # fmt: skip
-    assert ft.nearest_mover(env) == "1.00 m, v (-0.5, 1.2)"
-    assert ft.nearest_mover(SimpleNamespace(world_idx=torch.tensor([0]), n_dynamic=0)) == "-"
+    assert ft.describe_mover(ft.movers_of(env)) == "1.00 m, v (-0.5, 1.2)"
+    assert ft.describe_mover(ft.movers_of(SimpleNamespace(world_idx=torch.tensor([0]),
+                                                          n_dynamic=0))) == "-"  # fmt: skip
+    rows = [{"movers": ft.movers_of(env)}, {"movers": ft.movers_of(env)}]
+    assert ft.last_nearest(rows) == ["#1 1.00 m, v (-0.5, 1.2)"] * 2
