@@ -97,8 +97,7 @@ def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str, flo
     keep = float(found[6] or 0.0)
     if not 0.0 <= keep <= 1.0:
         raise SystemExit(f"shield setting {setting!r}: -keepK takes K in [0, 1]")
-    filtered, _, turn = (found[7] or "").partition("-turn")
-    filtered, short, mapped, nearer = filter_suffixes(filtered)
+    filtered, short, mapped, nearer, turn = filter_suffixes(found[7] or "")
     head, stall, progress = filtered.partition("-stall")
     view = {"": None, "-filter": "simulator", "-filterobs": "observation"}[head]
     if (mapped or nearer) and not stall:
@@ -118,16 +117,18 @@ def parse_setting(setting: str) -> tuple[int, bool, float, bool, bool | str, flo
             brake, keep, view)  # fmt: skip
 
 
-def filter_suffixes(text: str) -> tuple[str, bool, bool, bool]:
-    """A filter setting's head and its trailing ``-short``, ``-mapped``, ``-nearer`` (in that
-    order): ``"-filterobs-stallslide5-short-mapped"`` -> ``("-filterobs-stallslide5", True,
-    True, False)``; the same for :func:`parse_setting`'s view ``"observation-stallslide5-..."``."""
+def filter_suffixes(text: str) -> tuple[str, bool, bool, bool, str]:
+    """A filter setting's head and its trailing ``-short``, ``-mapped``, ``-nearer``, ``-turnT``
+    (in that order): ``"-filterobs-stallslide5-short-mapped"`` -> ``("-filterobs-stallslide5",
+    True, True, False, "")``, ``T`` as written last; the same for :func:`parse_setting`'s view
+    ``"observation-stallslide5-..."``."""
+    text, _, turn = text.partition("-turn")
     flags = []
     for suffix in ("-nearer", "-mapped", "-short"):
         flags.append(text.endswith(suffix))
         text = text.removesuffix(suffix)
     nearer, mapped, short = flags
-    return text, short, mapped, nearer
+    return text, short, mapped, nearer, turn
 
 
 def stall_of(setting: str) -> tuple[tuple[float, float, float] | None, str]:
@@ -165,8 +166,7 @@ def run(
                     shield = shield_for_memory(memory, scan, mover, lag, brake, keep)
                     extra = {"keep_moving": keep} if keep else {}
                     if filtered:
-                        filtered, _, turn = filtered.partition("-turn")
-                        head, short, mapped, nearer = filter_suffixes(filtered)
+                        head, short, mapped, nearer, turn = filter_suffixes(filtered)
                         view, _, stall = head.partition("-")
                         stall_setting, stall_test = stall_of(stall)
                         config = (dataclasses.replace(PLANNER_PILLARS, mover_turn=float(turn))

@@ -52,10 +52,9 @@ def timeouts(checkpoint: Path, env_seed: int, episodes: int,
 
     result = evaluate(fn, fn.env_config(), env_seed=env_seed, episodes=episodes, shield=flown)
     whole = torch.stack([p for p, _ in track])
-    result["time_use"] = time_use(whole, goal[0], result["per_episode"],
-                                  torch.stack([o for _, o in track]).float())  # fmt: skip
-    pos = whole[-LAST_STEPS:]
-    planner = torch.stack([o for _, o in track])[-LAST_STEPS:].float()
+    planned = torch.stack([o for _, o in track]).float()
+    result["time_use"] = time_use(whole, goal[0], result["per_episode"], planned)
+    pos, planner = whole[-LAST_STEPS:], planned[-LAST_STEPS:]
     ends = result["per_episode"]
     rows = []
     for i in range(episodes):
