@@ -219,8 +219,9 @@ def brake_under_filter(spec: dict | None, brake):
     and no shield option is given, else ``brake`` as it is."""
     from safenav.cli import ARGS
     from safenav.commands.train import given_flag
+    from safenav.envs.planner import lifts_braking_cap
 
-    if not brake or not spec or spec.get("braking_cap", True):
+    if not brake or not lifts_braking_cap(spec):
         return brake
     if any(given_flag(f, ARGS.get()) for f in SHIELD_FLAGS):
         return brake
@@ -263,8 +264,10 @@ def own_planner_filter(policy, checkpoint, planner_filter: bool, view: str) -> d
 def describe_filter(spec: dict) -> str:
     """``"observation view, stall handover under 1 m in 5 s sliding, 5 s"``: a filter spec in
     words."""
+    from safenav.envs.planner import lifts_braking_cap
+
     short = ", short moves" if spec.get("short_moves") else ""
-    if spec.get("braking_cap") is False:
+    if lifts_braking_cap(spec):
         short += ", the shield's braking cap off"
     stall = spec.get("stall")
     if stall is None:

@@ -772,11 +772,17 @@ def filter_spec(view: str = "observation",
     return spec
 
 
+def lifts_braking_cap(planner_filter: dict | None) -> bool:
+    """Whether the shield before the filter ``planner_filter`` (a :func:`filter_spec`; None: no
+    filter) flies without its braking cap: where the filter records ``"braking_cap": false``."""
+    return planner_filter is not None and planner_filter.get("braking_cap", True) is False
+
+
 def shield_under_filter(shield: dict | None, planner_filter: dict | None) -> dict | None:
     """The flight shield spec ``shield`` (``meta["flight_shield"]``) as it flies before the
-    filter ``planner_filter`` (a :func:`filter_spec`; None: no filter): without its braking cap
-    where the filter records ``"braking_cap": false``, else unchanged."""
-    if shield is None or planner_filter is None or planner_filter.get("braking_cap", True):
+    filter ``planner_filter``: without its braking cap where :func:`lifts_braking_cap`, else
+    unchanged."""
+    if shield is None or not lifts_braking_cap(planner_filter):
         return shield
     return {**shield, "brake": False}
 
@@ -1100,4 +1106,5 @@ __all__ = ["FAR", "FILTER_BRAKING_CAP", "FILTER_SHORT_MOVES", "FILTER_STALL", "F
            "SHORT_MOVE_CLIMBS", "SHORT_MOVE_SPEEDS", "SHORT_MOVE_STEPS", "AutoresetPlanner",
            "OracleConfig", "OraclePlanner", "PlannerFilter", "ScanFn", "beam_hits",
            "behind_filter", "filter_from_spec", "filter_spec", "geodesic_fields", "goal_cells",
-           "grid_graph", "mover_clearance", "sample_field", "shield_under_filter", "to_action"]  # fmt: skip
+           "grid_graph", "lifts_braking_cap", "mover_clearance", "sample_field",
+           "shield_under_filter", "to_action"]  # fmt: skip
