@@ -12,7 +12,7 @@ with it, and writes
 
     .venv/bin/python experiments/flight_grid.py results/paper --labels csac sac ppo sac_lag \\
         ppo_lag --also results/csac-maxcost-crashloss --env-seed 12345 --episodes 0 1 2 3 \\
-        --out results/paper/figures/flights-val.png --gif results/paper/figures/flights-val.gif
+        --out results/paper-observation/figures/flights-val.png --gif results/paper-observation/figures/flights-val.gif
 
 ``--shield-memory 0 1 10`` flies each label three times: without the shield, behind it, and
 behind the shield that remembers the last 10 range images (one row each).

@@ -18,6 +18,7 @@ import pytest
 from safenav.errors import SafenavError
 from safenav.experiments import aggregate as agg
 from safenav.experiments import reproduce as rep
+from safenav.recipes import load_recipe
 from test_reproduce_synthetic import learning_run, write_eval, write_progress
 
 # -- reading progress.csv --------------------------------------------------------------------------
@@ -45,19 +46,28 @@ def test_last_step_reads_the_tail_of_a_long_file(tmp_path):
 
 
 def test_a_rerun_on_the_committed_comparison_runs_nothing(monkeypatch):
-    """Issue 21: ``safenav reproduce`` with no flags on the committed ``results/paper`` skips
-    every trial (a fresh clone has the trial records, not the ignored run directories)."""
+    """Issue 21: ``safenav reproduce --algos paper-observation`` on the committed
+    ``results/paper-observation`` skips every trial (a fresh clone has the trial records, not
+    the ignored run directories); of the paper plan (``results/paper``, still running), every
+    committed trial record is taken as done."""
     from safenav.cli import main
 
     repo = Path(__file__).resolve().parents[1]
     seen = {}
     monkeypatch.setattr(rep, "run_sweep", lambda cfg: seen.setdefault("cfg", cfg))
     monkeypatch.chdir(repo)
-    main(["reproduce"])
+    main(["reproduce", "--algos", "paper-observation"])
     trials = rep.plan(seen["cfg"])
     left = [t.name for t in trials
             if rep.trial_state(t) != "done" and rep.committed_record(t) is None]  # fmt: skip
-    assert len(trials) == 72 and not left, left  # 9 labels x 5 seeds, 9 x 3
+    assert len(trials) == 69 and not left, left  # 9 labels x 5 seeds, 8 x 3
+    seen.clear()
+    main(["reproduce"])
+    trials = rep.plan(seen["cfg"])
+    committed = {t.name for t in trials if t.record_path.exists()}
+    assert {t.name for t in trials if rep.committed_record(t) is not None} == committed
+    csac = {f"csac-seed{s}" for s in range(1, 6)} | {f"csac_paper-seed{s}" for s in (1, 2, 3)}
+    assert csac <= committed
 
 
 def test_mean_std_is_sample_std_and_skips_missing():
@@ -251,8 +261,10 @@ def test_plan_rejects_mistakes_with_one_line(tmp_path, changes, message):
 
 def test_no_flags_plan_the_papers_comparison(tmp_path, monkeypatch):
     """``safenav reproduce`` alone: CSAC, SAC, PPO on seeds 1-5, the Lagrangian baselines and the
-    CSAC ablations on 1-3 at 1M; at 3M (where the curves flatten) CSAC, SAC, PPO on seeds 1-5 and
-    the Lagrangian baselines on 1-3; each algorithm's tuned recipe likewise at 3M."""
+    CSAC ablations on 1-3, 1M env steps each, every label but csac_paper on the default csac
+    recipe's flight stack (its baselines' own recipes on it, reported behind the planner
+    filter); ``--algos paper-observation``: the comparison on the paper's observation at 1M and
+    3M, with each algorithm's tuned recipe at 3M."""
     from safenav.cli import main
 
     seen = {}
@@ -267,6 +279,35 @@ def test_no_flags_plan_the_papers_comparison(tmp_path, monkeypatch):
         seeds.setdefault(t.label, []).append(t.seed)
     assert seeds == {"csac": [1, 2, 3, 4, 5], "sac": [1, 2, 3, 4, 5], "ppo": [1, 2, 3, 4, 5],
                      "sac_lag": [1, 2, 3], "ppo_lag": [1, 2, 3], "csac_paper": [1, 2, 3],
+                     "csac_min": [1, 2, 3], "csac_fixed_d": [1, 2, 3]}  # fmt: skip
+    assert {t.total_steps for t in trials} == {1_000_000}
+    by = {t.name: t for t in trials}
+    # one evaluation protocol for all, whatever the recipe: every 250k, 400 validation episodes
+    assert all(t.train_args[:6] == rep.PAPER_TRAIN_ARGS for t in trials)
+    assert rep.trial_recipe(by["csac-seed1"]) is None  # the default csac recipe
+    stack = load_recipe("csac").section("run")["env_kwargs"]
+    for label in ("sac", "ppo", "sac_lag", "ppo_lag"):  # each label is its algorithm
+        t = by[f"{label}-seed1"]
+        assert t.algo == label and t.train_args[-1] == "--flight-filter", label
+        recipe = load_recipe(rep.trial_recipe(t))
+        assert recipe.algo == label and recipe.section("run")["shield"] is True, label
+        assert recipe.section("run")["env_kwargs"] == stack, label
+    assert load_recipe("csac").section("run")["flight_filter"] is True
+    assert by["csac_paper-seed1"].train_args[-2:] == ("--config", "csac-paper")
+    assert by["csac_fixed_d-seed2"].train_args[6:] == ("--csac.curriculum.no-enabled",)
+    assert by["csac_min-seed2"].train_args[6:] == ("--csac.cost-target", "min")
+    assert rep.REPORT_LABELS[:3] == ("csac", "sac", "ppo") and rep.REPORT_LABELS.count("csac") == 1
+
+    seen.clear()
+    main(["reproduce", "--preset", "easy", "--algos", "paper-observation"])
+    cfg = seen["cfg"]
+    assert cfg.out == Path("results") / "paper-observation"
+    trials = rep.plan(cfg)
+    seeds = {}
+    for t in trials:
+        seeds.setdefault(t.label, []).append(t.seed)
+    assert seeds == {"csac": [1, 2, 3, 4, 5], "sac": [1, 2, 3, 4, 5], "ppo": [1, 2, 3, 4, 5],
+                     "sac_lag": [1, 2, 3], "ppo_lag": [1, 2, 3],
                      "csac_min": [1, 2, 3], "csac_fixed_d": [1, 2, 3],
                      "csac_3m": [1, 2, 3, 4, 5], "sac_3m": [1, 2, 3, 4, 5],
                      "ppo_3m": [1, 2, 3, 4, 5], "sac_lag_3m": [1, 2, 3],
@@ -275,27 +316,24 @@ def test_no_flags_plan_the_papers_comparison(tmp_path, monkeypatch):
                      "ppo_tuned_3m": [1, 2, 3, 4, 5], "sac_lag_tuned_3m": [1, 2, 3],
                      "ppo_lag_tuned_3m": [1, 2, 3]}  # fmt: skip
     steps = {t.label: t.total_steps for t in trials}
-    assert set(steps.values()) == {1_000_000, 3_000_000} and steps["ppo_3m"] == 3_000_000
     assert {k for k, v in steps.items() if v != 1_000_000} == {
         "csac_3m", "sac_3m", "ppo_3m", "sac_lag_3m", "ppo_lag_3m", "csac_tuned_3m", "sac_tuned_3m",
         "ppo_tuned_3m", "sac_lag_tuned_3m", "ppo_lag_tuned_3m"}  # fmt: skip
     assert {t.algo for t in trials if t.label.endswith("_3m")} == {
         "csac", "sac", "ppo", "sac_lag", "ppo_lag"}  # fmt: skip
     by = {t.name: t for t in trials}
-    assert by["csac_paper-seed1"].train_args[-2:] == ("--config", "csac-paper")
-    # one evaluation protocol for all, whatever the recipe: every 250k, 400 validation episodes
-    assert all(t.train_args[:6] == rep.PAPER_TRAIN_ARGS for t in trials)
-    assert by["csac_fixed_d-seed2"].train_args[-1] == "--csac.curriculum.no-enabled"
-    # every CSAC label but csac_paper on the baselines' observation and env (their recipes' base),
-    # not the default csac recipe's shield, memory and pillar list
+    # every CSAC label on the baselines' observation and env (their recipes' base)
     crash = ("--config", "csac-maxcost-crashloss")
     for label in ("csac", "csac_min", "csac_fixed_d", "csac_3m"):
         assert by[f"{label}-seed1"].train_args[6:8] == crash, label
         assert rep.trial_recipe(by[f"{label}-seed1"]) == "csac-maxcost-crashloss"
-    assert rep.REPORT_LABELS[:3] == ("csac", "sac", "ppo") and rep.REPORT_LABELS.count("csac") == 1
+    assert by["sac-seed1"].train_args[6:] == ()  # the sac recipe, no shield, no filter
     # the tuned baselines: each its packaged recipe, found from any working directory
     assert by["sac_lag_tuned_3m-seed3"].train_args[-2:] == ("--config", "sac-lag-tuned")
     assert by["ppo_tuned_3m-seed5"].algo == "ppo"
+    with pytest.raises(SystemExit) as err:  # the CLI's clear error for a SafenavError
+        main(["reproduce", "--algos", "paper-observation", "csac"])
+    assert err.value.code == 2
     # named algorithms: results/<algos>, seeds per label where given
     seen.clear()
     main(["reproduce", "--preset", "easy", "--algos", "csac", "sac", "--seeds", "1-3 sac=4,5"])

@@ -41,12 +41,14 @@ def reproduce(
     existing Ray cluster (OUT must then be on a file system every node sees). Every option,
     including each trial's train options, is checked before Ray starts.
 
-    With no --algos (or --algos paper) and no --variants it runs the paper's comparison (docs/reproduce.md): CSAC,
-    SAC and PPO with seeds 1-5; SAC-Lag, PPO-Lag and the CSAC ablations (csac_paper: the paper's
-    values exactly; csac_min: min cost target; csac_fixed_d: no constraint curriculum) with seeds
-    1-3; 1M env steps each; and the comparison at 3M, where the curves flatten (csac_3m, sac_3m,
-    ppo_3m with seeds 1-5; sac_lag_3m, ppo_lag_3m with 1-3), compared among themselves; into
-    results/paper.
+    With no --algos (or --algos paper) and no --variants it runs the paper's comparison
+    (docs/reproduce.md) into results/paper: CSAC, SAC and PPO with seeds 1-5; SAC-Lag, PPO-Lag and
+    the CSAC ablations (csac_paper: the paper's values exactly; csac_min: min cost target;
+    csac_fixed_d: no constraint curriculum) with seeds 1-3; 1M env steps each; every label but
+    csac_paper on the default csac recipe's observation and shield, reported behind its planner
+    filter and without it. --algos paper-observation: the same comparison on the paper's
+    observation without shield or filter, at 1M and 3M, with each algorithm's tuned recipe
+    (results/paper-observation).
 
     Example: safenav reproduce  # the paper's comparison, results/paper/ (many CPU-hours: it
     prints the estimate first; rerun the same command to resume)
@@ -59,7 +61,7 @@ def reproduce(
 
     Args:
         out: Output directory (runs/, logs/, trials/, results.json, results.md, figures/); default results/paper for the paper's comparison (no --algos, no --variants), else results/<algos joined by +>.
-        algos: Algorithms (safenav train --algo) or --variants labels to run; paper (the default): the paper's comparison, its algorithms and ablations; with --variants alone, only the variants.
+        algos: Algorithms (safenav train --algo) or --variants labels to run; paper (the default): the paper's comparison, its algorithms and ablations on the csac recipe's flight stack; paper-observation: the same comparison as it ran on the paper's observation without shield or filter, at 1M and 3M (results/paper-observation); with --variants alone, only the variants.
         seeds: Training seeds: a count N (first_seed, first_seed+1, ...), a range A-B or a list A,B,C, then optionally LABEL=SEEDS for particular labels, e.g. "1-5 sac_lag=1-3"; auto: the paper comparison's seeds, else 5.
         first_seed: The first training seed when --seeds is a count (1, as the paper comparison's
             seeds 1-5 and safenav bench: --seeds 5 is seeds 1-5).
@@ -78,33 +80,30 @@ def reproduce(
     """
     from safenav.errors import SafenavError
     from safenav.experiments.reproduce import (
-        PAPER_ALGOS,
-        PAPER_SEEDS,
-        PAPER_TOTAL_STEPS,
         PAPER_TRAIN_ARGS,
-        PAPER_VARIANTS,
+        PLANS,
         SweepConfig,
         TrialFailed,
         run_sweep,
     )
 
-    if "paper" in algos and len(algos) > 1:
-        raise SafenavError("--algos paper is the paper's whole comparison: name no other "
-                           "algorithm with it")  # fmt: skip
+    named = [a for a in algos if a in PLANS]
+    if named and len(algos) > 1:
+        raise SafenavError(f"--algos {named[0]} is a whole comparison: name no other algorithm "
+                           "or plan with it")  # fmt: skip
     if tuple(algos) == ("paper",) and variants:
         algos = ()  # only the labels --variants defines
-    paper = tuple(algos) == ("paper",)
-    if paper:
-        algos, variants = PAPER_ALGOS, PAPER_VARIANTS
-        total_steps = total_steps or PAPER_TOTAL_STEPS
+    plan = PLANS.get(algos[0]) if len(algos) == 1 else None
+    if plan is not None:
+        algos, variants = plan.algos, plan.variants
+        total_steps = total_steps or plan.total_steps
         train_args = shlex.join(PAPER_TRAIN_ARGS) + (f" {train_args}" if train_args else "")
     if seeds == "auto":
-        seeds = PAPER_SEEDS if paper else "5"
+        seeds = plan.seeds if plan is not None else "5"
     count, seed_list, label_seeds = parse_seed_spec(seeds)
     if out is None:
-        out = Path("results") / (
-            "paper" if paper else "+".join(algos or [v.split("=")[0] for v in variants])
-        )
+        out = Path(plan.out) if plan is not None else Path("results") / "+".join(
+            algos or [v.split("=")[0] for v in variants])  # fmt: skip
     cfg = SweepConfig(
         out=out, algos=algos, seeds=count, first_seed=first_seed, seed_list=seed_list,
         label_seeds=label_seeds, total_steps=total_steps, select=select,

@@ -66,25 +66,41 @@ DEFAULT_TOTAL_STEPS: dict[str, int] = {
 }
 FALLBACK_TOTAL_STEPS = 1_000_000
 
-#: ``safenav reproduce`` with no --algos and no --variants: the paper's comparison (issue 21).
-#: CSAC, SAC and PPO (the paper's Fig. 4) with 5 seeds; the Lagrangian baselines and the CSAC
-#: ablations with 3. One env-step budget for every label (the paper's x-axis is env steps);
-#: PPO's own larger budget is an extra, labelled row.
-#: Every CSAC label of it trains from csac-maxcost-crashloss, the recipe the sac, sac-lag and
-#: csac-tuned recipes are built on (the csac recipe until 2026-12-05): one observation and one env
-#: for every algorithm. The default csac recipe since then adds the shield, a memory image and the
-#: pillar list, which the baselines' recipes do not have.
+#: ``safenav reproduce`` with no --algos and no --variants: the paper's comparison (issue 21), on
+#: the flight stack of the default csac recipe. CSAC, SAC and PPO (the paper's Fig. 4) with 5
+#: seeds; the Lagrangian baselines and the CSAC ablations with 3; one env-step budget (1M) for
+#: every label (the paper's x-axis is env steps). Every label but csac_paper sees the observation
+#: of the csac recipe (one second of range-image memory, beams tilted down, the 10 nearest
+#: pillars), trains behind its velocity-obstacle shield and is reported behind its planner filter
+#: (``--flight-filter``) and, in the same record, without it (``test_without_filter``): each
+#: baseline's recipe is its own on that stack (``*-shielded-memory-pillars``). csac_paper is the
+#: paper's method exactly (its observation, no shield, no filter).
 PAPER_ALGOS: tuple[str, ...] = ("csac", "sac", "ppo", "sac_lag", "ppo_lag")
-PAPER_CSAC = "csac --config csac-maxcost-crashloss"
 PAPER_VARIANTS: tuple[str, ...] = (
-    f"csac={PAPER_CSAC}",
+    "csac=csac",  # the default recipe: csac-shielded-memory-pillars + the planner filter
+    "sac=sac --config sac-shielded-memory-pillars --flight-filter",
+    "ppo=ppo --config ppo-shielded-memory-pillars --flight-filter",
+    "sac_lag=sac_lag --config sac-lag-shielded-memory-pillars --flight-filter",
+    "ppo_lag=ppo_lag --config ppo-lag-shielded-memory-pillars --flight-filter",
     "csac_paper=csac --config csac-paper",  # the paper's equations and values exactly
-    f"csac_min={PAPER_CSAC} --csac.cost-target min",  # min over the target cost critics
-    f"csac_fixed_d={PAPER_CSAC} --csac.curriculum.no-enabled",  # no curriculum: d = d_min
-    # The comparison at 3M env steps, where every algorithm's validation curve has flattened
-    # (docs/reproduce.md): the paper's three with 5 seeds, the Lagrangian baselines with 3; compared
-    # among themselves (one budget per comparison), the 1M rows above among theirs.
-    f"csac_3m={PAPER_CSAC}",
+    "csac_min=csac --csac.cost-target min",  # min over the target cost critics
+    "csac_fixed_d=csac --csac.curriculum.no-enabled",  # no curriculum: d = d_min
+)
+PAPER_SEEDS = "1-5 sac_lag=1-3 ppo_lag=1-3 csac_paper=1-3 csac_min=1-3 csac_fixed_d=1-3"
+PAPER_TOTAL_STEPS: tuple[str, ...] = ("1M",)
+
+#: ``safenav reproduce --algos paper-observation``: the comparison as it ran 2026-11-26 to 12-03,
+#: on the paper's observation (no memory, no pillar list) and without shield or filter, every
+#: CSAC label from csac-maxcost-crashloss, the recipe the sac, sac-lag and csac-tuned recipes are
+#: built on (results/paper-observation; docs/reproduce.md): the five algorithms and two
+#: ablations at 1M, the same at 3M where their curves flatten, and each algorithm's tuned recipe
+#: at 3M. Its csac_paper row is the paper plan's (results/paper), not repeated here.
+OBSERVATION_CSAC = "csac --config csac-maxcost-crashloss"
+OBSERVATION_VARIANTS: tuple[str, ...] = (
+    f"csac={OBSERVATION_CSAC}",
+    f"csac_min={OBSERVATION_CSAC} --csac.cost-target min",
+    f"csac_fixed_d={OBSERVATION_CSAC} --csac.curriculum.no-enabled",
+    f"csac_3m={OBSERVATION_CSAC}",
     "sac_3m=sac",
     "ppo_3m=ppo",
     "sac_lag_3m=sac_lag",
@@ -97,13 +113,31 @@ PAPER_VARIANTS: tuple[str, ...] = (
     "sac_lag_tuned_3m=sac_lag --config sac-lag-tuned",
     "ppo_lag_tuned_3m=ppo_lag --config ppo-lag-tuned",
 )
-PAPER_SEEDS = ("1-5 sac_lag=1-3 ppo_lag=1-3 csac_paper=1-3 csac_min=1-3 csac_fixed_d=1-3 "
-               "sac_lag_3m=1-3 ppo_lag_3m=1-3 sac_lag_tuned_3m=1-3 ppo_lag_tuned_3m=1-3")  # fmt: skip
-PAPER_TOTAL_STEPS: tuple[str, ...] = ("1M", "csac_3m=3M", "sac_3m=3M", "ppo_3m=3M",
-                                      "sac_lag_3m=3M", "ppo_lag_3m=3M", "csac_tuned_3m=3M",
-                                      "sac_tuned_3m=3M",
-                                      "ppo_tuned_3m=3M", "sac_lag_tuned_3m=3M",
-                                      "ppo_lag_tuned_3m=3M")  # fmt: skip
+OBSERVATION_SEEDS = ("1-5 sac_lag=1-3 ppo_lag=1-3 csac_min=1-3 csac_fixed_d=1-3 "
+                     "sac_lag_3m=1-3 ppo_lag_3m=1-3 sac_lag_tuned_3m=1-3 ppo_lag_tuned_3m=1-3")  # fmt: skip
+OBSERVATION_TOTAL_STEPS: tuple[str, ...] = (
+    "1M", "csac_3m=3M", "sac_3m=3M", "ppo_3m=3M", "sac_lag_3m=3M", "ppo_lag_3m=3M",
+    "csac_tuned_3m=3M", "sac_tuned_3m=3M", "ppo_tuned_3m=3M", "sac_lag_tuned_3m=3M",
+    "ppo_lag_tuned_3m=3M")  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A named comparison that ``safenav reproduce --algos NAME`` runs: its labels (algorithms,
+    then ``--variants`` lines), seeds, budgets and output directory."""
+
+    algos: tuple[str, ...]
+    variants: tuple[str, ...]
+    seeds: str
+    total_steps: tuple[str, ...]
+    out: str
+
+
+PLANS: dict[str, Plan] = {
+    "paper": Plan(PAPER_ALGOS, PAPER_VARIANTS, PAPER_SEEDS, PAPER_TOTAL_STEPS, "results/paper"),
+    "paper-observation": Plan(PAPER_ALGOS, OBSERVATION_VARIANTS, OBSERVATION_SEEDS,
+                              OBSERVATION_TOTAL_STEPS, "results/paper-observation"),
+}  # fmt: skip
 #: One evaluation protocol for every label of the comparison, whatever its recipe says: the
 #: validation curves of Fig. 3 at the same points, and the same policies for --select to choose
 #: from (the csac and sac recipes already do this; ppo's evaluates every 1M of its 30M).
@@ -447,6 +481,7 @@ def earlier_trial_records(out: Path) -> list[dict[str, Any]]:
 #: The comparison's labels in report order: the paper's algorithms, then its variants.
 REPORT_LABELS = tuple(
     dict.fromkeys(PAPER_ALGOS + tuple(v.split("=", 1)[0] for v in PAPER_VARIANTS))
+    | dict.fromkeys(v.split("=", 1)[0] for v in OBSERVATION_VARIANTS)
 )
 
 
@@ -1055,11 +1090,14 @@ __all__ = [
     "CPU_S_PER_STEP",
     "CPU_S_PER_STEP_BY_RECIPE",
     "DEFAULT_TOTAL_STEPS",
+    "OBSERVATION_VARIANTS",
     "PAPER_ALGOS",
     "PAPER_SEEDS",
     "PAPER_TOTAL_STEPS",
     "PAPER_TRAIN_ARGS",
     "PAPER_VARIANTS",
+    "PLANS",
+    "Plan",
     "KNOWN_ALGOS",
     "SweepConfig",
     "Trial",
