@@ -71,6 +71,32 @@ def test_aggregate_compares_csac_with_each_baseline_on_paired_episodes():
     assert "CSAC: success" in summary and "collision -22 pp, not resolved" in summary
 
 
+def test_aggregate_compares_the_policies_without_the_planner_filter_too():
+    """Labels reported behind the planner filter are also compared on their test behind the
+    shield alone (``test_without_filter``), the policies' own part; a label without it is not."""
+
+    def behind_filter(rec, unfiltered):
+        n = len(unfiltered)
+        side = {"success_rate": unfiltered.count("S") / n, "collision_rate": unfiltered.count("C") / n,
+                "test_outcomes": unfiltered}  # fmt: skip
+        return rec | {"test_without_filter": side}
+
+    records = [behind_filter(record("csac", 1, "SSSS"), "SSTC"),
+               behind_filter(record("csac", 2, "SSSC"), "SCCC"),
+               behind_filter(record("sac", 1, "SSSC"), "CCCC"),
+               behind_filter(record("sac", 2, "SSCC"), "CCCC"),
+               record("ppo", 1, "SCCC"), record("ppo", 2, "CCCC")]  # fmt: skip
+    results = agg.aggregate(records)
+    assert set(results["comparisons"]) == {"csac_vs_sac", "csac_vs_ppo"}
+    assert set(results["comparisons_without_filter"]) == {"csac_vs_sac"}
+    comp = results["comparisons_without_filter"]["csac_vs_sac"]["collision_rate"]
+    assert comp["mean_difference"]["difference"] == pytest.approx((0.25 + 0.75) / 2 - 1.0)
+    assert (comp["mcnemar"]["only_a"], comp["mcnemar"]["only_b"]) == (0, 4)  # unfiltered episodes
+    assert results["comparisons"]["csac_vs_sac"]["collision_rate"]["mcnemar"]["only_b"] == 2
+    text = agg.render_markdown(results)
+    assert "## CSAC against each baseline, without the planner filter" in text
+
+
 def test_aggregate_compares_only_labels_of_the_same_budget():
     def at(budget, rec):
         return rec | {"budget_env_steps": budget}

@@ -328,7 +328,11 @@ def report_fields(ev: dict[str, Any], final: dict[str, Any]) -> dict[str, Any]:
     navrl = final.get("test_navrl_rule")  # reports before 2026-12-01 lack it
     navrl = {k: navrl.get(k) for k in side} if isinstance(navrl, dict) else None
     unfiltered = final.get("test_without_filter")  # policies reported behind the planner filter
-    unfiltered = {k: unfiltered.get(k) for k in side} if isinstance(unfiltered, dict) else None
+    if isinstance(unfiltered, dict):  # with its episodes, for the paired test without the filter
+        unfiltered = {k: unfiltered.get(k) for k in side} | {
+            "test_outcomes": outcomes_string(unfiltered.get("per_episode"))}  # fmt: skip
+    else:
+        unfiltered = None
     return {
         "success_rate": metric("success_rate"),
         "collision_rate": metric("collision_rate"),
@@ -491,15 +495,32 @@ def aggregate(
     # McNemar's exact test on the paired test episodes (safenav.experiments.stats). A label at a
     # larger budget (ppo_3m) is compared with the CSAC of that budget (csac_3m), if any.
     budget = {name: label_budget(recs) for name, recs in groups.items()}
-    comparisons = {
-        f"{ref}_vs_{name}": compare(groups[ref], recs)
-        for ref in groups
-        if is_reference(ref)
-        for name, recs in groups.items()
-        if not is_reference(name)
-        and (None in (budget[ref], budget[name]) or budget[ref] == budget[name])
+    pairs = [(ref, name) for ref in groups if is_reference(ref) for name in groups
+             if not is_reference(name)
+             and (None in (budget[ref], budget[name]) or budget[ref] == budget[name])]  # fmt: skip
+    comparisons = {f"{ref}_vs_{name}": compare(groups[ref], groups[name]) for ref, name in pairs}
+    # The same where both fly behind the planner filter: their policies behind the shield alone
+    unfiltered = {name: [without_filter(r) for r in recs] for name, recs in groups.items()}
+    comparisons_without_filter = {
+        f"{ref}_vs_{name}": compare(unfiltered[ref], unfiltered[name])
+        for ref, name in pairs
+        if all(unfiltered[ref]) and all(unfiltered[name])
     }
-    return {"algos": algos, "comparisons": comparisons, "paper": PAPER_RESULTS, **(meta or {})}
+    return {"algos": algos, "comparisons": comparisons,
+            "comparisons_without_filter": comparisons_without_filter, "paper": PAPER_RESULTS,
+            **(meta or {})}  # fmt: skip
+
+
+def without_filter(rec: dict[str, Any]) -> dict[str, Any] | None:
+    """A seed record reported behind the planner filter as the record of its test behind the
+    shield alone (``test_without_filter``: rates, and per-episode outcomes where recorded), for
+    :func:`~safenav.experiments.stats.compare`; None for a record without it."""
+    side = rec.get("test_without_filter")
+    if not isinstance(side, dict):
+        return None
+    return {"seed": rec.get("seed"), "success_rate": side.get("success_rate"),
+            "collision_rate": side.get("collision_rate"),
+            "test_outcomes": side.get("test_outcomes")}  # fmt: skip
 
 
 def is_reference(label: str) -> bool:
@@ -609,6 +630,33 @@ def summary_table(results: dict[str, Any]) -> list[str]:
     return lines
 
 
+def comparison_table(comparisons: dict[str, Any], title: str, why: str = "") -> list[str]:
+    """The markdown section of ``results.json``'s ``comparisons`` (or the same without the
+    planner filter): per baseline and rate, the difference over seeds and McNemar's test."""
+    lines = ["", f"## {title}", "",
+             why + "Difference CSAC − baseline of the mean over seeds, 95 % bootstrap CI (the "
+             "seeds of each resampled): *resolved* only where the interval excludes 0. McNemar's "
+             "exact test pairs each test episode with the same episode (same map, start, goal, "
+             "obstacle motion) of the other algorithm's seed of the same number: episodes where "
+             "only CSAC / only the baseline had the event, and the two-sided p-value "
+             "(episode-level noise, not the spread of training seeds).", "",
+             "| CSAC vs | rate | difference | 95 % CI | resolved | McNemar: only CSAC / only "
+             "baseline (pairs) | p |", "|---|---|---:|---:|---|---:|---:|"]  # fmt: skip
+    for key_name, comp in comparisons.items():
+        ref, other = (display_name(part) for part in key_name.split("_vs_", 1))
+        other = other if ref == "CSAC" else f"{other} (against {ref})"
+        for key, label in (("success_rate", "success"), ("collision_rate", "collision")):
+            c = comp.get(key) or {}
+            d, m = c.get("mean_difference"), c.get("mcnemar")
+            diff = f"{100 * d['difference']:+.1f} pp" if d else "—"
+            ci = f"{100 * d['ci95'][0]:+.1f} – {100 * d['ci95'][1]:+.1f} pp" if d else "—"
+            res = ("yes" if d["resolved"] else "no") if d else "—"
+            mc = f"{m['only_a']} / {m['only_b']} ({m['pairs']})" if m else "—"
+            pv = f"{m['p_value']:.3g}" if m else "—"
+            lines.append(f"| {other} | {label} | {diff} | {ci} | {res} | {mc} | {pv} |")
+    return lines
+
+
 def render_markdown(results: dict[str, Any]) -> str:
     """``results.md``: ours beside the paper's figures, time to target, and every seed."""
     algos: dict[str, dict[str, Any]] = results["algos"]
@@ -692,29 +740,14 @@ def render_markdown(results: dict[str, Any]) -> str:
             ci = q and q.get("ci95")
             cells += [pct(q["iqm"]) if q else "—", f"{pct(ci[0])} – {pct(ci[1])}" if ci else "—"]
         lines.append(f"| {display_name(name)} | {a['seeds']} | " + " | ".join(cells) + " |")
-    comparisons = results.get("comparisons") or {}
-    if comparisons:
-        lines += ["", "## CSAC against each baseline", "",
-                  "Difference CSAC − baseline of the mean over seeds, 95 % bootstrap CI (the seeds "
-                  "of each resampled): *resolved* only where the interval excludes 0. McNemar's "
-                  "exact test pairs each test episode with the same episode (same map, start, goal, "
-                  "obstacle motion) of the other algorithm's seed of the same number: episodes where "
-                  "only CSAC / only the baseline had the event, and the two-sided p-value "
-                  "(episode-level noise, not the spread of training seeds).", "",
-                  "| CSAC vs | rate | difference | 95 % CI | resolved | McNemar: only CSAC / only "
-                  "baseline (pairs) | p |", "|---|---|---:|---:|---|---:|---:|"]  # fmt: skip
-        for key_name, comp in comparisons.items():
-            ref, other = (display_name(part) for part in key_name.split("_vs_", 1))
-            other = other if ref == "CSAC" else f"{other} (against {ref})"
-            for key, label in (("success_rate", "success"), ("collision_rate", "collision")):
-                c = comp.get(key) or {}
-                d, m = c.get("mean_difference"), c.get("mcnemar")
-                diff = f"{100 * d['difference']:+.1f} pp" if d else "—"
-                ci = f"{100 * d['ci95'][0]:+.1f} – {100 * d['ci95'][1]:+.1f} pp" if d else "—"
-                res = ("yes" if d["resolved"] else "no") if d else "—"
-                mc = f"{m['only_a']} / {m['only_b']} ({m['pairs']})" if m else "—"
-                pv = f"{m['p_value']:.3g}" if m else "—"
-                lines.append(f"| {other} | {label} | {diff} | {ci} | {res} | {mc} | {pv} |")
+    for key, title, why in (
+        ("comparisons", "CSAC against each baseline", ""),
+        ("comparisons_without_filter", "CSAC against each baseline, without the planner filter",
+         "The same where both were reported behind the planner filter, on their test behind the "
+         "shield alone (the policies' own part; McNemar where the records hold its episodes). "),
+    ):  # fmt: skip
+        if results.get(key):
+            lines += comparison_table(results[key], title, why)
     lines += ["", "## Time to target", ""]
     first = next(iter(algos.values()), None)
     ttt0 = first["time_to_target"] if first else {"success_min": 0.85, "collision_max": 0.10}
