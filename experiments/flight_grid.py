@@ -10,12 +10,22 @@ with it, and writes
 - ``--gif GIF`` (optional): the same flights side by side as they happen, one tile per label, for
   the first episode given.
 
-    .venv/bin/python experiments/flight_grid.py results/paper --labels csac sac ppo sac_lag \\
-        ppo_lag --also results/csac-maxcost-crashloss --env-seed 12345 --episodes 0 1 2 3 \\
-        --out results/paper-observation/figures/flights-val.png --gif results/paper-observation/figures/flights-val.gif
+    .venv/bin/python experiments/flight_grid.py results/paper-observation --labels csac sac ppo \\
+        sac_lag ppo_lag --also results/csac-maxcost-crashloss --env-seed 12345 --episodes 0 1 2 3 \\
+        --out results/paper-observation/figures/flights-val.png \\
+        --gif results/paper-observation/figures/flights-val.gif
 
 ``--shield-memory 0 1 10`` flies each label three times: without the shield, behind it, and
-behind the shield that remembers the last 10 range images (one row each).
+behind the shield that remembers the last 10 range images (one row each). ``--as-recorded`` flies
+each policy as ``safenav render`` does by default: behind the shield and the planner filter its
+checkpoint records (the flight stack of results/paper since 2026-12-06), one row per label:
+
+    .venv/bin/python experiments/flight_grid.py results/paper --labels csac sac ppo sac_lag \
+        ppo_lag --as-recorded --env-seed 12345 --episodes 0 1 2 \
+        --out results/paper/figures/flights-val.png --gif results/paper/figures/flights-val.gif
+
+A label's policy is its run directory's ``policy.pt`` or, in a fresh clone, the policy its trial
+committed (``OUT/trials/LABEL-sS.pt``).
 
 Test and held-out maps (env seeds 1-6) are refused: this is a look at the policies, not a report.
 """
@@ -30,7 +40,10 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from safenav.experiments.flight import fly_frames
+from safenav.common.config import flight_shield_spec
+from safenav.deploy.shield import brake_setting
+from safenav.envs.planner import shield_under_filter
+from safenav.experiments.flight import fly_frames, resolve_policy
 from safenav.experiments.selection import RESERVED_SEEDS
 
 
@@ -47,6 +60,21 @@ def median_seed(out: Path, label: str) -> tuple[int, float]:
     target = statistics.median_low(finals.values())
     seed = min(s for s, v in finals.items() if v == target)
     return seed, target
+
+
+def recorded_flight(policy: Path) -> dict:
+    """:func:`fly_frames`'s keywords that fly ``policy`` as its checkpoint records: behind its
+    flight shield (``meta["flight_shield"]``, as it flies under its planner filter) and its
+    planner filter (``meta["flight_filter"]``), what ``safenav render`` does by default."""
+    fn, _ = resolve_policy(policy, "checkpoint")
+    planner_filter = fn.meta.get("flight_filter")
+    spec = shield_under_filter(flight_shield_spec(fn.meta), planner_filter)
+    flight = {"planner_filter": planner_filter}
+    if spec:
+        flight |= {"shield_memory": max(1, int(spec["memory"])), "shield_map": bool(spec["map"]),
+                   "shield_mover_margin": float(spec["mover_margin"]),
+                   "shield_brake": brake_setting(spec.get("brake", False))}  # fmt: skip
+    return flight
 
 
 def caption(image: np.ndarray, text: str) -> np.ndarray:
@@ -91,6 +119,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--also", type=Path, nargs="*", default=[],
                         help="other reproduce outputs whose runs/ may hold a label's run "
                              "(e.g. results/csac-maxcost-crashloss, whose trials results/paper copied)")  # fmt: skip
+    parser.add_argument("--as-recorded", action="store_true",
+                        help="one row per label, each policy behind the shield and the planner "
+                             "filter its checkpoint records (as safenav render flies it)")  # fmt: skip
     args = parser.parse_args(argv)
     if args.env_seed in RESERVED_SEEDS:
         raise SystemExit(f"env seed {args.env_seed} is a test or held-out map: look at the "
@@ -100,21 +131,23 @@ def main(argv: list[str] | None = None) -> None:
         seed, final = median_seed(args.out_dir, label)
         candidates = [
             d / "runs" / label / f"seed{seed}" / "policy.pt" for d in (args.out_dir, *args.also)
-        ]
+        ] + [d / "trials" / f"{label}-s{seed}.pt" for d in (args.out_dir, *args.also)]
         policy = next((c for c in candidates if c.exists()), candidates[0])
         if not policy.exists():
             raise SystemExit(f"{policy}: missing (the run directories are not committed; "
                              "rerun the trial or point at the machine that ran it)")  # fmt: skip
-        for memory in args.shield_memory:
-            name = (
-                label
-                if memory == 0
-                else f"{label} + shield" + (f" (memory {memory})" if memory > 1 else "")
-            )
+        flights = [(label + (" + shield" if memory else "") + (f" (memory {memory})" if memory > 1
+                    else ""), {"shield_memory": memory}) for memory in args.shield_memory]  # fmt: skip
+        if args.as_recorded:
+            flight = recorded_flight(policy)
+            flown = [*(["shield"] if flight.get("shield_memory") else []),
+                     *(["filter"] if flight.get("planner_filter") else [])]  # fmt: skip
+            flights = [(label + (f" ({' + '.join(flown)})" if flown else ""), flight)]
+        for name, flight in flights:
             row = []
             for i, episode in enumerate(args.episodes):
                 frames, stats = fly_frames(policy, env_seed=args.env_seed, episode=episode,
-                                           shield_memory=memory)  # fmt: skip
+                                           **flight)  # fmt: skip
                 outcome = (
                     "goal" if stats["success"] else "collision" if stats["collision"] else "timeout"
                 )

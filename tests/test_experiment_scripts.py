@@ -229,6 +229,17 @@ def test_flight_grid_flies_the_median_seed_of_each_label(tiny_run, tmp_path):
     assert Image.open(png).size == (300, 3 * tile_height)  # three rows of one episode each
     assert set(json.loads(png.with_suffix(".json").read_text())) == {
         "csac", "csac + shield", "csac + shield (memory 20)"}  # fmt: skip
+    # --as-recorded: one row, the policy as its checkpoint records (this one: no shield, no
+    # filter); a fresh clone's policy is the one its trial committed
+    shutil.move(out / "runs" / "csac" / "seed2" / "policy.pt", out / "trials" / "csac-s2.pt")
+    grid.main([str(out), "--labels", "csac", "--env-seed", "12345", "--episodes", "0",
+               "--as-recorded", "--out", str(png)])  # fmt: skip
+    assert set(json.loads(png.with_suffix(".json").read_text())) == {"csac"}
+    # the committed default-recipe policy flies behind its shield and filter, cap off under it
+    flight = grid.recorded_flight(ROOT / "results" / "paper" / "trials" / "csac-s1.pt")
+    assert flight["planner_filter"]["braking_cap"] is False
+    assert (flight["shield_memory"], flight["shield_map"], flight["shield_mover_margin"],
+            flight["shield_brake"]) == (1, True, 0.3, False)  # fmt: skip
     with pytest.raises(SystemExit, match="test or held-out"):
         grid.main([str(out), "--labels", "csac", "--env-seed", "1", "--out", str(png)])
     with pytest.raises(SystemExit, match="no trial of 'sac'"):
