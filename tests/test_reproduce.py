@@ -65,7 +65,10 @@ def test_a_rerun_on_the_committed_comparison_runs_nothing(monkeypatch):
     main(["reproduce"])
     trials = rep.plan(seen["cfg"])
     committed = {t.name for t in trials if t.record_path.exists()}
-    assert {t.name for t in trials if rep.committed_record(t) is not None} == committed
+    # a trial with its record is done: by its run directory here, by the record in a fresh clone
+    done = {t.name for t in trials
+            if rep.trial_state(t) == "done" or rep.committed_record(t) is not None}  # fmt: skip
+    assert done == committed
     csac = {f"csac-seed{s}" for s in range(1, 6)} | {f"csac_paper-seed{s}" for s in (1, 2, 3)}
     assert csac <= committed
 
@@ -279,18 +282,21 @@ def test_no_flags_plan_the_papers_comparison(tmp_path, monkeypatch):
         seeds.setdefault(t.label, []).append(t.seed)
     assert seeds == {"csac": [1, 2, 3, 4, 5], "sac": [1, 2, 3, 4, 5], "ppo": [1, 2, 3, 4, 5],
                      "sac_lag": [1, 2, 3], "ppo_lag": [1, 2, 3], "csac_paper": [1, 2, 3],
-                     "csac_min": [1, 2, 3], "csac_fixed_d": [1, 2, 3]}  # fmt: skip
-    assert {t.total_steps for t in trials} == {1_000_000}
+                     "csac_min": [1, 2, 3], "csac_fixed_d": [1, 2, 3],
+                     "ppo_3m": [1, 2, 3]}  # fmt: skip
+    # one budget for the comparison; PPO's larger one an extra row
+    assert {t.label for t in trials if t.total_steps != 1_000_000} == {"ppo_3m"}
+    assert {t.total_steps for t in trials} == {1_000_000, 3_000_000}
     by = {t.name: t for t in trials}
     # one evaluation protocol for all, whatever the recipe: every 250k, 400 validation episodes
     assert all(t.train_args[:6] == rep.PAPER_TRAIN_ARGS for t in trials)
     assert rep.trial_recipe(by["csac-seed1"]) is None  # the default csac recipe
     stack = load_recipe("csac").section("run")["env_kwargs"]
-    for label in ("sac", "ppo", "sac_lag", "ppo_lag"):  # each label is its algorithm
+    for label in ("sac", "ppo", "sac_lag", "ppo_lag", "ppo_3m"):
         t = by[f"{label}-seed1"]
-        assert t.algo == label and t.train_args[-1] == "--flight-filter", label
+        assert t.algo == label.removesuffix("_3m") and t.train_args[-1] == "--flight-filter", label
         recipe = load_recipe(rep.trial_recipe(t))
-        assert recipe.algo == label and recipe.section("run")["shield"] is True, label
+        assert recipe.algo == t.algo and recipe.section("run")["shield"] is True, label
         assert recipe.section("run")["env_kwargs"] == stack, label
     assert load_recipe("csac").section("run")["flight_filter"] is True
     assert by["csac_paper-seed1"].train_args[-2:] == ("--config", "csac-paper")
