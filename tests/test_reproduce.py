@@ -73,6 +73,29 @@ def test_a_rerun_on_the_committed_comparison_runs_nothing(monkeypatch):
     assert csac <= committed
 
 
+def test_report_only_aggregates_the_finished_trials_and_runs_nothing(tmp_path, monkeypatch):
+    """``--report-only``: the results of the trials finished in OUT (here one committed record)
+    while another is still training (a checkpoint, no report); nothing starts, nothing trains."""
+    import ray
+
+    monkeypatch.setattr(ray, "init", lambda *a, **k: pytest.fail("Ray started for nothing"))
+    cfg = rep.SweepConfig(out=tmp_path / "out", algos=("csac", "sac"), seeds=1, first_seed=1,
+                          total_steps=("1000",), preset="easy", eval_episodes=4, progress=False,
+                          plots=False, report_only=True, command="safenav reproduce --report-only")  # fmt: skip
+    csac, sac = rep.plan(cfg)
+    csac.record_path.parent.mkdir(parents=True)
+    csac.record_path.write_text(json.dumps(
+        {"algo": "csac", "seed": 1, "success_rate": 0.75, "collision_rate": 0.25,
+         "timeout_rate": 0.0, "eval_episodes": 4, "budget_env_steps": 1000,
+         "selection": "validation", "test_outcomes": "SSSC", "time_to_target": None}))  # fmt: skip
+    sac.run_dir.mkdir(parents=True)
+    sac.checkpoint.write_bytes(b"training")
+    results = rep.run_sweep(cfg)
+    assert list(results["algos"]) == ["csac"] and results["algos"]["csac"]["seeds"] == 1
+    assert results["ray"]["trials_run"] == 0 and results["failed"] == []
+    assert (cfg.out / "results.md").exists() and sac.checkpoint.read_bytes() == b"training"
+
+
 def test_mean_std_is_sample_std_and_skips_missing():
     assert agg.mean_std([0.8, 0.9, 1.0]) == pytest.approx({"mean": 0.9, "std": 0.1})
     assert agg.mean_std([0.7, None, 0.8, math.nan]) == pytest.approx(

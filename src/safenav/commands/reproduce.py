@@ -28,6 +28,7 @@ def reproduce(
     variants: tuple[str, ...] = (),
     plots: bool = True,
     select: bool = True,
+    report_only: bool = False,
 ) -> None:
     """Reproduce the paper's Section IV: train every algorithm x seed as a Ray task, evaluate each
     policy on the fixed test scenario (env seed 1), and write OUT/results.json, OUT/results.md
@@ -77,6 +78,7 @@ def reproduce(
         variants: Extra labelled configurations, LABEL=ALGO [train options], e.g. 'csac_nocurr=csac --csac.curriculum.no-enabled'.
         plots: Write the figures (safenav plot OUT) at the end.
         select: Each trial ends by choosing its policy on validation maps (train --select); --no-select evaluates the final checkpoint.
+        report_only: Run nothing: write results.json, results.md and the figures from the trials finished in OUT (e.g. while the sweep still runs, or after it was stopped).
     """
     from safenav.errors import SafenavError
     from safenav.experiments.reproduce import (
@@ -110,6 +112,7 @@ def reproduce(
         preset=preset, address=address, cpus_per_trial=cpus_per_trial,
         gpus_per_trial=gpus_per_trial, num_cpus=num_cpus, eval_episodes=eval_episodes,
         device=device, train_args=tuple(shlex.split(train_args)), variants=variants, plots=plots,
+        report_only=report_only,
         command=shlex.join(["safenav", *sys.argv[1:]]) if sys.argv[1:2] == ["reproduce"]
         else shlex.join(["safenav", "reproduce", "--out", str(out), "--seeds", seeds]),
     )  # fmt: skip

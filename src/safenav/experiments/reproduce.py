@@ -609,6 +609,9 @@ class SweepConfig:
     plots: bool = True
     progress: bool = True
     select: bool = True
+    report_only: bool = False
+    """Train and evaluate nothing: the results and figures of the trials finished in ``out``
+    (a sweep still running elsewhere, or one stopped part-way)."""
     python: str | None = None
     command: str = ""
     extra_meta: dict[str, Any] = field(default_factory=dict)
@@ -715,7 +718,7 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
     kept = {t.name: rec for t in trials
             if states[t.name] == "fresh" and (rec := committed_record(t)) is not None}  # fmt: skip
     states |= dict.fromkeys(kept, "done")
-    todo = [t for t in trials if states[t.name] != "done"]
+    todo = [t for t in trials if states[t.name] != "done" and not cfg.report_only]
     sweep_t0 = time.perf_counter()
     started_ray, init_s = False, 0.0
     sigterm: Any = None
@@ -753,6 +756,8 @@ def run_sweep(cfg: SweepConfig) -> dict[str, Any]:
     for t in trials:
         if t.name not in outcomes and (newer := rereported_record(t)) is not None:
             records.append(newer)  # flown again since the run directory's report
+        elif cfg.report_only and states[t.name] != "done":
+            continue  # running or stopped: its run directory's files are not a result yet
         elif t.name not in failures and (t.run_dir / "eval.json").exists():
             rec = seed_record(t.run_dir, algo=t.label, seed=t.seed)
             # declared, as in the trial files: labels of different budgets are not compared
