@@ -71,7 +71,7 @@ def recorded_flight(policy: Path) -> dict:
     spec = shield_under_filter(flight_shield_spec(fn.meta), planner_filter)
     flight = {"planner_filter": planner_filter}
     if spec:
-        flight |= {"shield_memory": max(1, int(spec["memory"])), "shield_map": bool(spec["map"]),
+        flight |= {"shield_memory": int(spec["memory"]), "shield_map": bool(spec["map"]),
                    "shield_mover_margin": float(spec["mover_margin"]),
                    "shield_brake": brake_setting(spec.get("brake", False))}  # fmt: skip
     return flight
@@ -140,7 +140,7 @@ def main(argv: list[str] | None = None) -> None:
                     else ""), {"shield_memory": memory}) for memory in args.shield_memory]  # fmt: skip
         if args.as_recorded:
             flight = recorded_flight(policy)
-            flown = [*(["shield"] if flight.get("shield_memory") else []),
+            flown = [*(["shield"] if "shield_map" in flight else []),
                      *(["filter"] if flight.get("planner_filter") else [])]  # fmt: skip
             flights = [(label + (f" ({' + '.join(flown)})" if flown else ""), flight)]
         for name, flight in flights:
