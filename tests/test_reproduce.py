@@ -527,6 +527,10 @@ def test_trial_fresh_then_skipped_then_resumed_for_more_steps(tmp_path, fake_pyt
     assert (tmp_path / "trials" / "csac-s0.pt").read_bytes() == longer.policy.read_bytes()
     # Training wall-clock: the measured attempts (the run logged no elapsed-time column).
     assert rec["wall_clock_s"] == marker["train_wall_clock_s"] > 0
+    # The trial's whole time (every attempt and the last eval), for the next sweep's estimate.
+    assert marker["eval_wall_clock_s"] > 0
+    total = marker["train_wall_clock_s"] + marker["eval_wall_clock_s"]
+    assert kept["trial_wall_clock_s"] == pytest.approx(total, abs=0.02)
 
 
 def test_a_record_reported_again_since_its_run_is_not_overwritten_by_the_run(tmp_path):
@@ -625,16 +629,27 @@ def test_cpu_hours_estimate_and_eta(tmp_path, fake_python):
     done.record_path.parent.mkdir(parents=True, exist_ok=True)
     done.record_path.write_text(json.dumps({"wall_clock_s": 1000.0, "env_steps": 1000}))
     cpu_s, source = total(todo[:1], [done], states(todo[:1]))
-    assert (
-        cpu_s == pytest.approx(7.5e5) and source == "this sweep's finished trials (training time)"
+    assert cpu_s == pytest.approx(7.5e5) and source == (
+        "the report after training not counted; this sweep's finished trials"
     )
+    # ... plus what a finished trial took beyond training (selection, report): 300 s x 1 CPU,
+    # by label, else from any finished trial of the same kind (behind the planner filter or not)
+    done.record_path.write_text(
+        json.dumps({"wall_clock_s": 1000.0, "env_steps": 1000, "trial_wall_clock_s": 1300.0})
+    )
+    cpu_s, source = total(todo[:1], [done], states(todo[:1]))
+    assert cpu_s == pytest.approx(7.5e5 + 300) and "report after training measured" in source
+    other = todo[1]  # label ppo: no finished trial of its own
+    assert total([other], [done], states([other]))[0] == pytest.approx(2e6 * rates["ppo"] + 300)
+    filtered = dataclasses.replace(other, train_args=(*other.train_args, "--flight-filter"))
+    assert total([filtered], [done], states([filtered]))[0] == pytest.approx(2e6 * rates["ppo"])
     # a trial of another recipe (a --variants label) costs what that recipe was measured at
     paper = dataclasses.replace(todo[0], label="csac_paper", run_dir=tmp_path / "runs" / "p" / "s0",
                                 train_args=("--eval-every", "1000", "--config", "csac-paper"))  # fmt: skip
     assert rep.trial_recipe(paper) == "csac-paper" and rep.trial_recipe(todo[0]) is None
     assert rep.trial_recipe(dataclasses.replace(paper, train_args=("--config=csac",))) == "csac"
     cpu_s, _ = total([paper], [done], states([paper]))
-    assert cpu_s == pytest.approx(1e6 * rep.CPU_S_PER_STEP_BY_RECIPE["csac-paper"])
+    assert cpu_s == pytest.approx(1e6 * rep.CPU_S_PER_STEP_BY_RECIPE["csac-paper"] + 300)
     by_recipe = rep.CPU_S_PER_STEP_BY_RECIPE
     assert by_recipe["csac-paper"] > 10 * by_recipe["csac-maxcost-crashloss"]
     line = rep.eta_line(1, 4, 250, 1000, 600.0, now=0.0)

@@ -434,6 +434,8 @@ def run_trial(trial: Trial) -> dict[str, Any]:
         except TrialStopped:
             status.write_text("stopped")
             raise
+        if (marker := read_json(marker_path)) is not None:  # the trial's whole time, for ETAs
+            _write_json(marker_path, {**marker, "eval_wall_clock_s": round(info["eval_s"], 2)})
     write_trial_record(trial)
     status.write_text("done")
     return info
@@ -512,6 +514,11 @@ def write_trial_record(trial: Trial, rec: dict[str, Any] | None = None) -> dict[
     rec |= {"budget_env_steps": trial.total_steps, "train_command": marker.get("command"),
             "eval_command": shlex.join(trial.eval_command()[1:]),
             "recipe": (read_json(trial.run_dir / "config.json") or {}).get("recipe", {}).get("name")}  # fmt: skip
+    if marker.get("train_wall_clock_s") is not None:
+        # training, selection and report (every attempt) plus the last eval: what the trial cost
+        rec["trial_wall_clock_s"] = round(
+            float(marker["train_wall_clock_s"]) + float(marker.get("eval_wall_clock_s") or 0.0), 2
+        )
     trial.record_path.parent.mkdir(parents=True, exist_ok=True)
     if trial.select and trial.policy.exists():  # policy.pt of --select: policy-only, ~0.7 MB
         part = trial.kept_policy_path.with_suffix(".pt.part")
@@ -865,25 +872,41 @@ def estimate_cpu_seconds(todo: list[Trial], done: list[Trial],
     still needs: its remaining steps (a resumed one has fewer; ``states`` from
     :func:`trial_state`) at its algorithm's rate, measured on the finished
     trials of ``done`` where there are any (their records' wall clock x CPUs / env steps), else
-    :data:`CPU_S_PER_STEP_BY_RECIPE` for the recipe it names, else :data:`CPU_S_PER_STEP`."""
+    :data:`CPU_S_PER_STEP_BY_RECIPE` for the recipe it names, else :data:`CPU_S_PER_STEP`; plus
+    the time a finished trial of its label (else of its kind: behind the planner filter or not)
+    took beyond training (record ``trial_wall_clock_s`` - ``wall_clock_s``): the selection and
+    the report, about 12 min of a 25-min trial behind the filter, which a rate of training steps
+    alone leaves out (on 2026-12-06 it printed 4.1 h for 19 trials of about 25 min each)."""
     measured: dict[str, list[float]] = {}  # by label: variants of one algorithm differ
+    # What a trial costs beyond its training (selection, the test and held-out report, start-up),
+    # which does not grow with its steps: by label, and by whether it reports behind the planner
+    # filter (which flies each test twice), for labels with no finished trial yet.
+    overhead: dict[str | bool, list[float]] = {}
     for t in done:
         rec = read_json(t.record_path) or {}
         wall, steps = rec.get("wall_clock_s"), rec.get("env_steps") or rec.get("budget_env_steps")
         if wall and steps:
             measured.setdefault(t.label, []).append(float(wall) * t.cpus / float(steps))
+            if rec.get("trial_wall_clock_s"):
+                extra = max(0.0, float(rec["trial_wall_clock_s"]) - float(wall)) * t.cpus
+                overhead.setdefault(t.label, []).append(extra)
+                overhead.setdefault("--flight-filter" in t.train_args, []).append(extra)
     per_trial, sources = {}, set()
     for t in todo:
         if measured.get(t.label):
             rate = sum(measured[t.label]) / len(measured[t.label])
-            sources.add("this sweep's finished trials (training time)")
+            sources.add("this sweep's finished trials")
         else:
             rate = CPU_S_PER_STEP_BY_RECIPE.get(trial_recipe(t) or "") or CPU_S_PER_STEP.get(
                 t.algo, max(CPU_S_PER_STEP.values())
             )
             sources.add("measured on the 2-core development machine")
-        per_trial[t.name] = rate * max(0, t.total_steps - steps_done(t, states[t.name]))
-    return per_trial, " and ".join(sorted(sources)) or "-"
+        extra = overhead.get(t.label) or overhead.get("--flight-filter" in t.train_args)
+        sources.add("the report after training " + ("measured" if extra else "not counted"))
+        per_trial[t.name] = rate * max(0, t.total_steps - steps_done(t, states[t.name])) + (
+            sum(extra) / len(extra) if extra else 0.0
+        )
+    return per_trial, "; ".join(sorted(sources)) or "-"
 
 
 def schedule_seconds(durations: Sequence[float], slots: int) -> float:
