@@ -681,14 +681,16 @@ def test_wall_clock_counts_the_trials_that_run_with_slots_idle():
 def test_confidence_intervals_wilson_by_hand_and_bootstrap_over_seeds():
     import math
 
-    ci = agg.confidence_intervals([(0.85, 200), (0.95, 200), (None, 200)])
-    k, n, z = 360, 400, 1.959963984540054
+    ci = agg.confidence_intervals([(0.85, 200), (0.95, 200), (0.9, 200), (None, 200)])
+    k, n, z = 540, 600, 1.959963984540054
     p = k / n
     centre = (p + z * z / (2 * n)) / (1 + z * z / n)
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    assert ci["pooled"] == p and ci["episodes"] == n and ci["seeds"] == 2
+    assert ci["pooled"] == pytest.approx(p) and ci["episodes"] == n and ci["seeds"] == 3
     assert ci["wilson"] == pytest.approx([centre - half, centre + half], abs=1e-9)
-    low, high = ci["bootstrap_seeds"]  # resampling 2 seeds: the mean lies in [0.85, 0.95]
-    assert 0.85 <= low <= 0.9 <= high <= 0.95
+    low, high = ci["bootstrap_seeds"]  # resampling 3 seeds: the mean lies in [0.85, 0.95]
+    assert 0.85 <= low < 0.9 < high <= 0.95
     assert agg.confidence_intervals([(0.5, 10)])["bootstrap_seeds"] is None  # one seed
+    # two seeds: no interval (their bootstrap could only span the two values)
+    assert agg.confidence_intervals([(0.85, 200), (0.95, 200)])["bootstrap_seeds"] is None
     assert agg.confidence_intervals([(None, 10)]) is None

@@ -21,6 +21,9 @@ def test_iqm_trims_a_quarter_each_side():
     low, high = q["ci95"]
     assert 0.0 <= low < q["iqm"] < high <= 0.9
     assert stats.iqm([0.4])["ci95"] is None and stats.iqm([]) is None
+    # two seeds give no interval: their bootstrap would only span the two values
+    assert stats.iqm([0.4, 0.9])["ci95"] is None
+    assert stats.mean_difference([0.1, 0.2], [0.6, 0.7, 0.8]) is None
 
 
 def test_mcnemar_counts_only_discordant_pairs():
@@ -52,23 +55,24 @@ def record(algo, seed, outcomes):
 
 def test_aggregate_compares_csac_with_each_baseline_on_paired_episodes():
     records = [record("csac", 1, "SSSSSSSSTC"), record("csac", 2, "SSSSSSSSCC"),
+               record("csac", 4, "SSSSSSSSTT"),
                record("sac", 1, "SSSSSCCCCC"), record("sac", 2, "SSSSCCCCCC"),
                record("sac", 3, "SSSSSSSSSS")]  # fmt: skip
     results = agg.aggregate(records)
     comp = results["comparisons"]["csac_vs_sac"]
     mc = comp["collision_rate"]["mcnemar"]
-    # seeds 1 and 2 are paired (seed 3 of SAC has no CSAC partner): 20 pairs
+    # seeds 1 and 2 are paired (seed 3 of SAC and seed 4 of CSAC have no partner): 20 pairs
     assert mc["seeds"] == [1, 2] and mc["pairs"] == 20
     assert (mc["only_a"], mc["only_b"]) == (0, 8)  # CSAC collides where SAC does, not more
     diff = comp["collision_rate"]["mean_difference"]
-    assert diff["difference"] == pytest.approx(0.15 - 1.1 / 3)
+    assert diff["difference"] == pytest.approx(0.1 - 1.1 / 3)
     assert results["algos"]["csac"]["iqm"]["success_rate"]["iqm"] == pytest.approx(0.8)
     text = agg.render_markdown(results)
     assert "## CSAC against each baseline" in text and "| SAC | collision |" in text
     assert "## Interquartile mean (IQM)" in text
     # the summary the README quotes: mean with the bootstrap CI over seeds, and the verdict
     summary = next(line for line in text.splitlines() if line.startswith("| SAC | 3 |"))
-    assert "CSAC: success" in summary and "collision -22 pp, not resolved" in summary
+    assert "CSAC: success" in summary and "collision -27 pp, not resolved" in summary
 
 
 def test_aggregate_compares_the_policies_without_the_planner_filter_too():
@@ -85,13 +89,15 @@ def test_aggregate_compares_the_policies_without_the_planner_filter_too():
                behind_filter(record("csac", 2, "SSSC"), "SCCC"),
                behind_filter(record("sac", 1, "SSSC"), "CCCC"),
                behind_filter(record("sac", 2, "SSCC"), "CCCC"),
+               behind_filter(record("csac", 3, "SSSS"), "SSCC"),
+               behind_filter(record("sac", 3, "SSSS"), "CCCC"),
                record("ppo", 1, "SCCC"), record("ppo", 2, "CCCC")]  # fmt: skip
     results = agg.aggregate(records)
     assert set(results["comparisons"]) == {"csac_vs_sac", "csac_vs_ppo"}
     assert set(results["comparisons_without_filter"]) == {"csac_vs_sac"}
     comp = results["comparisons_without_filter"]["csac_vs_sac"]["collision_rate"]
-    assert comp["mean_difference"]["difference"] == pytest.approx((0.25 + 0.75) / 2 - 1.0)
-    assert (comp["mcnemar"]["only_a"], comp["mcnemar"]["only_b"]) == (0, 4)  # unfiltered episodes
+    assert comp["mean_difference"]["difference"] == pytest.approx((0.25 + 0.75 + 0.5) / 3 - 1.0)
+    assert (comp["mcnemar"]["only_a"], comp["mcnemar"]["only_b"]) == (0, 6)  # unfiltered episodes
     assert results["comparisons"]["csac_vs_sac"]["collision_rate"]["mcnemar"]["only_b"] == 2
     text = agg.render_markdown(results)
     assert "## CSAC against each baseline, without the planner filter" in text

@@ -358,7 +358,7 @@ def confidence_intervals(rates: Sequence[tuple[float | None, int | None]]) -> di
     """95 % intervals of a rate from its per-seed ``(rate, episodes)``: ``wilson`` on the pooled
     episodes (scipy's ``binomtest(...).proportion_ci(method="wilson")``; the episode-level
     uncertainty of these maps) and ``bootstrap`` of the mean over seeds (scipy's ``bootstrap``,
-    percentile, 10,000 resamples; the seed-to-seed spread; None below 2 seeds)."""
+    percentile, 10,000 resamples; the seed-to-seed spread; None below 3 seeds)."""
     from scipy import stats
 
     pairs = [(float(r), int(n)) for r, n in rates if r is not None and n and math.isfinite(r)]
@@ -713,7 +713,7 @@ def render_markdown(results: dict[str, Any]) -> str:
                   for name, a in filtered.items()]  # fmt: skip
     lines += ["", "## 95 % confidence intervals", "",
               "Wilson: the episodes of every seed pooled (episode-level uncertainty); bootstrap: "
-              "the mean over seeds resampled (seed-to-seed spread; none below 2 seeds). Held-out: "
+              "the mean over seeds resampled (seed-to-seed spread; none below 3 seeds). Held-out: "
               "env seeds 2-6, never used for a choice.", "",
               "| algorithm | scenario | success | Wilson | bootstrap | collision | Wilson | bootstrap |",
               "|---|---|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
