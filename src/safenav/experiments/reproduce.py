@@ -875,7 +875,7 @@ def estimate_cpu_seconds(todo: list[Trial], done: list[Trial],
     :data:`CPU_S_PER_STEP_BY_RECIPE` for the recipe it names, else :data:`CPU_S_PER_STEP`; plus
     the time a finished trial of its label (else of its kind: behind the planner filter or not)
     took beyond training (record ``trial_wall_clock_s`` - ``wall_clock_s``): the selection and
-    the report, about 12 min of a 25-min trial behind the filter, which a rate of training steps
+    the report, about 10 min of a 25-min trial behind the filter, which a rate of training steps
     alone leaves out (on 2026-12-06 it printed 4.1 h for 19 trials of about 25 min each)."""
     measured: dict[str, list[float]] = {}  # by label: variants of one algorithm differ
     # What a trial costs beyond its training (selection, the test and held-out report, start-up),
