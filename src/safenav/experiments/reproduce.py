@@ -866,6 +866,11 @@ def trial_recipe(trial: Trial) -> str | None:
     return name
 
 
+def _behind_filter(trial: Trial) -> bool:
+    """Whether the trial reports behind the planner filter (which flies each test twice)."""
+    return "--flight-filter" in trial.train_args
+
+
 def estimate_cpu_seconds(todo: list[Trial], done: list[Trial],
                          states: dict[str, str]) -> tuple[dict[str, float], str]:  # fmt: skip
     """``({trial name: CPU-seconds}, where the rate came from)`` that each trial of ``todo``
@@ -881,7 +886,8 @@ def estimate_cpu_seconds(todo: list[Trial], done: list[Trial],
     # What a trial costs beyond its training (selection, the test and held-out report, start-up),
     # which does not grow with its steps: by label, and by whether it reports behind the planner
     # filter (which flies each test twice), for labels with no finished trial yet.
-    overhead: dict[str | bool, list[float]] = {}
+    overhead_by_label: dict[str, list[float]] = {}
+    overhead_by_filter: dict[bool, list[float]] = {}
     for t in done:
         rec = read_json(t.record_path) or {}
         wall, steps = rec.get("wall_clock_s"), rec.get("env_steps") or rec.get("budget_env_steps")
@@ -889,8 +895,8 @@ def estimate_cpu_seconds(todo: list[Trial], done: list[Trial],
             measured.setdefault(t.label, []).append(float(wall) * t.cpus / float(steps))
             if rec.get("trial_wall_clock_s"):
                 extra = max(0.0, float(rec["trial_wall_clock_s"]) - float(wall)) * t.cpus
-                overhead.setdefault(t.label, []).append(extra)
-                overhead.setdefault("--flight-filter" in t.train_args, []).append(extra)
+                overhead_by_label.setdefault(t.label, []).append(extra)
+                overhead_by_filter.setdefault(_behind_filter(t), []).append(extra)
     per_trial, sources = {}, set()
     for t in todo:
         if measured.get(t.label):
@@ -901,7 +907,7 @@ def estimate_cpu_seconds(todo: list[Trial], done: list[Trial],
                 t.algo, max(CPU_S_PER_STEP.values())
             )
             sources.add("measured on the 2-core development machine")
-        extra = overhead.get(t.label) or overhead.get("--flight-filter" in t.train_args)
+        extra = overhead_by_label.get(t.label) or overhead_by_filter.get(_behind_filter(t))
         sources.add("the report after training " + ("measured" if extra else "not counted"))
         per_trial[t.name] = rate * max(0, t.total_steps - steps_done(t, states[t.name])) + (
             sum(extra) / len(extra) if extra else 0.0
