@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from safenav.bench import zoo_curves
 from safenav.bench.suites import CONSTRAINED, DEFAULT_SB3, SUITES, Reference, Task
 from safenav.errors import SafenavError, SafenavRuntimeError
 from safenav.recipes import PPO_ALGOS
@@ -327,8 +328,13 @@ def summarize(suite: str, results: list[dict[str, Any]], cost_limit: float) -> l
             hosts = {(json.dumps(x.get("machine"), sort_keys=True), x.get("date"))
                      for rs in impls.values() for x in rs}  # fmt: skip
             row["same_machine"] = len(hosts) == 1
+        # the published agent's own evaluation at this budget (zoo_curves), where it has one
+        same = zoo_curves.at(env, algo, steps) if suite == "gym" else None
+        if same is not None and (ref is None or ref.steps != steps):
+            row["reference_at_budget"] = same.__dict__
         if "safenav" in row and ref is not None and suite == "gym":
-            row["within_10pct"] = within(row["safenav"]["return"], ref.value)
+            compare = row.get("reference_at_budget") or ref.__dict__
+            row["within_10pct"] = within(row["safenav"]["return"], compare["value"])
         if "safenav" in row and suite == "safe":
             row["under_limit"] = row["safenav"]["cost"] <= cost_limit  # the mean over seeds
             row["seeds_under_limit"] = sum(
@@ -347,7 +353,8 @@ def markdown_table(suite: str, rows: list[dict[str, Any]], cost_limit: float) ->
         return f"{d[key]:.0f} ± {d[key + '_std']:.0f} (n={len(d['seeds'])})"
 
     if suite == "gym":
-        lines = ["| task | algo | steps | safenav return | reference (published) | within 10 % "
+        lines = ["| task | algo | steps | safenav return | reference (published; **bold**: the same "
+                 "agent at this budget) | within 10 % (of the bold one where there is one) "
                  "| SB3 here | wall clock safenav / SB3 |",
                  "|---|---|---:|---:|---|:---:|---:|---:|"]  # fmt: skip
         for r in rows:
@@ -358,8 +365,11 @@ def markdown_table(suite: str, rows: list[dict[str, Any]], cost_limit: float) ->
             if s and b:
                 wall += f" / {b['wall_clock_s']:.0f} s"
                 wall += "" if r.get("same_machine") else " (other machine or day)"
+            refs = _ref_text(ref, r["steps"])
+            if same := r.get("reference_at_budget"):
+                refs += f"; **{_ref_text(Reference(**same), r['steps'])}**"
             lines.append(f"| {r['env']} | {r['algo']} | {_count(r['steps'])} | {pm(s, 'return')} | "
-                         f"{_ref_text(ref, r['steps'])} | {ok} | {pm(b, 'return')} | {wall} |")  # fmt: skip
+                         f"{refs} | {ok} | {pm(b, 'return')} | {wall} |")  # fmt: skip
         return "\n".join(lines + _mixed_notes(rows)) + "\n"
     lines = [f"| task | algo | steps | return | episode cost | mean cost <= {cost_limit:g} | OmniSafe "
              "(published): return / cost | wall clock |", "|---|---|---:|---:|---:|:---:|---|---:|"]  # fmt: skip
@@ -423,6 +433,18 @@ def plot_curves(suite: str, results: list[dict[str, Any]], path: Path, cost_limi
                 ax.plot(steps, mean, label=label, ls="--" if "sb3" in label else "-")
                 ax.fill_between(steps, np.nanmin(values, axis=0), np.nanmax(values, axis=0),
                                 alpha=0.15)  # fmt: skip
+        if suite == "gym":  # the published zoo agent's own curve, up to our longest budget
+            for algo in sorted({r["trial"]["algo"] for r in results if r["trial"]["env"] == env}):
+                zoo = zoo_curves.curve(env, algo)
+                if zoo is None:
+                    continue
+                end = max(r["trial"]["steps"] for r in results
+                          if r["trial"]["env"] == env and r["trial"]["algo"] == algo)  # fmt: skip
+                pts = [(x, y) for x, y in zip(zoo["steps"], zoo["mean"], strict=True) if x <= end]
+                if pts:
+                    axes[0][j].plot(*zip(*pts, strict=True), color="0.45", lw=0.9,
+                                    ls=":" if algo == "sac" else "-.",
+                                    label=f"{algo} (SB3 zoo agent, published, 1 seed)")  # fmt: skip
         for row in axes:  # 100k, 1M: plain integers run into each other on a narrow panel
             row[j].xaxis.set_major_formatter(
                 matplotlib.ticker.FuncFormatter(lambda x, _: _count(int(x)) if x else "0")
