@@ -358,6 +358,8 @@ STR_CASES: dict[str, list[tuple[str, int]]] = {
     "tune --preset": [("hard", 2)],
     "tune --train-args": [("--nope 1", 2), ("--csac.gamma 2", 2), ("--num-envs -1", 2), ("'", 2)],
     "train --cost-fn": [("nomodule:cost", 2), ("math", 2), ("math:nosuch", 2), ("math:sqrt", 2)],
+    "train --ppo.net.trunk": [("gelu", 2), ("", 2)],
+    "train --csac.net.trunk": [("gelu", 2), ("relu", 2)],  # the SAC family's MLPs are ReLU
     "train --env-kwargs": [("nonesuch", 2)],  # a name without its value
 }
 SWITCH_CASES: dict[str, int] = {

@@ -16,6 +16,7 @@ import torch
 from gymnasium.vector import AutoresetMode, SyncVectorEnv
 
 from conftest import run_cli
+from safenav.algos.config import CSACConfig
 from safenav.algos.ppo import PPO, PPOLearner, collect_rollout
 from safenav.algos.ppo_config import PPOConfig
 from safenav.common.config import RunConfig
@@ -315,6 +316,33 @@ def test_a_safenav_gaussian_policy_exports_to_onnx(tmp_path):
     actor = build_actor(meta).eval()
     assert isinstance(actor, GaussianDeterministicActor)
     assert_onnx_equals_torch(actor, cfg, tmp_path / "gsde.onnx", env_observations(cfg, steps=5))
+
+
+@pytest.mark.parametrize(("trunk", "layers"), [("navrl", (torch.nn.LeakyReLU, torch.nn.LayerNorm)),
+                                               ("relu", (torch.nn.ReLU,)),
+                                               ("tanh", (torch.nn.Tanh,))])  # fmt: skip
+def test_the_trunk_is_the_sources_and_a_loaded_policy_rebuilds_it(trunk, layers, tmp_path):
+    """``net.trunk``: NavRL's LeakyReLU + LayerNorm, or SB3's ReLU / tanh (the zoo's MuJoCo
+    entries, SB3's and CleanRL's default), in actor and critic; the policy metadata rebuilds it."""
+    from safenav.algos.policy import build_actor
+
+    net = NetConfig(hidden=(16, 8), trunk=trunk)
+    model = GaussianActorCritic({"obs": (4,)}, 2, net, use_sde=False)
+    want = [torch.nn.Linear, *layers] * 2
+    assert [type(m) for m in model.actor_body.trunk] == want
+    meta = {"net": dataclasses.asdict(net), "action_dim": 2, "policy_head": "gaussian",
+            "obs_shapes": {"obs": [4]}}  # fmt: skip
+    actor = build_actor(meta)
+    assert [type(m) for m in actor.body.trunk] == want
+    actor.body.load_state_dict(model.actor_body.state_dict())
+    actor.policy_head.load_state_dict(model.policy_head.state_dict())
+    obs = torch.randn(6, 4)
+    torch.testing.assert_close(actor(obs), model({"obs": obs})[0].clamp(-1.0, 1.0))
+    with pytest.raises(ValueError, match="trunk='gelu' must be one of navrl, relu, tanh"):
+        NetConfig(trunk="gelu")
+    if trunk != "navrl":  # the SAC family's MLPs are ReLU: a trunk there would do nothing
+        with pytest.raises(ValueError, match="sets PPO's hidden layers"):
+            CSACConfig(net=net)
 
 
 # --------------------------------------------------------------------------- refusals

@@ -156,6 +156,9 @@ class CSACConfig:
         if not (math.isfinite(self.action_noise_beta) and 0 <= self.action_noise_beta <= 2):
             raise ValueError(f"action-noise-beta={self.action_noise_beta} must be a finite number "
                              "in [0, 2] (0 = white noise, 1 = pink)")  # fmt: skip
+        if self.net.trunk != "navrl":  # would be silently ignored: say so instead
+            raise ValueError(f"net.trunk={self.net.trunk!r} sets PPO's hidden layers; the SAC "
+                             "family's MLPs are Linear -> ReLU (leave it at navrl)")  # fmt: skip
         if self.cost_critic_output not in ("linear", "softplus"):
             raise ValueError(f"cost-critic-output={self.cost_critic_output!r}: linear or softplus")
         if self.cost_scale_episodes < 1:

@@ -96,7 +96,8 @@ on it to :func:`build_beta_actor`."""
 
 class Body(nn.Module):
     """Observation dict -> features: :func:`~safenav.nn.networks.make_extractor` (the SafeNav CNN
-    + MLP + state, or flatten), then ``Linear -> LeakyReLU -> LayerNorm`` per hidden layer."""
+    + MLP + state, or flatten), then per hidden layer ``Linear -> LeakyReLU -> LayerNorm``
+    (NavRL's), or ``Linear -> ReLU`` / ``Linear -> tanh`` (``net.trunk``: SB3's)."""
 
     def __init__(self, obs_shapes: dict[str, tuple[int, ...]], net: NetConfig) -> None:
         super().__init__()
@@ -104,7 +105,11 @@ class Body(nn.Module):
         layers: list[nn.Module] = []
         size = self.extractor.out_features
         for h in net.hidden:
-            layers += [nn.Linear(size, h), nn.LeakyReLU(), nn.LayerNorm(h)]
+            layers.append(nn.Linear(size, h))
+            if net.trunk == "navrl":
+                layers += [nn.LeakyReLU(), nn.LayerNorm(h)]
+            else:
+                layers.append(nn.ReLU() if net.trunk == "relu" else nn.Tanh())
             size = h
         self.trunk = nn.Sequential(*layers)
         self.out_features = size

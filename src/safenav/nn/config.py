@@ -4,6 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+TRUNKS = ("navrl", "relu", "tanh")
+"""The hidden-layer kinds of PPO's networks (:attr:`NetConfig.trunk`)."""
+
 
 @dataclass(frozen=True)
 class NetConfig:
@@ -28,10 +31,17 @@ class NetConfig:
     """Dynamic-obstacle embedding size (paper IV: 64)."""
     flatten_hidden: tuple[int, ...] = ()
     """MLP of the extractor for non-SafeNav observations (Box): () = flatten only."""
+    trunk: str = "navrl"
+    """PPO's hidden layers (``hidden``), actor and critic: ``navrl`` = Linear -> LeakyReLU ->
+    LayerNorm (NavRL's ``make_mlp``, the default), ``relu`` = Linear -> ReLU (rl-baselines3-zoo's
+    tuned MuJoCo entries, ``activation_fn=nn.ReLU``), ``tanh`` = Linear -> tanh (SB3's and
+    CleanRL's default). The SAC family's MLPs are Linear -> ReLU whatever this says."""
 
     def __post_init__(self) -> None:
         sizes = (*self.hidden, *self.lidar_channels, *self.lidar_strides, *self.flatten_hidden,
                  self.lidar_kernel, self.lidar_embed, self.dynamic_hidden, self.dynamic_embed)  # fmt: skip
+        if self.trunk not in TRUNKS:
+            raise ValueError(f"trunk={self.trunk!r} must be one of {', '.join(TRUNKS)}")
         if any(n < 1 for n in sizes):
             raise ValueError(f"network sizes, strides and kernel must be >= 1 (got {self})")
         if len(self.lidar_channels) != len(self.lidar_strides):
@@ -39,4 +49,4 @@ class NetConfig:
                              f"{self.lidar_strides} need one entry per convolution each")  # fmt: skip
 
 
-__all__ = ["NetConfig"]
+__all__ = ["TRUNKS", "NetConfig"]
