@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from safenav.bench.suites import Reference
+from safenav.common.jsonout import write_json
 from safenav.errors import SafenavError
 
 PATH = Path(__file__).with_name("zoo_curves.json")
@@ -106,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 2
     data = extract(Path(args[0]))
-    PATH.write_text(json.dumps(data, indent=1) + "\n")
+    write_json(PATH, data)
     load.cache_clear()
     print(f"{PATH}: {len(data['curves'])} curves of {REPOSITORY} at {data['commit'][:12]}")
     return 0
