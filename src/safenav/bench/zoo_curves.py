@@ -48,23 +48,25 @@ AGENTS = {
 SOURCE = "SB3 zoo agent's evaluations.npz"
 
 
-def _git_show(clone: Path, rev: str) -> bytes:
+def _git(clone: Path, *args: str) -> bytes:
+    """``git -C clone ARGS``'s output; a failure is one SafenavError line."""
     try:
-        return subprocess.run(["git", "-C", str(clone), "show", rev], check=True,
+        return subprocess.run(["git", "-C", str(clone), *args], check=True,
                               capture_output=True).stdout  # fmt: skip
     except (OSError, subprocess.CalledProcessError) as e:
         detail = getattr(e, "stderr", b"") or b""
-        raise SafenavError(f"cannot read {rev} in {clone}: {detail.decode().strip() or e}") from e
+        raise SafenavError(f"cannot read {args[-1]} in {clone}: "
+                           f"{detail.decode().strip() or e}") from e  # fmt: skip
 
 
 def extract(clone: Path) -> dict[str, Any]:
     """The curves of :data:`AGENTS` from a clone of rl-trained-agents, at its HEAD."""
     import numpy as np
 
-    commit = _git_show(clone, "HEAD").split()[1].decode()  # "commit <sha>"
+    commit = _git(clone, "rev-parse", "HEAD").decode().strip()
     curves = {}
     for (env, algo), folder in AGENTS.items():
-        data = np.load(io.BytesIO(_git_show(clone, f"HEAD:{folder}/evaluations.npz")))
+        data = np.load(io.BytesIO(_git(clone, "show", f"HEAD:{folder}/evaluations.npz")))
         steps = np.asarray(data["timesteps"]).reshape(-1)
         # (evaluations, episodes); some agents' logs keep a trailing axis of length 1
         results = np.asarray(data["results"], dtype=float).reshape(len(steps), -1)
