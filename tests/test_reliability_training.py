@@ -566,3 +566,29 @@ def test_process_running_tells_a_live_process_from_an_exited_one():
         child.kill()
         child.wait()
     assert not process_running(child.pid)
+
+
+def test_an_evaluation_a_stop_cut_short_runs_on_resume(tmp_path, monkeypatch):
+    """A stop lands mostly inside a periodic evaluation (the slow part of a step that has one):
+    the resumed run evaluates the checkpoint's weights at that step first, so the validation
+    curve keeps every point (``safenav reproduce``'s records lost one per such stop)."""
+    from safenav.training.trainer import Trainer
+
+    run_dir = tmp_path / "cut"
+    real = Trainer.evaluate
+
+    def stopped_inside(self):  # Ctrl-C while the first evaluation flies its episodes
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Trainer, "evaluate", stopped_inside)
+    args = ["--eval-every", "128", "--eval-episodes", "2"]
+    with pytest.raises((SystemExit, KeyboardInterrupt)):
+        main(train_args("ppo", run_dir, 256, *args))
+    stop = events(run_dir)[-1]
+    assert stop["event"] == "interrupted" and stop["global_step"] == 128
+    assert load_checkpoint(run_dir / "checkpoint.pt")["next_eval_step"] == 128
+    monkeypatch.setattr(Trainer, "evaluate", real)
+    main(resume_args("ppo", run_dir))
+    evals = [e["global_step"] for e in events(run_dir) if e["event"] == "eval"]
+    assert evals == [128, 256]
+    assert load_checkpoint(run_dir / "checkpoint.pt")["next_eval_step"] == 384

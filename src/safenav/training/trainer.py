@@ -232,7 +232,9 @@ class Trainer:
 
         # -- resume: counters, curricula, the learner's state, then the RNG as it was
         self.global_step, self.updates, self.elapsed0 = 0, 0, 0.0
+        self.next_eval: float | None = None  # the step of the next periodic evaluation
         if ckpt is not None:
+            self.next_eval = ckpt.get("next_eval_step")
             restore_agent(self.agent, ckpt, ckpt_path)
             self.curriculum.load_state_dict(ckpt["curriculum"])
             self.density.load_state_dict(ckpt["density"])
@@ -272,14 +274,20 @@ class Trainer:
         self.t0 = time.perf_counter()
         self.t_log, self.step_log, self.upd_log = self.t0, self.global_step, self.updates
         every = lambda n: (self.global_step // n + 1) * n if n else math.inf  # noqa: E731
-        next_log, next_eval = every(run.log_every), every(run.eval_every)
-        next_ckpt = every(run.checkpoint_every)
+        next_log, next_ckpt = every(run.log_every), every(run.checkpoint_every)
+        if self.next_eval is None:  # a new run, or a checkpoint from before next_eval_step
+            self.next_eval = every(run.eval_every)
         self.refresh = self.global_step // self.refresh_every if self.refresh_every else 0
         self.obs = self.env.reset(seed=run.train_env_seed(self.refresh) if self.nav
                                   else run.seed + self.global_step)  # fmt: skip
         self.display = ProgressDisplay(run.total_steps, self.global_step, enabled=self.progress,
                                        title=f"{self.algo} {run.env}")  # fmt: skip
         try:
+            # an evaluation that was due when the run stopped (a stop lands mostly in one: it is
+            # the slow part) runs now, on the checkpoint's weights: the step it was due at
+            if self.global_step >= self.next_eval and self.eval_env is not None:
+                self.next_eval = every(run.eval_every)
+                self.evaluate()
             while self.global_step < run.total_steps:
                 self.obs, episodes, steps = learner.collect(self.env, self.obs, self.global_step,
                                                             self.curriculum.d)  # fmt: skip
@@ -293,9 +301,9 @@ class Trainer:
                     for k, v in m.items():
                         self.sums[k] = self.sums[k] + v if k in self.sums else v.clone()
                     self.n_sums += 1
-                if self.global_step >= next_eval and self.eval_env is not None:
-                    next_eval = every(run.eval_every)
+                if self.global_step >= self.next_eval and self.eval_env is not None:
                     self.evaluate()
+                    self.next_eval = every(run.eval_every)  # after it: a stop inside redoes it
                 if self.global_step >= next_log or self.global_step >= run.total_steps:
                     next_log = every(run.log_every)
                     self.log()
@@ -443,6 +451,8 @@ class Trainer:
             "agent": self.agent.state_dict(), "optimizers": self.agent.optimizer_state(),
             "curriculum": self.curriculum.state_dict(), "density": self.density.state_dict(),
             "rng": rng_state(), "best": self.best.state_dict(), **self.learner.state_dict()}  # fmt: skip
+        if self.next_eval is not None and math.isfinite(self.next_eval):
+            state["next_eval_step"] = int(self.next_eval)
         if self.normalization is not None:
             state["normalization"] = self.normalization.state_dict()
         self.guard.save(
