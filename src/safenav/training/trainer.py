@@ -286,8 +286,8 @@ class Trainer:
             # an evaluation that was due when the run stopped (a stop lands mostly in one: it is
             # the slow part) runs now, on the checkpoint's weights: the step it was due at
             if self.global_step >= self.next_eval and self.eval_env is not None:
-                self.next_eval = every(run.eval_every)
                 self.evaluate()
+                self.next_eval = every(run.eval_every)
             while self.global_step < run.total_steps:
                 self.obs, episodes, steps = learner.collect(self.env, self.obs, self.global_step,
                                                             self.curriculum.d)  # fmt: skip
