@@ -285,9 +285,7 @@ class Trainer:
         try:
             # an evaluation that was due when the run stopped (a stop lands mostly in one: it is
             # the slow part) runs now, on the checkpoint's weights: the step it was due at
-            if self.global_step >= self.next_eval and self.eval_env is not None:
-                self.evaluate()
-                self.next_eval = every(run.eval_every)
+            self.evaluate_if_due()
             while self.global_step < run.total_steps:
                 self.obs, episodes, steps = learner.collect(self.env, self.obs, self.global_step,
                                                             self.curriculum.d)  # fmt: skip
@@ -301,9 +299,7 @@ class Trainer:
                     for k, v in m.items():
                         self.sums[k] = self.sums[k] + v if k in self.sums else v.clone()
                     self.n_sums += 1
-                if self.global_step >= self.next_eval and self.eval_env is not None:
-                    self.evaluate()
-                    self.next_eval = every(run.eval_every)  # after it: a stop inside redoes it
+                self.evaluate_if_due()
                 if self.global_step >= next_log or self.global_step >= run.total_steps:
                     next_log = every(run.log_every)
                     self.log()
@@ -361,6 +357,15 @@ class Trainer:
         new_density = self.density.step(step)
         if new_density is not None and self.env.set_density(new_density):
             self.logger.event(step, "density", density=new_density)
+
+    def evaluate_if_due(self) -> None:
+        """The periodic evaluation once ``next_eval`` is reached; the schedule moves on only after
+        it, so a stop inside it leaves it due in the checkpoint and the resumed run redoes it."""
+        if self.eval_env is None or self.global_step < self.next_eval:
+            return
+        self.evaluate()
+        every = self.run_cfg.eval_every  # > 0: there is an eval env
+        self.next_eval = (self.global_step // every + 1) * every
 
     def evaluate(self) -> None:
         """The periodic evaluation (deterministic policy, evaluation maps), ``best.pt``."""
