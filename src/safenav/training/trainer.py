@@ -273,7 +273,7 @@ class Trainer:
         self.row: dict[str, float] = {}
         self.t0 = time.perf_counter()
         self.t_log, self.step_log, self.upd_log = self.t0, self.global_step, self.updates
-        every = lambda n: (self.global_step // n + 1) * n if n else math.inf  # noqa: E731
+        every = self.next_due
         next_log, next_ckpt = every(run.log_every), every(run.checkpoint_every)
         if self.next_eval is None:  # a new run, or a checkpoint from before next_eval_step
             self.next_eval = every(run.eval_every)
@@ -364,8 +364,12 @@ class Trainer:
         if self.eval_env is None or self.global_step < self.next_eval:
             return
         self.evaluate()
-        every = self.run_cfg.eval_every  # > 0: there is an eval env
-        self.next_eval = (self.global_step // every + 1) * every
+        self.next_eval = self.next_due(self.run_cfg.eval_every)
+
+    def next_due(self, every: int) -> float:
+        """The first multiple of ``every`` after the current step (never, for 0): the schedule of
+        logs, checkpoints and evaluations."""
+        return (self.global_step // every + 1) * every if every else math.inf
 
     def evaluate(self) -> None:
         """The periodic evaluation (deterministic policy, evaluation maps), ``best.pt``."""
