@@ -470,6 +470,7 @@ def test_bench_gym_on_a_tiny_budget_writes_its_files_and_resumes(tmp_path, capsy
         )
     ours = json.loads((out / "trials" / names[0]).read_text())
     assert ours["recipe"] == "classic-sac"  # the recipe a user gets
+    assert ours["resumed_at"] == []  # it ran in one go
     table = (out / "table.md").read_text()
     assert (
         "| Pendulum-v1 | sac | 400 |" in table
@@ -488,7 +489,11 @@ def test_bench_gym_on_a_tiny_budget_writes_its_files_and_resumes(tmp_path, capsy
     code, _, err = run(capsys, argv)
     assert code == 0 and "1 already done (skipped), 1 to run" in err
     assert "resume" in (out / "runs" / names[0][:-5] / "events.jsonl").read_text()
-    assert (out / "trials" / names[0]).is_file()
+    resumed = json.loads((out / "trials" / names[0]).read_text())
+    assert resumed["resumed_at"] == [400]  # the trial file says where (here: after its last step)
+    assert "Pendulum-v1 sac (safenav): resumed from a checkpoint (seed 1 at 400 steps)" in (
+        out / "table.md"
+    ).read_text()
     config = json.loads((out / "runs" / names[0][:-5] / "config.json").read_text())
     assert config["run"]["save_buffer"]  # so the resumed SAC kept its replay buffer
     # the table is the suite's: a report for another selection keeps this row (and its SB3 column)

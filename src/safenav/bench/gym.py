@@ -143,6 +143,22 @@ def steps_done(trial: Trial, out: Path) -> int:
     return int(float(rows[-1]["global_step"])) if rows else 0
 
 
+def resumed_at(run_dir: Path) -> list[int]:
+    """The env steps at which a safenav run was resumed (its ``events.jsonl``): a resumed run
+    continues from its checkpoint but not bit for bit as an uninterrupted one (the envs' states
+    are not checkpointed; docs/reliability.md), so the trial file says where it happened."""
+    path = run_dir / "events.jsonl"
+    if not path.is_file():
+        return []
+    steps = []
+    for line in path.read_text().splitlines():
+        with contextlib.suppress(ValueError, TypeError):
+            record = json.loads(line)
+            if record.get("event") == "resume":
+                steps.append(int(record["global_step"]))
+    return steps
+
+
 def collect(trial: Trial, out: Path, wall_s: float) -> dict[str, Any]:
     """The trial file's content from a finished child's outputs."""
     from safenav.common.machine import machine_description
@@ -163,7 +179,8 @@ def collect(trial: Trial, out: Path, wall_s: float) -> dict[str, Any]:
         wall = _num(rows[-1], "time/elapsed_s") if rows else wall_s
         done = int(float(rows[-1]["global_step"])) if rows else 0
         config = json.loads((run_dir / "config.json").read_text())
-        extra = {"recipe": (config.get("recipe") or {}).get("name"), "config": config}
+        extra = {"recipe": (config.get("recipe") or {}).get("name"), "config": config,
+                 "resumed_at": resumed_at(run_dir)}  # fmt: skip
     if not curve:
         raise SafenavRuntimeError(f"trial {trial.name}: no evaluation recorded ({run_dir})")
     return {
@@ -324,6 +341,8 @@ def summarize(suite: str, results: list[dict[str, Any]], cost_limit: float) -> l
                          "wall_clock_s": wall, "seeds": sorted(x["trial"]["seed"] for x in rs)}  # fmt: skip
             if differ := config_differences(rs):
                 row[impl]["config_differs"] = differ
+            if resumed := {x["trial"]["seed"]: x["resumed_at"] for x in rs if x.get("resumed_at")}:
+                row[impl]["resumed"] = resumed  # seed -> the steps it was resumed at
         if len(impls) > 1:  # wall clocks compare only on one machine on one day
             hosts = {(json.dumps(x.get("machine"), sort_keys=True), x.get("date"))
                      for rs in impls.values() for x in rs}  # fmt: skip
@@ -390,10 +409,18 @@ def markdown_table(suite: str, rows: list[dict[str, Any]], cost_limit: float) ->
 
 
 def _mixed_notes(rows: list[dict[str, Any]]) -> list[str]:
-    """A line under the table for each row whose seeds ran with different configurations."""
+    """A line under the table for each row whose seeds ran with different configurations, and
+    for each row with a seed that was stopped and resumed (its figure would not replay bit for
+    bit from the command: the envs' states are not checkpointed)."""
     notes = []
     for r in rows:
         for impl in ("safenav", "sb3"):
+            if resumed := (r.get(impl) or {}).get("resumed"):
+                where = "; ".join(f"seed {seed} at {', '.join(f'{n:,}' for n in steps)} steps"
+                                  for seed, steps in sorted(resumed.items()))  # fmt: skip
+                notes.append(f"\n{r['env']} {r['algo']} ({impl}): resumed from a checkpoint "
+                             f"({where}); a rerun of the command, uninterrupted, continues "
+                             "differently from there.")  # fmt: skip
             if differ := (r.get(impl) or {}).get("config_differs"):
                 shown = ", ".join(differ[:6]) + (
                     f" and {len(differ) - 6} more" if len(differ) > 6 else ""
