@@ -273,7 +273,7 @@ VERDICTS: dict[str, dict[str, int]] = {
     "fly --origin": {"-1": ACCEPTED, "0": ACCEPTED}, "fly --link-timeout": {},
     "fly --max-flight-time": POSITIVE, "fly --episode": {"0": ACCEPTED},
     "bench --repeats": {}, "bench --num-envs": MEMORY, "bench --env-steps": POSITIVE,
-    "bench --updates": POSITIVE, "bench --seeds": {}, "bench --steps": NONNEG, "bench --jobs": {},
+    "bench --updates": POSITIVE, "bench --seeds": {}, "bench --first-seed": {}, "bench --steps": NONNEG, "bench --jobs": {},
     "bench --cost-limit": NONNEG,
     "tune --trials": {}, "tune --total-steps": POSITIVE, "tune --seed": {"0": ACCEPTED},
     "tune --episodes": {}, "tune --jobs": {}, "tune --torch-threads": {},

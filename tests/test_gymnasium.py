@@ -491,9 +491,10 @@ def test_bench_gym_on_a_tiny_budget_writes_its_files_and_resumes(tmp_path, capsy
     assert "resume" in (out / "runs" / names[0][:-5] / "events.jsonl").read_text()
     resumed = json.loads((out / "trials" / names[0]).read_text())
     assert resumed["resumed_at"] == [400]  # the trial file says where (here: after its last step)
-    assert "Pendulum-v1 sac (safenav): resumed from a checkpoint (seed 1 at 400 steps)" in (
-        out / "table.md"
-    ).read_text()
+    assert (
+        "Pendulum-v1 sac (safenav): resumed from a checkpoint (seed 1 at 400 steps)"
+        in (out / "table.md").read_text()
+    )
     config = json.loads((out / "runs" / names[0][:-5] / "config.json").read_text())
     assert config["run"]["save_buffer"]  # so the resumed SAC kept its replay buffer
     # the table is the suite's: a report for another selection keeps this row (and its SB3 column)
@@ -503,6 +504,21 @@ def test_bench_gym_on_a_tiny_budget_writes_its_files_and_resumes(tmp_path, capsy
     assert code == 0, err
     assert "| Pendulum-v1 | sac | 400 |" in (out / "table.md").read_text()
     assert json.loads((out / "summary.json").read_text())["rows"][0]["sb3"]["seeds"] == [1]
+
+
+def test_bench_first_seed_screens_on_seeds_clear_of_the_reported_ones():
+    from safenav.bench.gym import plan_trials
+
+    trials = plan_trials("gym", ("MountainCarContinuous-v0",), ("ppo",), 3, 0, (), first_seed=101)
+    assert [t.name for t in trials] == [
+        f"MountainCarContinuous-v0-ppo-safenav-20000-s{seed}" for seed in (101, 102, 103)
+    ]
+    assert [t.seed for t in plan_trials("gym", ("Pendulum-v1",), ("sac",), 2, 0, None)] == [
+        1,
+        1,
+        2,
+        2,
+    ]
 
 
 def test_bench_table_says_when_the_seeds_of_a_row_ran_different_configurations():

@@ -55,8 +55,9 @@ class Trial:
 
 
 def plan_trials(suite: str, tasks: tuple[str, ...], algos: tuple[str, ...], seeds: int, steps: int,
-                sb3: tuple[str, ...] | None) -> list[Trial]:  # fmt: skip
-    """The trials of a selection, checked: ``SafenavError`` for unknown tasks or algorithms."""
+                sb3: tuple[str, ...] | None, first_seed: int = 1) -> list[Trial]:  # fmt: skip
+    """The trials of a selection (seeds ``first_seed`` .. ``first_seed + seeds - 1``), checked:
+    ``SafenavError`` for unknown tasks or algorithms."""
     table = SUITES[suite]
     tasks = tasks or tuple(table)
     unknown = [t for t in tasks if t not in table]
@@ -83,7 +84,7 @@ def plan_trials(suite: str, tasks: tuple[str, ...], algos: tuple[str, ...], seed
     for env in tasks:
         for algo in algos:
             budget = steps or table[env].steps[algo]
-            for seed in range(1, seeds + 1):
+            for seed in range(first_seed, first_seed + seeds):
                 out.append(Trial(suite, env, algo, "safenav", seed, budget))
                 if env in sb3 and algo in ("sac", "ppo"):
                     out.append(Trial(suite, env, algo, "sb3", seed, budget))
@@ -510,11 +511,13 @@ def report(suite: str, trials: list[Trial], out: Path, cost_limit: float) -> lis
 def bench_suite(suite: str, out: Path, tasks: tuple[str, ...] = (), algos: tuple[str, ...] = (),
                 seeds: int = 3, steps: int = 0, sb3: tuple[str, ...] | None = None,
                 jobs: int = 1, cost_limit: float = 25.0, report_only: bool = False,
-                progress: bool = True, extra: tuple[str, ...] = ()) -> list[dict[str, Any]]:  # fmt: skip
+                progress: bool = True, extra: tuple[str, ...] = (),
+                first_seed: int = 1) -> list[dict[str, Any]]:  # fmt: skip
     """Run (or, with ``report_only``, only report) a suite; see the module docstring. ``extra``:
     more ``safenav train`` options for every safenav trial (not part of a trial's name: give a
-    new ``out`` when they change)."""
-    trials = plan_trials(suite, tasks, algos, seeds, steps, sb3)
+    new ``out`` when they change). ``first_seed``: 101 and up screen on seeds that no reported
+    row uses (those are 1..N)."""
+    trials = plan_trials(suite, tasks, algos, seeds, steps, sb3, first_seed)
     failures = [] if report_only else run_trials(trials, out, cost_limit, jobs, progress, extra)
     rows = report(suite, trials, out, cost_limit)
     print((out / "table.md").read_text(), end="")

@@ -25,6 +25,7 @@ def bench(
     tasks: tuple[str, ...] = (),
     algos: tuple[str, ...] = (),
     seeds: int = 3,
+    first_seed: int = 1,
     steps: int = 0,
     sb3: tuple[str, ...] | None = None,
     jobs: int = 1,
@@ -59,6 +60,8 @@ def bench(
         tasks: gym, safe: the tasks to run (default: all of the suite).
         algos: gym, safe: the algorithms to run (default: all of the suite).
         seeds: gym, safe: seeds 1..N per task and algorithm (1-100).
+        first_seed: gym, safe: the first of the --seeds seeds (so 101 with --seeds 10 runs
+            seeds 101-110: validation seeds to choose on, clear of the reported 1..N).
         steps: gym, safe: env steps per trial; 0 = each task's budget (docs/gymnasium.md).
         sb3: gym: tasks on which Stable-Baselines3 runs too (default Pendulum-v1 Hopper-v5).
         jobs: gym, safe: trials run at once, one torch thread each.
@@ -87,6 +90,7 @@ def bench(
     if json_out is not None:
         check_output_file(json_out, "--json", f"{which}.json")
     in_range("--seeds", seeds, 1, 100)
+    in_range("--first-seed", first_seed, 1, 1_000_000)
     in_range("--jobs", jobs, 1, os.cpu_count() or 1, "CPU cores of this machine")
     at_least("--steps", steps, 0)
     at_least("--cost-limit", cost_limit, 0)
@@ -104,11 +108,11 @@ def bench(
     if suite:
         from safenav.bench.gym import bench_suite, plan_trials
 
-        plan_trials(which, tasks, algos, seeds, steps, sb3)  # unknown tasks, algorithms: exit 2
+        plan_trials(which, tasks, algos, seeds, steps, sb3, first_seed)  # unknown: exit 2
         extra = split_train_args(train_args)
         out = Path("benchmarks/results") / which if out is None else out
         bench_suite(which, out, tasks, algos, seeds, steps, sb3, jobs, cost_limit, report_only,
-                    progress, extra)  # fmt: skip
+                    progress, extra, first_seed)  # fmt: skip
     elif which == "env":
         from safenav.bench.env import bench_env
 
