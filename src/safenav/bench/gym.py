@@ -390,7 +390,7 @@ def markdown_table(suite: str, rows: list[dict[str, Any]], cost_limit: float) ->
                 refs += f"; **{_ref_text(Reference(**same), r['steps'])}**"
             lines.append(f"| {r['env']} | {r['algo']} | {_count(r['steps'])} | {pm(s, 'return')} | "
                          f"{refs} | {ok} | {pm(b, 'return')} | {wall} |")  # fmt: skip
-        return "\n".join(lines + _mixed_notes(rows)) + "\n"
+        return "\n".join(lines + _row_notes(rows)) + "\n"
     lines = [f"| task | algo | steps | return | episode cost | mean cost <= {cost_limit:g} | OmniSafe "
              "(published): return / cost | wall clock |", "|---|---|---:|---:|---:|:---:|---|---:|"]  # fmt: skip
     for r in rows:
@@ -406,10 +406,10 @@ def markdown_table(suite: str, rows: list[dict[str, Any]], cost_limit: float) ->
         wall = f"{s['wall_clock_s']:.0f} s" if s else "-"
         lines.append(f"| {r['env']} | {r['algo']} | {_count(r['steps'])} | {pm(s, 'return')} | "
                      f"{pm(s, 'cost')} | {ok} | {refs} | {wall} |")  # fmt: skip
-    return "\n".join(lines + _mixed_notes(rows)) + "\n"
+    return "\n".join(lines + _row_notes(rows)) + "\n"
 
 
-def _mixed_notes(rows: list[dict[str, Any]]) -> list[str]:
+def _row_notes(rows: list[dict[str, Any]]) -> list[str]:
     """A line under the table for each row whose seeds ran with different configurations, and
     for each row with a seed that was stopped and resumed (its figure would not replay bit for
     bit from the command: the envs' states are not checkpointed)."""
@@ -499,7 +499,7 @@ def report(suite: str, trials: list[Trial], out: Path, cost_limit: float) -> lis
         raise SafenavRuntimeError(f"no finished trial of the {suite} suite in {out / 'trials'}")
     rows = summarize(suite, results, cost_limit)
     table = markdown_table(suite, rows, cost_limit)
-    for note in _mixed_notes(rows):
+    for note in _row_notes(rows):
         say(note.strip())
     write_text_atomic(out / "table.md", table)
     write_json(out / "summary.json", {"suite": suite, "cost_limit": cost_limit, "rows": rows,
