@@ -549,6 +549,30 @@ def test_bench_table_says_when_the_seeds_of_a_row_ran_different_configurations()
     assert "| 17 ± 20 (n=3) | yes (2/3 seeds) |" in markdown_table("safe", rows, 25.0)
 
 
+def test_an_unconstrained_row_ignores_the_constraints_settings():
+    """SAC's seeds that ran under two versions of a recipe whose cost side changed (SAC reads
+    none of it) are one configuration; a change SAC reads is still a difference."""
+    from safenav.bench.gym import config_differences
+
+    def result(seed: int, csac: dict) -> dict:
+        return {"trial": {"env": "Hopper-v5", "algo": "sac", "impl": "safenav", "seed": seed,
+                          "steps": 400},
+                "config": {"algo": "sac", "run": {"seed": seed}, "csac": csac}}  # fmt: skip
+
+    old = {"lambda_lr": 1e-5, "cost_target": "mean", "curriculum": {"d_min": 0.05}, "gamma": 0.99}
+    new = {"lambda_lr": 1e-3, "cost_target": "max", "curriculum": {"d_min": 25.0}, "gamma": 0.99}
+    assert config_differences([result(1, old), result(2, new)]) == []
+    saved = result(2, new)
+    saved["config"]["run"]["save_buffer"] = True  # what a checkpoint holds, not what is learnt
+    assert config_differences([result(1, old), saved]) == []
+    assert config_differences([result(1, old), result(2, {**new, "gamma": 0.98})]) == ["csac.gamma"]
+    constrained = [result(1, old), result(2, new)]
+    for r in constrained:
+        r["trial"]["algo"] = "csac"
+    assert config_differences(constrained) == ["csac.cost_target", "csac.curriculum.d_min",
+                                               "csac.lambda_lr"]  # fmt: skip
+
+
 def test_bench_table_compares_wall_clocks_only_on_one_machine_and_day():
     from safenav.bench.gym import markdown_table, summarize
 

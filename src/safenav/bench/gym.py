@@ -281,7 +281,13 @@ def _count(n: int) -> str:
 
 # what may differ between the seeds of one row: run settings that are not hyperparameters, and
 # the recipe's text (its header is rewritten as results come in; its name is compared)
-PER_TRIAL_KEYS = ("run.seed", "run.torch_threads", "recipe.header", "recipe.source")
+# run.save_buffer only decides what a checkpoint holds, not what an uninterrupted run learns
+PER_TRIAL_KEYS = ("run.seed", "run.torch_threads", "run.save_buffer", "recipe.header",
+                  "recipe.source")  # fmt: skip
+CONSTRAINT_ONLY = ("lambda_", "init_lambda", "episode_lambda_lr", "cost_", "curriculum.",
+                   "scale_actor_loss", "balance_critic_losses")  # fmt: skip
+"""Field names (after ``csac.`` / ``ppo.``) that only the constrained algorithms read: SAC and
+PPO build no cost critic and no multiplier, so their rows do not count these as differences."""
 
 
 def _defaults() -> dict[str, Any]:
@@ -313,9 +319,12 @@ def config_differences(results: list[dict[str, Any]]) -> list[str]:
     """The config keys (dotted) on which the trials of one row differ, seed aside: a row that
     mixes configurations (an interrupted trial resumed after its recipe changed, trial files of
     two commands) says so instead of averaging them silently. Trials without a config (SB3's)
-    are left out; a key a trial lacks (written before the key existed) reads as its default."""
+    are left out; a key a trial lacks (written before the key existed) reads as its default. An
+    unconstrained row ignores the constraint's keys (``CONSTRAINT_ONLY``)."""
     flats = [_flat(r["config"]) for r in results if r.get("config")]
     keys = set().union(*flats) - set(PER_TRIAL_KEYS) if flats else set()
+    if results and results[0]["trial"]["algo"] not in CONSTRAINED:
+        keys = {k for k in keys if not k.partition(".")[2].startswith(CONSTRAINT_ONLY)}
     default = _defaults() if keys else {}
     return sorted(k for k in keys
                   if len({repr(f.get(k, default.get(k, "<missing>"))) for f in flats}) > 1)  # fmt: skip
