@@ -566,6 +566,9 @@ def test_an_unconstrained_row_ignores_the_constraints_settings():
     saved["config"]["run"]["save_buffer"] = True  # what a checkpoint holds, not what is learnt
     assert config_differences([result(1, old), saved]) == []
     assert config_differences([result(1, old), result(2, {**new, "gamma": 0.98})]) == ["csac.gamma"]
+    costed = result(2, new)  # the cost a SAC row reports (the safe suite's cost column)
+    costed["config"]["run"]["cost_fn"] = "safenav.common.costs:hopper_velocity_cost"
+    assert config_differences([result(1, old), costed]) == ["run.cost_fn"]
     constrained = [result(1, old), result(2, new)]
     for r in constrained:
         r["trial"]["algo"] = "csac"

@@ -323,8 +323,10 @@ def config_differences(results: list[dict[str, Any]]) -> list[str]:
     unconstrained row ignores the constraint's keys (``CONSTRAINT_ONLY``)."""
     flats = [_flat(r["config"]) for r in results if r.get("config")]
     keys = set().union(*flats) - set(PER_TRIAL_KEYS) if flats else set()
-    if results and results[0]["trial"]["algo"] not in CONSTRAINED:
-        keys = {k for k in keys if not k.partition(".")[2].startswith(CONSTRAINT_ONLY)}
+    if results and results[0]["trial"]["algo"] not in CONSTRAINED:  # run.cost_fn still counts
+        keys = {k for k in keys
+                if not (k.partition(".")[0] in ("csac", "ppo")
+                        and k.partition(".")[2].startswith(CONSTRAINT_ONLY))}  # fmt: skip
     default = _defaults() if keys else {}
     return sorted(k for k in keys
                   if len({repr(f.get(k, default.get(k, "<missing>"))) for f in flats}) > 1)  # fmt: skip
