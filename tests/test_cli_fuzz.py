@@ -227,6 +227,7 @@ VERDICTS: dict[str, dict[str, int]] = {
     "train --csac.num-critics": MEMORY, "train --csac.num-cost-critics": {"0": ACCEPTED, "huge": 1},
     "train --csac.lambda-every": POSITIVE, "train --csac.episode-lambda-lr": POSITIVE,
     "train --csac.lambda-window": NONNEG, "train --csac.cost-scale-episodes": POSITIVE,
+    "train --csac.lambda-warmup-steps": NONNEG,
     "train --csac.cost-n-step": MEMORY, "train --csac.cost-horizon": NONNEG,
     "train --csac.cost-gamma": {},  # in (0, 1]
     "train --csac.planner-share": {"0": ACCEPTED},  # in [0, 1)

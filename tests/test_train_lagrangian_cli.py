@@ -277,3 +277,38 @@ def test_cost_scale_episodes_sets_the_measured_scale_span():
     with pytest.raises(ValueError, match="cost-scale-episodes"):
         CSACConfig(cost_scale_episodes=0)
     env.close()
+
+
+@pytest.mark.parametrize("lambda_from", ["q_cost", "episode_cost"])
+def test_lambda_warmup_holds_lambda_then_lets_it_rise(lambda_from):
+    """``lambda_warmup_steps``: no lambda step (Eq. 11, or SAC-Lag's episode-cost step) before that
+    env step, while the critics and actor learn; from it on, a violated constraint raises lambda."""
+    from safenav.algos.csac import CSACLearner
+    from safenav.common.config import RunConfig
+    from safenav.envs.vector import TorchVecEnv, make_vec_env
+
+    env = TorchVecEnv(make_vec_env("Pendulum-v1", 1, "cpu"), "cpu")
+    cfg = CSACConfig(learning_starts=0, updates_per_step=1.0, batch_size=8, lambda_lr=0.1,
+                     lambda_warmup_steps=100, lambda_from=lambda_from, lambda_every=1,
+                     episode_lambda_lr=0.1,
+                     cost_critic_output="softplus", net=NetConfig(hidden=(8, 8)))  # fmt: skip
+    learner = CSACLearner(env, RunConfig(env="Pendulum-v1", total_steps=1000), cfg)
+    g = torch.Generator().manual_seed(0)
+    obs, nxt = {"obs": torch.randn(64, 3, generator=g)}, {"obs": torch.randn(64, 3, generator=g)}
+    learner.buffer.add(obs, torch.rand(64, 1, generator=g) * 2 - 1, torch.randn(64, generator=g),
+                       torch.ones(64), nxt, torch.zeros(64, dtype=torch.bool))  # fmt: skip
+    actor_before = [p.clone() for p in learner.agent.actor.parameters()]
+    for step in (1, 50, 99):  # cost 1 everywhere against d = 0: every lambda step would raise it
+        learner.observe({"cost": [40.0]})
+        n, metrics = learner.update(step, 0.0)
+        assert n == 1 and "losses/lambda" not in metrics[0]
+        assert "constraint/episode_cost" not in learner.pending
+    assert float(learner.agent.lam) == 0.0
+    assert any(not torch.equal(a, b) for a, b in
+               zip(actor_before, learner.agent.actor.parameters(), strict=True))  # fmt: skip
+    learner.observe({"cost": [40.0]})
+    learner.update(100, 0.0)
+    assert float(learner.agent.lam) > 0.0
+    with pytest.raises(ValueError, match="lambda-warmup-steps"):
+        CSACConfig(lambda_warmup_steps=-1)
+    env.close()

@@ -46,6 +46,11 @@ class CSACConfig:
     """Lagrange multiplier at the start (>= 0)."""
     lambda_max: float | None = None
     """Optional cap on lambda; None = unbounded (paper)."""
+    lambda_warmup_steps: int = 0
+    """Beyond the paper: lambda stays at ``init_lambda`` (no Eq. 11 step, no episode-cost step)
+    for the first this many env steps, so that the policy learns to move before the constraint
+    binds; the critics, actor and alpha learn as usual. OmniSafe's Lagrangian algorithms hold
+    lambda for their ``warmup_epochs`` (SACLag.yaml: the first fifth of the run). 0 = off (paper)."""
     num_critics: int = 2
     """Critics per kind (reward, cost); the paper uses 2 + 2."""
     num_cost_critics: int = 0
@@ -147,6 +152,10 @@ class CSACConfig:
                 or self.lambda_window < 0):  # fmt: skip
             raise ValueError("num-cost-critics >= 0, lambda-every >= 1, episode-lambda-lr > 0 and "
                              "lambda-window >= 0 are required")  # fmt: skip
+        if self.lambda_warmup_steps < 0:
+            raise ValueError(
+                f"lambda-warmup-steps={self.lambda_warmup_steps} must be >= 0 (0 = off)"
+            )
         if self.init_alpha <= 0 or self.init_lambda < 0:
             raise ValueError("init-alpha must be > 0 and init-lambda >= 0")
         if self.lambda_max is not None and self.lambda_max < 0:

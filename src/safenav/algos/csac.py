@@ -130,9 +130,11 @@ class CSAC(nn.Module):
         action, _, mean_action = self.actor.sample(x, noise)
         return mean_action if deterministic else action
 
-    def update(self, batch: Batch, d_q: float = 0.0) -> dict[str, torch.Tensor]:
-        """One gradient update (Algorithm 1, lines 12-15); ``d_q`` is the threshold on the Q_C scale.
-        Returns detached scalar metrics."""
+    def update(self, batch: Batch, d_q: float = 0.0,
+               update_lambda: bool = True) -> dict[str, torch.Tensor]:  # fmt: skip
+        """One gradient update (Algorithm 1, lines 12-15); ``d_q`` is the threshold on the Q_C scale;
+        ``update_lambda`` False holds lambda (``lambda_warmup_steps``). Returns detached scalar
+        metrics."""
         cfg = self.cfg
         obs, actions, rewards, costs, next_obs, terminated = batch[:6]
         n_step = self.qc is not None and batch.costs_n is not None
@@ -198,7 +200,8 @@ class CSAC(nn.Module):
                    "values/entropy": -log_prob.detach().mean()}  # fmt: skip
         if self.lagrange is not None:
             q_c_mean = q_c_pi.detach().mean(0)
-            if cfg.lambda_from == "q_cost":  # else the loop updates it from episode costs
+            # else the loop updates it from episode costs
+            if cfg.lambda_from == "q_cost" and update_lambda:
                 metrics["losses/lambda"] = self.lagrange.update(q_c_mean, d_q)
             metrics["losses/qc"] = loss_qc.detach()
             metrics["constraint/qc_pi"] = q_c_mean.mean()
@@ -369,7 +372,7 @@ class CSACLearner:
         if self.episode_lambda and global_step >= self.next_lambda:
             while self.next_lambda <= global_step:
                 self.next_lambda += cfg.lambda_every
-            if self.lam_costs and global_step >= self.warmup_until:  # else keep collecting
+            if self.lam_costs and global_step >= max(self.warmup_until, cfg.lambda_warmup_steps):
                 j_c = sum(self.lam_costs) / len(self.lam_costs)
                 loss = self.agent.lagrange.update(torch.tensor([j_c], device=self.device), d)
                 self.pending.update({"losses/lambda": float(loss), "constraint/episode_cost": j_c})
@@ -380,9 +383,10 @@ class CSACLearner:
         if global_step >= self.warmup_until and len(self.buffer):
             self.update_debt += self.num_envs * cfg.updates_per_step
             d_q = self.d_q(d)
+            update_lambda = global_step >= cfg.lambda_warmup_steps
             while self.update_debt >= 1.0:
                 self.update_debt -= 1.0
-                m = self.agent.update(self.sample(cfg.batch_size), d_q)
+                m = self.agent.update(self.sample(cfg.batch_size), d_q, update_lambda)
                 if self.measured_scale is not None:
                     self.measured_scale.observe_q(float(m["constraint/qc_pi"]))
                 metrics.append(m)
