@@ -18,6 +18,7 @@ from safenav.algos.losses import reward_target
 from safenav.common.buffer import ReplayBuffer
 from safenav.envs.vector import TorchVecEnv, make_vec_env, obs_layout
 from safenav.nn.config import NetConfig
+from safenav.nn.networks import QEnsemble
 
 NAV = {"state": (8,), "lidar": (4, 36), "dynamic": (5, 10)}
 SMALL = NetConfig(hidden=(32, 32))
@@ -229,6 +230,53 @@ def test_softplus_cost_critics_cannot_go_below_zero():
     assert (after >= 0).all() and not torch.equal(before, after)
     with pytest.raises(ValueError):
         CSACConfig(cost_critic_output="relu")
+    with pytest.raises(ValueError, match="clipped"):
+        QEnsemble(None, 3, 1, (4,), 2, "relu")
+
+
+def test_clipped_cost_critics_read_max_q_0_and_train_the_linear_output():
+    """``cost_critic_output="clipped"``: every reader sees ``max(Q_C, 0)`` (no actor gradient
+    below 0), the loss the linear output, so a critic driven below 0 still learns."""
+    torch.manual_seed(0)
+    agent = CSAC(NAV, 3, CSACConfig(cost_critic_output="clipped", net=SMALL))
+    assert agent.qc.nonnegative and agent.qc_target.output == "clipped"
+    with torch.no_grad():
+        agent.qc.mlp.layers[-1].bias.fill_(-100.0)
+        agent.qc_target.mlp.layers[-1].bias.fill_(-100.0)
+    batch = random_batch()
+    x = agent.encoder(batch.obs).detach()
+    action = batch.actions.clone().requires_grad_(True)
+    q = agent.qc(x, action)
+    assert (q == 0).all() and (agent.qc(x, batch.actions, raw=True) < -50).all()
+    q.sum().backward()
+    assert (action.grad == 0).all()  # the actor is not led further below 0
+    before = agent.qc(x, batch.actions, raw=True).detach()
+    agent.update(batch, d_q=0.1)  # targets >= cost >= 0: the raw output rises towards them
+    assert (agent.qc(agent.encoder(batch.obs), batch.actions, raw=True) > before).all()
+
+
+def test_a_cost_critic_driven_far_below_0_comes_back_clipped_but_not_through_softplus():
+    """What killed the softplus cost critics on SafetyHopperVelocity-v5 (pre-activations -15 to
+    -3,800 on every replayed transition): through ``softplus`` the gradient at such values is
+    ~0, so targets of 1 never bring Q_C back from ~0; the ``clipped`` critic's loss trains the
+    linear output and does."""
+    g = torch.Generator().manual_seed(0)
+    x, a = torch.randn(64, 8, generator=g), torch.rand(64, 2, generator=g) * 2 - 1
+    values = {}
+    for output in ("softplus", "clipped"):
+        torch.manual_seed(0)
+        q = QEnsemble(None, 8, 2, (16, 16), 2, output)
+        with torch.no_grad():
+            q.mlp.layers[-1].bias.fill_(-40.0)
+        opt = torch.optim.Adam(q.parameters(), lr=3e-3)
+        for _ in range(300):  # cost 1 in every step now
+            loss = ((q(x, a, raw=True) - 1.0) ** 2).mean()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        values[output] = float(q(x, a).detach().mean())
+    assert values["clipped"] > 0.5
+    assert values["softplus"] < 1e-6
 
 
 class DictCounterEnv(CounterEnv):

@@ -79,11 +79,18 @@ class CSACConfig:
     extractor; elsewhere it changes nothing."""
     cost_target: Literal["mean", "min", "max"] = "mean"
     """Reduction of the target cost critics in Eq. 6: mean (paper); min/max are ablations."""
-    cost_critic_output: Literal["linear", "softplus"] = "linear"
-    """Output of each cost critic: ``linear`` (paper) or ``softplus``, so that Q_C >= 0 as a sum
-    of non-negative costs is. Beyond the paper: a linear Q_C extrapolates below 0 at actions the
-    data never showed, the actor's ``lambda * Q_C`` term (Eq. 9) seeks them out, the negative
-    values feed Eq. 6's targets and Eq. 11 reads a constraint met (docs/gymnasium.md, Hopper)."""
+    cost_critic_output: Literal["linear", "softplus", "clipped"] = "linear"
+    """Output of each cost critic: ``linear`` (paper), ``softplus`` (Q_C >= 0 as a sum of
+    non-negative costs is) or ``clipped`` (the linear output, trained as the paper's, read as
+    ``max(Q_C, 0)`` by Eq. 6's targets, the actor's Eq. 9 and Eq. 11). Beyond the paper: a linear
+    Q_C extrapolates below 0 at actions the data never showed, the actor's ``lambda * Q_C`` term
+    (Eq. 9) seeks them out, the negative values feed Eq. 6's targets and Eq. 11 reads a constraint
+    met (docs/gymnasium.md, Hopper). A softplus critic pulled towards targets of 0 is driven far
+    below 0 by Adam (whose step does not shrink with the vanishing gradient) and then cannot come
+    back: on SafetyHopperVelocity-v5 its pre-activations reached -15 to -3,800 on every replayed
+    transition, Q_C ~1e-13 while 9 in 10 steps cost 1. ``clipped`` keeps both properties apart:
+    no reader sees a value below 0 (none seeks one: no gradient there), and the loss always has a
+    gradient."""
     cost_n_step: int = 1
     """Steps of the cost target: 1 = Eq. 6; n > 1 = the n-step return of the behaviour policy's
     costs, then the target critics (beyond the paper, ``common.nstep``); reward stays one-step."""
@@ -168,8 +175,9 @@ class CSACConfig:
         if self.net.trunk != "navrl":  # would be silently ignored: say so instead
             raise ValueError(f"net.trunk={self.net.trunk!r} sets PPO's hidden layers; the SAC "
                              "family's MLPs are Linear -> ReLU (leave it at navrl)")  # fmt: skip
-        if self.cost_critic_output not in ("linear", "softplus"):
-            raise ValueError(f"cost-critic-output={self.cost_critic_output!r}: linear or softplus")
+        if self.cost_critic_output not in ("linear", "softplus", "clipped"):
+            raise ValueError(f"cost-critic-output={self.cost_critic_output!r}: linear, softplus "
+                             "or clipped")  # fmt: skip
         if self.cost_scale_episodes < 1:
             raise ValueError(f"cost-scale-episodes={self.cost_scale_episodes} must be >= 1")
         if self.cost_horizon < 0:

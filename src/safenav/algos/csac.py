@@ -75,9 +75,10 @@ class CSAC(nn.Module):
             critic_ex = lambda k: make_extractor(obs_shapes, net, k)  # noqa: E731
         self.actor = Actor(actor_ex, feat, action_dim, net.hidden)
         self.qr = QEnsemble(critic_ex(e), feat, action_dim, net.hidden, e)
-        nonnegative = cfg.cost_critic_output == "softplus"
         self.qc = (
-            QEnsemble(critic_ex(e_cost), feat, action_dim, net.hidden, e_cost, nonnegative)
+            QEnsemble(
+                critic_ex(e_cost), feat, action_dim, net.hidden, e_cost, cfg.cost_critic_output
+            )
             if cfg.constrained
             else None
         )
@@ -172,7 +173,7 @@ class CSAC(nn.Module):
         loss_qr = critic_loss(q_r, y_r)
         loss_critic = loss_qr
         if self.qc is not None:
-            loss_qc = critic_loss(self.qc(x, actions), y_c)
+            loss_qc = critic_loss(self.qc(x, actions, raw=True), y_c)
             if hasattr(self, "critic_loss_scale"):  # beyond the paper: balanced extractor gradients
                 loss_critic = self._balanced(loss_qr, loss_qc)
             else:

@@ -108,24 +108,40 @@ class Actor(nn.Module):
 class QEnsemble(nn.Module):
     """``E`` critics ``Q(s, a)`` in one module: features (or an observation dict, when it owns an
     ensemble ``extractor``) and action -> ``(E, N)``. Each member: MLP ``hidden`` with ReLU -> 1,
-    then ``softplus`` when ``nonnegative`` (a value that cannot be below 0, such as a cost's)."""
+    then the ``output`` map for a value that cannot be below 0, such as a cost's: ``linear``
+    (none), ``softplus`` (``softplus(q)``, trained through it) or ``clipped`` (``max(q, 0)`` for
+    every reader, while the loss trains the linear ``q``: ``forward(..., raw=True)``)."""
 
     def __init__(self, extractor: nn.Module | None, in_features: int, action_dim: int,
                  hidden: tuple[int, ...], ensemble_size: int = 2,
-                 nonnegative: bool = False) -> None:  # fmt: skip
+                 output: str = "linear") -> None:  # fmt: skip
         super().__init__()
+        if output not in ("linear", "softplus", "clipped"):
+            raise ValueError(f"output={output!r}: linear, softplus or clipped")
         self.extractor = extractor
         self.ensemble_size = ensemble_size
-        self.nonnegative = nonnegative
+        self.output = output
         self.mlp = EnsembleMLP(in_features + action_dim, hidden, 1, ensemble_size)
 
-    def forward(self, x, action: torch.Tensor) -> torch.Tensor:
+    @property
+    def nonnegative(self) -> bool:
+        """Whether every value it returns (but ``raw`` ones) is >= 0."""
+        return self.output != "linear"
+
+    def forward(self, x, action: torch.Tensor, raw: bool = False) -> torch.Tensor:
+        """``(E, N)`` values; ``raw``: the ``clipped`` critic's linear output, which its loss
+        trains (a gradient at every value: a critic driven below 0 comes back when its targets
+        do, where a softplus one, pushed far below 0 by Adam, stays at ~0 for good)."""
         if self.extractor is not None:
             x = self.extractor(x)
         if x.dim() == 3:
             action = action.expand(x.shape[0], *action.shape)
         q = self.mlp(torch.cat([x, action], -1)).squeeze(-1)
-        return nn.functional.softplus(q) if self.nonnegative else q
+        if self.output == "softplus":
+            return nn.functional.softplus(q)
+        if self.output == "clipped" and not raw:
+            return q.clamp(min=0.0)
+        return q
 
 
 class DeterministicActor(nn.Module):
