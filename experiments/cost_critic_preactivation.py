@@ -3,13 +3,14 @@
 Loads a CSAC *training* checkpoint that keeps its replay buffer (``RUN/checkpoint.pt`` of a run
 with ``--save-buffer``, the default of the Gymnasium recipes) and evaluates each cost critic's
 linear output ``z`` (before the ``softplus`` or ``clipped`` read-out) at the stored ``(s, a)``,
-in slices of the buffer in storage order (the order collected, until a full buffer wraps). For a softplus critic the
-gradient of ``Q_C = softplus(z)`` is ``sigmoid(z)``: once ``z`` lies far below 0 on every
-transition (``sigmoid`` below Adam's ``eps`` of 1e-8 relative to the loss), no target brings it
-back, and Q_C stays ~0 whatever the episodes cost (docs/gymnasium.md, the lambda warm-up screen).
+in slices of the buffer in storage order (the order collected, until a full buffer wraps). For a
+softplus critic the gradient of ``Q_C = softplus(z)`` is ``sigmoid(z)``: once ``z`` lies far below
+0 on every transition (``sigmoid`` below Adam's ``eps`` of 1e-8 relative to the loss), no target
+brings it back, and Q_C stays ~0 whatever the episodes cost (docs/gymnasium.md, the lambda warm-up
+screen).
 
 Run: ``.venv/bin/python experiments/cost_critic_preactivation.py RUN/checkpoint.pt
-[--slices 0 10000 60000 ...] [--json OUT]``. Only for runs on a flat (vector) observation.
+[--slices 10000 60000 ...] [--json OUT]``.
 """
 
 from __future__ import annotations
@@ -43,11 +44,8 @@ def measure(path: Path, bounds: list[int]) -> dict:
     if agent.qc is None:
         raise SystemExit(f"{path}: an unconstrained run has no cost critic")
     x = agent.encoder(obs) if agent.encoder is not None else obs
-    z = (
-        agent.qc(x, actions, raw=True)
-        if cfg.cost_critic_output == "clipped"
-        else _pre(agent, x, actions)
-    )
+    z = agent.qc.preactivation(x, actions)
+    q_c = agent.qc.read(z)
     edges = sorted({0, *(b for b in bounds if 0 < b < n), n})
     slices = []
     for lo, hi in zip(edges[:-1], edges[1:], strict=True):
@@ -56,22 +54,9 @@ def measure(path: Path, bounds: list[int]) -> dict:
                        "z_mean": float(zz.mean()), "z_min": float(zz.min()),
                        "z_max": float(zz.max()),
                        "sigmoid_z_max": float(torch.sigmoid(zz).max()),
-                       "q_c_mean": float(agent.qc(
-                           {k: v[lo:hi] for k, v in x.items()} if isinstance(x, dict) else x[lo:hi],
-                           actions[lo:hi]).mean())})  # fmt: skip
+                       "q_c_mean": float(q_c[:, lo:hi].mean())})  # fmt: skip
     return {"checkpoint": str(path), "global_step": int(state["global_step"]),
             "cost_critic_output": cfg.cost_critic_output, "transitions": n, "slices": slices}  # fmt: skip
-
-
-def _pre(agent: CSAC, x, actions: torch.Tensor) -> torch.Tensor:
-    """The cost critics' linear output ``z`` (``QEnsemble.forward`` before its read-out)."""
-    qc = agent.qc
-    feats = qc.extractor(x) if qc.extractor is not None else x
-    if isinstance(feats, dict):
-        raise SystemExit("a dict observation without an extractor: not supported here")
-    if feats.dim() == 3:
-        actions = actions.expand(feats.shape[0], *actions.shape)
-    return qc.mlp(torch.cat([feats, actions], -1)).squeeze(-1)
 
 
 def main() -> None:

@@ -132,14 +132,22 @@ class QEnsemble(nn.Module):
         """``(E, N)`` values; ``raw``: the ``clipped`` critic's linear output, which its loss
         trains (a gradient at every value: a critic driven below 0 comes back when its targets
         do, where a softplus one, pushed far below 0 by Adam, stays at ~0 for good)."""
+        q = self.preactivation(x, action)
+        return q if raw and self.output == "clipped" else self.read(q)
+
+    def preactivation(self, x, action: torch.Tensor) -> torch.Tensor:
+        """``(E, N)`` linear outputs ``q``, before the ``output`` map."""
         if self.extractor is not None:
             x = self.extractor(x)
         if x.dim() == 3:
             action = action.expand(x.shape[0], *action.shape)
-        q = self.mlp(torch.cat([x, action], -1)).squeeze(-1)
+        return self.mlp(torch.cat([x, action], -1)).squeeze(-1)
+
+    def read(self, q: torch.Tensor) -> torch.Tensor:
+        """The values every reader sees from linear outputs ``q``: the ``output`` map."""
         if self.output == "softplus":
             return nn.functional.softplus(q)
-        if self.output == "clipped" and not raw:
+        if self.output == "clipped":
             return q.clamp(min=0.0)
         return q
 
