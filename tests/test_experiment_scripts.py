@@ -3,7 +3,8 @@ tiny CSAC run: ``checkpoint_sweep.py`` (with ``--sampled``), ``cost_critic_bias.
 ``flight_grid.py``, ``speed_profile.py``, ``timeout_paths.py`` and ``altitude_profile.py``; and
 ``vecenv_overhead.py`` (docs/gymnasium.md) on Pendulum-v1; ``shield_memory.py`` (docs/deployment.md);
 ``finish_runs.py`` (docs/csac-v1.md); ``shield_collisions.py`` (docs/deployment.md);
-``collision_rule.py`` (docs/csac-v1.md)."""
+``collision_rule.py`` (docs/csac-v1.md); ``cost_critic_preactivation.py`` and
+``velocity_profile.py`` (docs/gymnasium.md) on a tiny CSAC run of SafetyHopperVelocity-v5."""
 
 from __future__ import annotations
 
@@ -598,3 +599,47 @@ def test_filter_trace_names_the_nearest_mover_and_its_velocity():
                                                           n_dynamic=0))) == "-"  # fmt: skip
     rows = [{"movers": ft.movers_of(env)}, {"movers": ft.movers_of(env)}]
     assert ft.last_nearest(rows) == ["#1 1.00 m, v (-0.5, 1.2)"] * 2
+
+
+@pytest.fixture(scope="module")
+def tiny_hopper_run(tmp_path_factory) -> Path:
+    """CSAC with clipped cost critics on SafetyHopperVelocity-v5, 300 steps (its recipe, the warm-up
+    cut to 100 steps; the replay buffer kept in checkpoint.pt)."""
+    run_dir = tmp_path_factory.mktemp("runs") / "hopper"
+    main(["train", "--algo", "csac", "--env", "SafetyHopperVelocity-v5", "--total-steps", "300",
+          "--csac.learning-starts", "100", "--csac.cost-critic-output", "clipped", "--save-buffer", "--torch-threads", "1",
+          "--run-dir", str(run_dir)])  # fmt: skip
+    return run_dir
+
+
+def test_cost_critic_preactivation_slices_the_replay_buffer(tiny_hopper_run):
+    pre = script("cost_critic_preactivation")
+    res = pre.measure(tiny_hopper_run / "checkpoint.pt", [100, 250, 10_000])
+    assert res["cost_critic_output"] == "clipped" and res["transitions"] == 300
+    assert [(s["from"], s["to"]) for s in res["slices"]] == [(0, 100), (100, 250), (250, 300)]
+    for s in res["slices"]:
+        assert s["z_min"] <= s["z_mean"] <= s["z_max"] and 0.0 <= s["cost_rate"] <= 1.0
+        # clipped read-out: Q_C = max(z, 0), so its mean lies between max(z_min, 0) and max(z_max, 0)
+        assert max(s["z_min"], 0.0) - 1e-6 <= s["q_c_mean"] <= max(s["z_max"], 0.0) + 1e-6
+
+
+def test_velocity_profile_counts_every_step_once_and_its_costly_ones(tiny_hopper_run, tmp_path,
+                                                                     monkeypatch, capsys):  # fmt: skip
+    out = tmp_path / "profile.json"
+    monkeypatch.setattr(sys, "argv", ["velocity_profile.py", str(tiny_hopper_run), "--episodes",
+                                      "2", "--seed", "101", "--json", str(out)])  # fmt: skip
+    script("velocity_profile").main()
+    (res,) = json.loads(out.read_text())["results"]
+    assert "hopper" in capsys.readouterr().out
+    assert res["threshold"] == 0.7402 and [e["seed"] for e in res["episodes"]] == [101, 102]
+    assert res["steps"] == sum(e["length"] for e in res["episodes"])
+    shares = ("share_still", "share_forward_within", "share_over", "share_backward")
+    assert sum(res[k] for k in shares) == pytest.approx(1.0)  # the four bins partition the steps
+    # a step costs 1 exactly when its speed is over the threshold: the two counts agree
+    total_cost = sum(e["cost"] for e in res["episodes"])
+    assert res["share_over"] * res["steps"] == pytest.approx(total_cost)
+
+
+def test_velocity_profile_refuses_a_policy_of_another_task(tiny_run):
+    with pytest.raises(SystemExit, match="not a velocity task"):
+        script("velocity_profile").profile(tiny_run / "checkpoint.pt", 1, 101, 0.1)
