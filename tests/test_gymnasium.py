@@ -712,7 +712,7 @@ def test_bench_safe_on_a_tiny_budget(tmp_path, capsys):
     assert "| SafetyHopperVelocity-v5 | csac | 300 |" in (out / "table.md").read_text()
     # the recipe's cost critics are non-negative, and the bias check reads them on a Gymnasium
     # task (no collisions there: its "cost ahead" fields, not SafeNav's "near collision")
-    assert trial["config"]["csac"]["cost_critic_output"] == "softplus"
+    assert trial["config"]["csac"]["cost_critic_output"] == "clipped"
     spec = importlib.util.spec_from_file_location(
         "cost_critic_bias", Path(__file__).parents[1] / "experiments" / "cost_critic_bias.py"
     )
