@@ -607,8 +607,8 @@ def tiny_hopper_run(tmp_path_factory) -> Path:
     cut to 100 steps; the replay buffer kept in checkpoint.pt)."""
     run_dir = tmp_path_factory.mktemp("runs") / "hopper"
     main(["train", "--algo", "csac", "--env", "SafetyHopperVelocity-v5", "--total-steps", "300",
-          "--csac.learning-starts", "100", "--csac.cost-critic-output", "clipped", "--save-buffer", "--torch-threads", "1",
-          "--run-dir", str(run_dir)])  # fmt: skip
+          "--csac.learning-starts", "100", "--csac.cost-critic-output", "clipped",
+          "--save-buffer", "--torch-threads", "1", "--run-dir", str(run_dir)])  # fmt: skip
     return run_dir
 
 
