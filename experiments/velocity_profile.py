@@ -11,8 +11,8 @@ ones: the cost compares the speed, backward too), and backward within it; with t
 return, cost and length.
 
 Run: ``.venv/bin/python experiments/velocity_profile.py RUN[/checkpoint.pt] [RUN ...]
-[--episodes 5] [--seed 1] [--json OUT]``. A run directory takes its ``policy.pt`` (else its
-``checkpoint.pt``). Validation runs: use ``--seed 101``; seed 1 is the test scenario.
+[--episodes 5] [--seed 1] [--json OUT]``. A run directory means its ``checkpoint.pt`` (as for
+``safenav render``). Validation runs: use ``--seed 101``; seed 1 is the test scenario.
 """
 
 from __future__ import annotations
@@ -31,18 +31,9 @@ from safenav.common.jsonout import write_json
 from safenav.envs.vector import to_action_box
 
 
-def _policy_file(path: Path) -> Path:
-    if path.is_dir():
-        for name in ("policy.pt", "checkpoint.pt"):
-            if (path / name).is_file():
-                return path / name
-        raise SystemExit(f"{path}: no policy.pt or checkpoint.pt in this run directory")
-    return path
-
-
 @torch.no_grad()
 def profile(path: Path, episodes: int, seed: int, still: float) -> dict:
-    policy = load_policy(_policy_file(path))
+    policy = load_policy(path)  # a run directory: its checkpoint.pt, as safenav render reads it
     env_id = str(policy.meta.get("env_id", ""))
     if env_id not in VELOCITY_TASKS:
         raise SystemExit(f"{path}: trained on {env_id!r}, not a velocity task "
