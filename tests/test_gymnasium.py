@@ -726,7 +726,8 @@ def test_bench_safe_on_a_tiny_budget(tmp_path, capsys):
 
 
 def test_bench_refuses_unknown_tasks_and_algorithms(tmp_path, capsys):
-    for extra, words in ((["--tasks", "CartPole-v1"], "not in the gym suite"),
+    for extra, words in ((["--tasks", "Walker2d-v5"], "not in the gym suite"),
+                         (["--tasks", "CartPole-v1", "--algos", "sac"], "discrete tasks run PPO only"),
                          (["--algos", "csac"], "the gym suite runs sac, ppo"),
                          (["--sb3", "Nope-v0"], "--sb3 Nope-v0"),
                          (["--train-args=--nope 1"], "--train-args"),

@@ -119,7 +119,7 @@ def test_the_memory_estimate_counts_both_map_sets_of_per_env_redraws(monkeypatch
     from safenav.common.memory import env_bytes
     from safenav.envs.vector import env_spaces
 
-    obs_shapes, action_dim, env_cfg = env_spaces("SafeNav-v1", "easy")
+    obs_shapes, action_dim, env_cfg, _ = env_spaces("SafeNav-v1", "easy")
     one, two = env_bytes(64, env_cfg), env_bytes(64, env_cfg, map_sets=2)
     maps = min(env_cfg.num_worlds or 16, 64) * (env_cfg.map_size / env_cfg.grid_resolution) ** 2
     assert two - one == pytest.approx(maps * 16) and maps > 0

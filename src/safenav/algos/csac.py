@@ -48,7 +48,7 @@ from safenav.common.config import RunConfig
 from safenav.common.curriculum import MeasuredCostScale, episode_cost_to_q_scale
 from safenav.common.lagrange import Lagrange
 from safenav.common.nstep import NStepWindow
-from safenav.envs.vector import TorchVecEnv, env_horizon
+from safenav.envs.vector import TorchVecEnv, check_action_space, env_horizon
 from safenav.nn.networks import Actor, DeterministicActor, QEnsemble, input_order, make_extractor
 from safenav.nn.optim import adam
 
@@ -283,6 +283,8 @@ class CSACLearner:
     policy_meta: dict[str, Any] = {}
 
     def __init__(self, env: TorchVecEnv, run: RunConfig, cfg: CSACConfig) -> None:
+        if env.num_actions is not None:  # the tanh-squashed Gaussian acts continuously only
+            check_action_space(env.envs.single_action_space)
         self.cfg, self.device, self.num_envs = cfg, env.device, env.num_envs
         self.save_buffer = run.save_buffer
         self.agent = CSAC(env.obs_shapes, env.action_dim, cfg).to(env.device)

@@ -2,7 +2,9 @@
 
 ``Policy(obs)`` maps a batch of observations (a dict of tensors, or one tensor for ``Box``
 observations) to deterministic actions in ``[-1, 1]`` as a ``(B, A)`` tensor (SAC's ``tanh(mean)``,
-PPO's Beta mean or clipped Gaussian mean).
+PPO's Beta mean or clipped Gaussian mean); a policy of a ``Discrete(n)`` task (PPO,
+``meta["num_actions"]``) gives the most probable action's index ``0 .. n-1`` as a float ``(B, 1)``.
+:func:`safenav.envs.vector.policy_action_to_env` turns either into what the env takes.
 ``Policy.actor`` is the underlying :class:`~safenav.nn.networks.DeterministicActor`, an
 ``nn.Module`` taking the observation tensors positionally (``state, lidar, dynamic`` for SafeNav)
 - what ``safenav export`` traces to ONNX. ``Policy.meta`` says what the policy is: algorithm, env
@@ -90,7 +92,8 @@ class Policy:
 
     @torch.no_grad()
     def __call__(self, obs) -> torch.Tensor:
-        """Deterministic actions in ``[-1, 1]``, ``(B, A)`` (``(A,)`` for one unbatched observation)."""
+        """Deterministic actions in ``[-1, 1]``, ``(B, A)`` (``(A,)`` for one unbatched observation);
+        for a discrete task the action's index, ``(B, 1)``."""
         action = self.actor(*self._prepare(obs))
         return action[0] if self._unbatched else action
 
@@ -98,7 +101,8 @@ class Policy:
 def build_actor(meta: dict[str, Any]) -> DeterministicActor:
     """An untrained :class:`DeterministicActor` with the architecture ``meta`` describes (for PPO
     checkpoints, ``policy_head: "beta"``, the Beta-mean actor of :mod:`safenav.nn.beta`, or
-    ``"gaussian"``, the clipped Gaussian mean of :mod:`safenav.nn.gaussian`), behind an
+    ``"gaussian"``, the clipped Gaussian mean of :mod:`safenav.nn.gaussian`, or ``"categorical"``,
+    the most probable action of :mod:`safenav.nn.categorical`), behind an
     observation normaliser if ``meta`` has ``obs_normalization`` (``--normalize-obs``)."""
     actor = _build_network(meta)
     norm = meta.get("obs_normalization")
@@ -121,6 +125,10 @@ def _build_network(meta: dict[str, Any]) -> DeterministicActor:
         from safenav.nn.gaussian import build_gaussian_actor
 
         return build_gaussian_actor(meta)
+    if meta.get("policy_head") == "categorical":
+        from safenav.nn.categorical import build_categorical_actor
+
+        return build_categorical_actor(meta)
     from safenav.common.config import from_dict
 
     net: NetConfig = from_dict(NetConfig, meta["net"])

@@ -9,7 +9,9 @@ One iteration (the pure pieces are in :mod:`safenav.algos.ppo_losses`):
    ``distribution="gaussian"``: ``a ~ N(mu, sigma^2)``, the env gets ``clip(a, -1, 1)`` and the
    rollout stores ``a`` and its log-density (SB3's PPO); with ``use_sde`` the noise is gSDE's,
    its exploration matrices drawn at the rollout's start and every ``sde_sample_freq`` steps
-   (Raffin et al., CoRL 2021) -> :mod:`safenav.nn.gaussian`.)
+   (Raffin et al., CoRL 2021) -> :mod:`safenav.nn.gaussian`. On a ``Discrete(n)`` action space
+   the policy is categorical whatever ``distribution`` says, ``a ~ softmax(logits)``, the rollout
+   storing the index -> :mod:`safenav.nn.categorical`.)
 2. (PPO-Lag) ``lambda <- max(0, lambda + Adam step on (J_c - d))`` with ``J_c`` the mean cost of the
    episodes that ended in the rollout -> :class:`~safenav.common.lagrange.Lagrange`, in
    :meth:`PPOLearner.update`
@@ -50,6 +52,15 @@ from safenav.common.rollout import Rollout, ValueNorm
 from safenav.envs.vector import TorchVecEnv
 from safenav.errors import SafenavError
 from safenav.nn.beta import POLICY_HEAD, BetaActorCritic, BetaDeterministicActor
+from safenav.nn.categorical import POLICY_HEAD as CATEGORICAL_HEAD
+from safenav.nn.categorical import (
+    CategoricalActorCritic,
+    CategoricalDeterministicActor,
+    categorical_entropy,
+    categorical_log_prob,
+    greedy_action,
+    sample_categorical,
+)
 from safenav.nn.gaussian import POLICY_HEAD as GAUSSIAN_HEAD
 from safenav.nn.gaussian import (
     GaussianActorCritic,
@@ -65,20 +76,29 @@ class PPO(nn.Module):
     """Actor-critic, value normalisation, optimiser and the PPO update (PPO-Lag when
     ``cfg.constrained``: a second value head for cost and a Lagrange multiplier). The policy is
     NavRL's Beta or, with ``cfg.distribution == "gaussian"``, SB3's Gaussian (gSDE with
-    ``cfg.use_sde``)."""
+    ``cfg.use_sde``); with ``num_actions`` (a ``Discrete(n)`` action space) a categorical policy
+    over the ``n`` actions, whose action is its index (``action_dim`` 1)."""
 
     def __init__(
-        self, obs_shapes: dict[str, tuple[int, ...]], action_dim: int, cfg: PPOConfig
+        self,
+        obs_shapes: dict[str, tuple[int, ...]],
+        action_dim: int,
+        cfg: PPOConfig,
+        num_actions: int | None = None,
     ) -> None:
         super().__init__()
         self.cfg, self.obs_shapes, self.action_dim = cfg, dict(obs_shapes), action_dim
         self.num_values = 2 if cfg.constrained else 1  # column 0 reward, column 1 cost
-        self.gaussian = cfg.distribution == "gaussian"
-        self.model: BetaActorCritic | GaussianActorCritic = (
-            GaussianActorCritic(obs_shapes, action_dim, cfg.net, self.num_values, cfg.log_std_init,
-                                cfg.use_sde) if self.gaussian
-            else BetaActorCritic(obs_shapes, action_dim, cfg.net, self.num_values)
-        )  # fmt: skip
+        self.categorical = num_actions is not None
+        self.gaussian = cfg.distribution == "gaussian" and not self.categorical
+        self.model: BetaActorCritic | GaussianActorCritic | CategoricalActorCritic
+        if self.categorical:
+            self.model = CategoricalActorCritic(obs_shapes, num_actions, cfg.net, self.num_values)
+        elif self.gaussian:
+            self.model = GaussianActorCritic(obs_shapes, action_dim, cfg.net, self.num_values,
+                                             cfg.log_std_init, cfg.use_sde)  # fmt: skip
+        else:
+            self.model = BetaActorCritic(obs_shapes, action_dim, cfg.net, self.num_values)
         self.value_norm = ValueNorm(self.num_values, cfg.value_norm_beta, cfg.value_norm)
         # One Adam over actor, critic and extractor: NavRL's three Adams share lr 5e-4, and
         # Adam's per-parameter statistics make that the same update (fused kernel: nn.optim.adam).
@@ -94,8 +114,13 @@ class PPO(nn.Module):
     @torch.no_grad()
     def act(self, obs: dict[str, torch.Tensor], deterministic: bool = False):
         """``(action, log_prob, values)``: the action (Beta: in ``[-1, 1]^A``; Gaussian: the
-        unclipped sample, or the mean), its log-density, and the denormalised values ``(N, K)``
-        of ``obs``."""
+        unclipped sample, or the mean; categorical: the index ``(N, 1)``, or the most probable
+        one), its log-density (log-probability), and the denormalised values ``(N, K)`` of ``obs``."""
+        if self.categorical:
+            logits, values = self.model(obs)
+            action = greedy_action(logits) if deterministic else sample_categorical(logits)
+            log_prob = categorical_log_prob(logits, action)
+            return action, log_prob, self.value_norm.denormalize(values)
         if self.gaussian:
             mean, std, values, latent = self.model(obs)
             action = mean if deterministic else self.model.sample(mean, std, latent)
@@ -108,6 +133,9 @@ class PPO(nn.Module):
     def evaluate(self, obs: dict[str, torch.Tensor], actions: torch.Tensor):
         """``(log pi(a|s), H[pi(.|s)], values)``, ``(B,)``, ``(B,)`` and normalised ``(B, K)``,
         with gradients (the update's forward pass)."""
+        if self.categorical:
+            logits, values = self.model(obs)
+            return categorical_log_prob(logits, actions), categorical_entropy(logits), values
         if self.gaussian:
             mean, std, values, _ = self.model(obs)
             return gaussian_log_prob(mean, std, actions), gaussian_entropy(std), values
@@ -199,10 +227,18 @@ class PPO(nn.Module):
         out["perf/gradient_steps"] = torch.tensor(float(steps))
         return out
 
-    def policy_module(self) -> BetaDeterministicActor | GaussianDeterministicActor:
-        """The deterministic actor (the Beta mean; the Gaussian mean clipped to ``[-1, 1]``),
-        sharing parameters with this agent."""
-        actor = GaussianDeterministicActor if self.gaussian else BetaDeterministicActor
+    def env_action(self, action: torch.Tensor) -> torch.Tensor:
+        """What the env gets of a rollout's action: continuous ones clipped to ``[-1, 1]`` (the
+        rollout keeps the unclipped Gaussian sample), an index as it is."""
+        return action if self.categorical else action.clamp(-1.0, 1.0)
+
+    def policy_module(
+        self,
+    ) -> BetaDeterministicActor | GaussianDeterministicActor | CategoricalDeterministicActor:
+        """The deterministic actor (the Beta mean; the Gaussian mean clipped to ``[-1, 1]``; the
+        most probable action's index), sharing parameters with this agent."""
+        actor = (CategoricalDeterministicActor if self.categorical
+                 else GaussianDeterministicActor if self.gaussian else BetaDeterministicActor)  # fmt: skip
         return actor(self.model.actor_body, self.model.policy_head, input_order(self.obs_shapes))
 
     def optimizer_state(self) -> dict[str, Any]:
@@ -228,7 +264,7 @@ def collect_rollout(env: TorchVecEnv, agent: PPO, rollout: Rollout,
         if t == 0 or (freq > 0 and t % freq == 0):  # gSDE's exploration matrices (SB3)
             agent.reset_noise(env.num_envs)
         action, log_prob, values = agent.act(obs)
-        step = env.step(action.clamp(-1.0, 1.0))  # the rollout keeps the unclipped sample
+        step = env.step(agent.env_action(action))  # the rollout keeps the unclipped sample
         if not bool(step.valid.all()):
             raise SafenavError(
                 "PPO needs a SAME_STEP autoreset vector env (make_vec_env builds one)"
@@ -277,9 +313,13 @@ class PPOLearner:
 
     def __init__(self, env: TorchVecEnv, run: RunConfig, cfg: PPOConfig) -> None:
         self.device = env.device
-        head = GAUSSIAN_HEAD if cfg.distribution == "gaussian" else POLICY_HEAD
+        n = env.num_actions  # None: continuous actions
+        head = (CATEGORICAL_HEAD if n is not None
+                else GAUSSIAN_HEAD if cfg.distribution == "gaussian" else POLICY_HEAD)  # fmt: skip
         self.policy_meta = {"policy_head": head}  # what load_policy dispatches on
-        self.agent = PPO(env.obs_shapes, env.action_dim, cfg).to(env.device)
+        if n is not None:
+            self.policy_meta["num_actions"] = n
+        self.agent = PPO(env.obs_shapes, env.action_dim, cfg, n).to(env.device)
         self.rollout = Rollout(cfg.rollout_steps, env.num_envs, env.obs_shapes, env.action_dim,
                                self.agent.num_values, env.device)  # fmt: skip
         self.rollouts = 0
@@ -321,8 +361,9 @@ class PPOLearner:
         return int(metrics.pop("perf/gradient_steps")), [metrics]
 
     def act(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
-        """Deterministic actions in ``[-1, 1]`` (the Gaussian mean clipped, as SB3's predict)."""
-        return self.agent.act(obs, deterministic=True)[0].clamp(-1.0, 1.0)
+        """Deterministic actions in ``[-1, 1]`` (the Gaussian mean clipped, as SB3's predict), or
+        the most probable action's index."""
+        return self.agent.env_action(self.agent.act(obs, deterministic=True)[0])
 
     def log_items(self, d: float) -> dict[str, float]:
         row = {"perf/rollouts": self.rollouts}

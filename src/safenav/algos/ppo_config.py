@@ -60,7 +60,8 @@ class PPOConfig:
     distribution: Literal["beta", "gaussian"] = "beta"
     """The policy's action distribution: ``beta`` (NavRL: a Beta per action dimension mapped onto
     ``[-1, 1]``) or ``gaussian`` (beyond NavRL: SB3's PPO policy, a diagonal Gaussian whose
-    samples the env gets clipped to ``[-1, 1]``; ``safenav.nn.gaussian``)."""
+    samples the env gets clipped to ``[-1, 1]``; ``safenav.nn.gaussian``). Continuous actions
+    only: on a ``Discrete(n)`` action space the policy is categorical (``safenav.nn.categorical``)."""
     use_sde: bool = False
     """gaussian only: explore with generalized State-Dependent Exploration (gSDE; Raffin et al.,
     "Smooth Exploration for Robotic Reinforcement Learning", CoRL 2021; beyond NavRL): noise

@@ -83,11 +83,16 @@ def plan_trials(suite: str, tasks: tuple[str, ...], algos: tuple[str, ...], seed
     out = []
     for env in tasks:
         for algo in algos:
+            if algo not in table[env].steps:  # SAC on a discrete task
+                continue
             budget = steps or table[env].steps[algo]
             for seed in range(first_seed, first_seed + seeds):
                 out.append(Trial(suite, env, algo, "safenav", seed, budget))
                 if env in sb3 and algo in ("sac", "ppo"):
                     out.append(Trial(suite, env, algo, "sb3", seed, budget))
+    if not out:
+        raise SafenavError(f"--tasks {' '.join(tasks)} --algos {' '.join(algos)}: no such pair in "
+                           f"the {suite} suite (the discrete tasks run PPO only)")  # fmt: skip
     return out
 
 

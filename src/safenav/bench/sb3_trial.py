@@ -65,6 +65,18 @@ PPO_ZOO: dict[str, dict[str, Any]] = {
         "policy_kwargs": {"log_std_init": -2, "ortho_init": False, "activation_fn": "relu",
                           "net_arch": {"pi": [256, 256], "vf": [256, 256]}},
     },
+    "CartPole-v1": {
+        "n_envs": 8, "n_steps": 32, "batch_size": 256, "gae_lambda": 0.8, "gamma": 0.98,
+        "n_epochs": 20, "ent_coef": 0.0, "learning_rate": ("lin", 1e-3), "clip_range": ("lin", 0.2),
+    },
+    "Acrobot-v1": {
+        "normalize": True, "n_envs": 16, "n_steps": 256, "gae_lambda": 0.94, "gamma": 0.99,
+        "n_epochs": 4, "ent_coef": 0.0,
+    },
+    "LunarLander-v3": {
+        "n_envs": 16, "n_steps": 1024, "batch_size": 64, "gae_lambda": 0.98, "gamma": 0.999,
+        "n_epochs": 4, "ent_coef": 0.01,
+    },
 }  # fmt: skip
 
 
@@ -75,9 +87,10 @@ def hyperparameters(algo: str, env_id: str) -> tuple[dict[str, Any], int, bool]:
     table = SAC_ZOO if algo == "sac" else PPO_ZOO
     kwargs = dict(table.get(env_id, {}))
     n_envs, normalize = int(kwargs.pop("n_envs", 1)), bool(kwargs.pop("normalize", False))
-    lr = kwargs.get("learning_rate")
-    if isinstance(lr, tuple):  # the zoo's "lin_X": linear decay from X to 0
-        kwargs["learning_rate"] = lambda progress, x=lr[1]: progress * x
+    for key in ("learning_rate", "clip_range"):
+        value = kwargs.get(key)
+        if isinstance(value, tuple):  # the zoo's "lin_X": linear decay from X to 0
+            kwargs[key] = lambda progress, x=value[1]: progress * x
     policy_kwargs = dict(kwargs.get("policy_kwargs", {}))
     if policy_kwargs.get("activation_fn") == "relu":
         policy_kwargs["activation_fn"] = nn.ReLU

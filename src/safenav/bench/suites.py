@@ -6,7 +6,7 @@ step count it was measured at; where that differs from the budget here, the tabl
 sources:
 
 - SB3 zoo: rl-baselines3-zoo's benchmark.md (one trained agent per task, its deterministic
-  return over ~150k evaluation steps, Gymnasium's v2/v3 MuJoCo models and LunarLanderContinuous-v2);
+  return over ~150k evaluation steps, Gymnasium's v2/v3 MuJoCo models and LunarLander(Continuous)-v2);
 - CleanRL: docs/rl-algorithms/sac.md and rpo.md (training episodic return, 3 seeds, MuJoCo v4);
 - OmniSafe: benchmarks/off-policy/README.md (1e6 steps) and benchmarks/on-policy/README.md (1e7
   steps), Safety-Gymnasium's velocity tasks v1 (MuJoCo v4 models), cost limit 25, Tables 2.
@@ -65,9 +65,15 @@ GYM_SUITE: dict[str, Task] = {
         Task("HalfCheetah-v5", {"sac": 300_000, "ppo": 1_000_000},
              {"sac": Reference(9535.451, 100.470, 1_000_000, ZOO + " (v3)"),
               "ppo": Reference(5819.099, 663.530, 1_000_000, ZOO + " (v3)")}),
+        # discrete actions: PPO only (SAC acts continuously)
+        Task("CartPole-v1", {"ppo": 100_000}, {"ppo": Reference(500.000, 0.000, 100_000, ZOO)}),
+        Task("Acrobot-v1", {"ppo": 1_000_000}, {"ppo": Reference(-73.506, 18.201, 1_000_000, ZOO)}),
+        Task("LunarLander-v3", {"ppo": 1_000_000},
+             {"ppo": Reference(242.119, 31.823, 1_000_000, ZOO + " (v2)")}),
     )
 }  # fmt: skip
-"""``safenav bench gym``: SAC and PPO on classic control, Box2D and MuJoCo tasks."""
+"""``safenav bench gym``: SAC and PPO on classic control, Box2D and MuJoCo tasks with
+continuous actions, PPO on three with discrete ones."""
 
 SAFE_SUITE: dict[str, Task] = {
     t.env: t

@@ -42,8 +42,9 @@ def bench(
     sensor-to-setpoint latency on one CPU thread. soak: ``--env-steps`` env steps and
     ``--updates`` CSAC updates, resident memory at the start and the end (no growth beyond the
     replay buffer). gym: SAC and PPO on Pendulum-v1, MountainCarContinuous-v0,
-    LunarLanderContinuous-v3, InvertedPendulum-v5, Hopper-v5 and HalfCheetah-v5, --seeds seeds
-    each, Stable-Baselines3 beside them on --sb3 tasks, against published returns; safe: CSAC,
+    LunarLanderContinuous-v3, InvertedPendulum-v5, Hopper-v5 and HalfCheetah-v5, PPO on the
+    discrete CartPole-v1, Acrobot-v1 and LunarLander-v3, --seeds seeds each, Stable-Baselines3
+    beside them on --sb3 tasks, against published returns; safe: CSAC,
     SAC-Lag, PPO-Lag and SAC on SafetyHopperVelocity-v5 and SafetyHalfCheetahVelocity-v5 at
     --cost-limit. Both write OUT/trials/*.json per finished trial (a rerun skips those and resumes
     interrupted runs), then OUT/table.md, OUT/curves.png and OUT/summary.json (docs/gymnasium.md).

@@ -285,7 +285,9 @@ def plan(algo: str, run: RunConfig, csac: CSACConfig, ppo: PPOConfig, run_dir: P
         run_dir = Path("runs") / f"{algo}-{env_name}-s{run.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
     cfg = algo_config(algo, cfg)
     check_device(run.device)
-    obs_shapes, action_dim, env_cfg = env_spaces(run.env, run.preset, run.env_kwargs)
+    obs_shapes, action_dim, env_cfg, num_actions = env_spaces(
+        run.env, run.preset, run.env_kwargs, discrete_ok=family == "ppo"
+    )
     if "lidar" in obs_shapes:  # each stride divides the range image's columns (36 -> 18 -> 9)
         columns, prefix = obs_shapes["lidar"][-1], f"--{family}.net.lidar-strides"
         if math.prod(cfg.net.lidar_strides) > columns:
@@ -298,6 +300,11 @@ def plan(algo: str, run: RunConfig, csac: CSACConfig, ppo: PPOConfig, run_dir: P
     check_budget(family, run, cfg)
     check_cost(algo, run)
     check_training_memory(algo, run, cfg, obs_shapes, action_dim, env_cfg)
+    if num_actions is not None and (cfg.distribution != "beta" or cfg.use_sde):
+        print(f"safenav train: note: {run.env} acts in Discrete({num_actions}): PPO's policy is "
+              f"categorical there (--ppo.distribution {cfg.distribution}"
+              f"{' and --ppo.use-sde' if cfg.use_sde else ''} apply to continuous actions)",
+              file=sys.stderr)  # fmt: skip
     return run, cfg, Path(run_dir), obs_shapes
 
 

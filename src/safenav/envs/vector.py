@@ -5,7 +5,9 @@
 ``SAME_STEP`` autoreset. :class:`TorchVecEnv` then gives every algorithm the same view of it:
 
 - observations as a dict of float32 tensors on ``device`` (a ``Box`` observation is ``{"obs": x}``),
-- actions in ``[-1, 1]^A``, mapped affinely onto the env's action box,
+- actions in ``[-1, 1]^A``, mapped affinely onto the env's action box; for a ``Discrete(n)``
+  action space (PPO only) the action is its index ``0 .. n-1`` as a float ``(N, 1)``, handed to
+  the env as ``index + start`` (:func:`to_discrete_action`),
 - ``cost`` from ``info["cost"]`` when the env reports one (for a finished env of a ``SyncVectorEnv``
   the step's info is ``info["final_info"]``), else 0; inside :func:`cost_function` every env
   :func:`make_vec_env` builds is wrapped in :class:`~safenav.common.costs.CostFn` (``--cost-fn``),
@@ -127,12 +129,16 @@ def check_env(env_id: str, preset: str | None = None) -> None:
 
 
 def env_spaces(
-    env_id: str, preset: str | None = None, env_kwargs: dict[str, Any] | None = None
-) -> tuple[dict[str, tuple[int, ...]], int, Any]:
-    """``(observation shapes, action dimension, SafeNav EnvConfig or None)`` of ``env_id``, checked
-    before a run directory exists: ``SafenavError`` for an env that cannot be made (missing
-    dependency) or whose spaces no safenav algorithm supports (every one of them squashes a
-    continuous action: a bounded 1-D ``Box``)."""
+    env_id: str,
+    preset: str | None = None,
+    env_kwargs: dict[str, Any] | None = None,
+    discrete_ok: bool = False,
+) -> tuple[dict[str, tuple[int, ...]], int, Any, int | None]:
+    """``(observation shapes, action dimension, SafeNav EnvConfig or None, n of a Discrete(n)
+    action space or None)`` of ``env_id``, checked before a run directory exists:
+    ``SafenavError`` for an env that cannot be made (missing dependency) or whose spaces the
+    algorithm does not support (:func:`check_action_space`; a ``Discrete`` action space,
+    ``discrete_ok`` for PPO, has dimension 1: the index)."""
     check_env(env_id, preset)
     if is_safenav(env_id):
         from safenav.envs.config import make_config, observation_shapes
@@ -141,7 +147,7 @@ def env_spaces(
             cfg = make_config(preset or "paper", **(env_kwargs or {}))
         except (TypeError, ValueError) as err:
             raise SafenavError(f"--env-kwargs: {err}") from None
-        return observation_shapes(cfg), 3, cfg
+        return observation_shapes(cfg), 3, cfg, None
     try:
         env = _make(env_id, **(env_kwargs or {}))
     except Exception as err:  # noqa: BLE001 -- a missing extra (box2d, mujoco), a bad kwarg, ...
@@ -149,17 +155,32 @@ def env_spaces(
         kind = SafenavRuntimeError if missing else SafenavError  # install it vs. fix the command
         raise kind(f"cannot make env {env_id!r}: {type(err).__name__}: {err}") from None
     try:
-        check_action_space(env.action_space)
-        return obs_layout(env.observation_space), int(env.action_space.shape[0]), None
+        check_action_space(env.action_space, discrete_ok)
+        n = discrete_actions(env.action_space)
+        dim = 1 if n is not None else int(env.action_space.shape[0])
+        return obs_layout(env.observation_space), dim, None, n
     finally:
         env.close()
 
 
-def check_action_space(act: gym.Space) -> None:
-    """``SafenavError`` unless ``act`` is a bounded 1-D ``Box`` (continuous actions)."""
+def discrete_actions(act: gym.Space) -> int | None:
+    """``n`` of a ``Discrete(n)`` action space; None for any other (continuous: a ``Box``)."""
+    return int(act.n) if isinstance(act, gym.spaces.Discrete) else None
+
+
+def check_action_space(act: gym.Space, discrete_ok: bool = False) -> None:
+    """``SafenavError`` unless ``act`` is a bounded 1-D ``Box`` (continuous actions, every
+    algorithm) or, with ``discrete_ok`` (PPO and PPO-Lag), a ``Discrete`` space."""
+    if isinstance(act, gym.spaces.Discrete):
+        if discrete_ok:
+            return
+        raise SafenavError(f"action space {act} is discrete: CSAC, SAC and SAC-Lag need "
+                           "continuous actions (a 1-D Box); PPO and PPO-Lag take discrete ones "
+                           "(--algo ppo or ppo_lag)")  # fmt: skip
     if not isinstance(act, gym.spaces.Box) or len(act.shape) != 1:
-        raise SafenavError(f"action space {act} is not supported: safenav's algorithms (CSAC, SAC, "
-                           "PPO and their Lagrangian versions) need continuous actions, a 1-D Box")  # fmt: skip
+        raise SafenavError(f"action space {act} is not supported: safenav's algorithms need "
+                           "continuous actions (a 1-D Box) or, PPO and PPO-Lag, a Discrete "
+                           "space")  # fmt: skip
     if not (np.all(np.isfinite(act.low)) and np.all(np.isfinite(act.high))):
         raise SafenavError(f"action space {act} is unbounded: the policies squash their actions "
                            "into finite bounds")  # fmt: skip
@@ -248,6 +269,24 @@ def to_action_box(action: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -
     return low * (1.0 - t) + high * t
 
 
+def to_discrete_action(action: torch.Tensor, start: int, num_actions: int) -> np.ndarray:
+    """A discrete policy's action index ``(..., 1)`` (float) as a ``Discrete(num_actions,
+    start)`` env takes it: rounded into ``0 .. n-1``, plus ``start``, as int64 ``(...)``."""
+    index = action[..., 0].round().clamp(0, num_actions - 1).long()
+    return (index + start).cpu().numpy()
+
+
+def policy_action_to_env(action: torch.Tensor, meta: dict[str, Any]) -> np.ndarray:
+    """A deterministic policy's output (:class:`safenav.algos.policy.Policy`, its ``meta``) as
+    the env of its training takes it: the index plus ``start`` for discrete actions
+    (``meta["num_actions"]``), else the ``[-1, 1]`` action mapped onto the action box."""
+    low = torch.as_tensor(meta["action_low"], dtype=torch.float32)
+    if meta.get("num_actions") is not None:
+        return to_discrete_action(action.cpu(), int(low[0]), int(meta["num_actions"]))
+    high = torch.as_tensor(meta["action_high"], dtype=torch.float32)
+    return to_action_box(action.cpu(), low, high).numpy().astype(np.float64)
+
+
 class TorchVecEnv:
     """The tensor view of a vector env described in the module docstring."""
 
@@ -260,10 +299,18 @@ class TorchVecEnv:
         self.obs_shapes = obs_layout(space)
         self._box_obs = isinstance(space, gym.spaces.Box)
         act = envs.single_action_space
-        check_action_space(act)
-        self.action_dim = int(act.shape[0])
-        self._low = torch.as_tensor(act.low, dtype=torch.float32, device=self.device)
-        self._high = torch.as_tensor(act.high, dtype=torch.float32, device=self.device)
+        check_action_space(act, discrete_ok=True)  # the SAC family refuses it (csac.py)
+        self.num_actions = discrete_actions(act)
+        """``n`` of a ``Discrete(n)`` action space, else None (continuous)."""
+        if self.num_actions is not None:  # the action is the index: lowest and highest action
+            start = int(act.start)
+            self.action_dim = 1
+            self._low = torch.tensor([float(start)], device=self.device)
+            self._high = torch.tensor([float(start + self.num_actions - 1)], device=self.device)
+        else:
+            self.action_dim = int(act.shape[0])
+            self._low = torch.as_tensor(act.low, dtype=torch.float32, device=self.device)
+            self._high = torch.as_tensor(act.high, dtype=torch.float32, device=self.device)
         self._torch_actions = is_safenav_vector(envs)
         self._unit = bool(torch.all(self._low == -1) and torch.all(self._high == 1))
         self.numpy_step = self.device.type == "cpu" and not self._torch_actions
@@ -297,6 +344,8 @@ class TorchVecEnv:
         return to_action_box(action, self._low, self._high)
 
     def _to_env(self, action: torch.Tensor):
+        if self.num_actions is not None:
+            return to_discrete_action(action.detach(), int(self._low[0]), self.num_actions)
         a = self.scale_action(action)
         return a if self._torch_actions else a.detach().cpu().numpy()
 
@@ -487,5 +536,6 @@ def env_horizon(envs: gym.vector.VectorEnv, default: int = 1000) -> int:
     return int(steps) if steps else default
 
 
-__all__ = ["Step", "TorchVecEnv", "check_action_space", "check_env", "cost_function", "env_horizon",
-           "env_spaces", "is_safenav", "is_safenav_vector", "make_vec_env", "obs_layout", "reports_cost"]  # fmt: skip
+__all__ = ["Step", "TorchVecEnv", "check_action_space", "check_env", "cost_function", "discrete_actions",
+           "env_horizon", "env_spaces", "is_safenav", "is_safenav_vector", "make_vec_env", "obs_layout",
+           "policy_action_to_env", "reports_cost", "to_action_box", "to_discrete_action"]  # fmt: skip

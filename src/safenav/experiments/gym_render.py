@@ -18,9 +18,12 @@ BORDER = 6  # pixels of the red frame around a costly step
 
 
 def _headless_gl() -> None:
-    """MuJoCo renders off-screen through EGL where there is no display (set before it loads)."""
+    """MuJoCo renders off-screen through EGL where there is no display (set before it loads);
+    pygame (classic control, Box2D) draws on its dummy video driver there, which spares a
+    headless machine SDL's "XDG_RUNTIME_DIR is invalid" line."""
     if not os.environ.get("DISPLAY"):
         os.environ.setdefault("MUJOCO_GL", "egl")
+        os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 
 
 def _follow_the_body(env: Any) -> None:
@@ -73,7 +76,7 @@ def render_gym_episode(out: Path, policy: Any, seed: int = 1, episode: int = 0, 
     import safenav  # noqa: F401  (registers the velocity tasks)
     from safenav.common.costs import CostFn
     from safenav.envs.render import write_gif
-    from safenav.envs.vector import to_action_box
+    from safenav.envs.vector import policy_action_to_env
 
     env_id = str(policy.meta.get("env_id", ""))
     _headless_gl()
@@ -92,8 +95,6 @@ def render_gym_episode(out: Path, policy: Any, seed: int = 1, episode: int = 0, 
     _follow_the_body(env)
     if cost_fn is not None:
         env = CostFn(env, cost_fn)
-    low = torch.as_tensor(policy.meta["action_low"], dtype=torch.float32)
-    high = torch.as_tensor(policy.meta["action_high"], dtype=torch.float32)
     stride = max(1, round(env.metadata.get("render_fps", fps) / fps))
     obs, _ = env.reset(seed=seed)
     frames: list[np.ndarray] = []
@@ -102,10 +103,8 @@ def render_gym_episode(out: Path, policy: Any, seed: int = 1, episode: int = 0, 
             ret, cost, steps, done = 0.0, 0.0, 0, False
             filmed, costly = k == episode, False  # costly: a step since the last frame cost
             while not done and steps < max_steps:
-                action = to_action_box(policy(obs).cpu(), low, high)  # a dict of Boxes too
-                obs, reward, terminated, truncated, info = env.step(
-                    action.numpy().astype(np.float64)
-                )
+                action = policy_action_to_env(policy(obs), policy.meta)  # a dict of Boxes too
+                obs, reward, terminated, truncated, info = env.step(action)
                 c = float(info.get("cost", 0.0))
                 ret, cost, steps = ret + float(reward), cost + c, steps + 1
                 done, costly = terminated or truncated, costly or c > 0

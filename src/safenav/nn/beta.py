@@ -121,24 +121,25 @@ class Body(nn.Module):
         return self.trunk(x)
 
 
-class BetaActorCritic(nn.Module):
-    """Beta policy and ``num_values`` value heads over one shared body or two separate ones."""
+class HeadsActorCritic(nn.Module):
+    """A policy head of ``head_size`` outputs and ``num_values`` value heads over one shared body
+    or two separate ones: what the Beta and categorical actor-critics share (each maps the policy
+    head's output to its distribution in ``forward``)."""
 
-    def __init__(self, obs_shapes: dict[str, tuple[int, ...]], action_dim: int, net: NetConfig,
+    def __init__(self, obs_shapes: dict[str, tuple[int, ...]], head_size: int, net: NetConfig,
                  num_values: int = 1) -> None:  # fmt: skip
         super().__init__()
         self.actor_body = Body(obs_shapes, net)
         self.critic_body = None if net.shared_extractor else Body(obs_shapes, net)
         size = self.actor_body.out_features
-        self.policy_head = nn.Linear(size, 2 * action_dim)
+        self.policy_head = nn.Linear(size, head_size)
         self.value_head = nn.Linear(size, num_values)
 
-    def forward(self, obs: dict[str, torch.Tensor]):
-        """``(alpha, beta, values)``: concentrations ``(N, A)`` and normalised values ``(N, K)``."""
+    def heads(self, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(policy head output, normalised values (N, K))``."""
         x = self.actor_body(obs)
-        alpha, beta = beta_concentrations(*self.policy_head(x).chunk(2, -1))
         y = x if self.critic_body is None else self.critic_body(obs)
-        return alpha, beta, self.value_head(y)
+        return self.policy_head(x), self.value_head(y)
 
     def values(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         """Normalised values ``(N, K)`` only."""
@@ -153,6 +154,20 @@ class BetaActorCritic(nn.Module):
         """Parameters only the value loss trains."""
         body = [] if self.critic_body is None else list(self.critic_body.parameters())
         return [*body, *self.value_head.parameters()]
+
+
+class BetaActorCritic(HeadsActorCritic):
+    """Beta policy (``2 A`` raw concentrations) and ``num_values`` value heads."""
+
+    def __init__(self, obs_shapes: dict[str, tuple[int, ...]], action_dim: int, net: NetConfig,
+                 num_values: int = 1) -> None:  # fmt: skip
+        super().__init__(obs_shapes, 2 * action_dim, net, num_values)
+
+    def forward(self, obs: dict[str, torch.Tensor]):
+        """``(alpha, beta, values)``: concentrations ``(N, A)`` and normalised values ``(N, K)``."""
+        raw, values = self.heads(obs)
+        alpha, beta = beta_concentrations(*raw.chunk(2, -1))
+        return alpha, beta, values
 
 
 class HeadActor(nn.Module):
@@ -198,5 +213,6 @@ def build_beta_actor(meta: dict[str, Any]) -> BetaDeterministicActor:
 
 
 __all__ = ["LOG2", "POLICY_HEAD", "UNIT_EPS", "BetaActorCritic", "BetaDeterministicActor", "Body", "HeadActor",
+           "HeadsActorCritic",
            "action_to_unit", "beta_concentrations", "beta_entropy", "beta_log_prob",
            "beta_mean_action", "body_from_meta", "build_beta_actor", "sample_beta_action", "unit_to_action"]  # fmt: skip
