@@ -214,3 +214,14 @@ def test_the_sb3_side_of_the_bench_takes_the_zoo_cartpole_entry_with_its_linear_
     ):  # lin_X: X at the start, 0 at the end
         assert kwargs[key](1.0) == pytest.approx(start) and kwargs[key](0.0) == 0.0
     assert hyperparameters("ppo", "Acrobot-v1")[1:] == (16, True)
+
+
+def test_the_categorical_note_appears_only_where_a_continuous_distribution_was_asked_for():
+    from safenav.commands.train import discrete_note
+    from safenav.common.config import RunConfig
+
+    run = RunConfig(env="CartPole-v1")
+    assert discrete_note(run, PPOConfig(), 2) == ""  # the default Beta: nothing was asked
+    assert discrete_note(run, PPOConfig(distribution="gaussian"), None) == ""  # continuous
+    note = discrete_note(run, PPOConfig(distribution="gaussian", use_sde=True), 2)
+    assert "Discrete(2)" in note and "--ppo.distribution gaussian and --ppo.use-sde" in note

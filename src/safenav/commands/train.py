@@ -72,7 +72,7 @@ def train(
     from safenav.envs.vector import cost_function
 
     algo, run, csac, ppo, recipe = apply_recipe(config, algo, run, csac, ppo, ARGS.get(), resume)
-    run, cfg, run_dir, obs_shapes = plan(algo, run, csac, ppo, run_dir, resume, overwrite)
+    run, cfg, run_dir, obs_shapes, note = plan(algo, run, csac, ppo, run_dir, resume, overwrite)
     with run_dir_lock(run_dir) as lock:  # one process per run dir, first write to last
         prepare_run_dir(run_dir, resume=resume is not None, overwrite=overwrite)
         lock.accepted = True  # past the refusals: a later failure keeps the lock file
@@ -80,8 +80,10 @@ def train(
             print(recipe_line(recipe, run.env, chosen=config is None))
         if "lidar" not in obs_shapes:  # SafeNav: its range image has an encoder
             warn_images(run.env, obs_shapes)
-        if resume is None and (note := rollout_note(algo, run, cfg)):
+        if resume is None and note:  # a discrete task's categorical policy
             print(note, file=sys.stderr)
+        if resume is None and (rollout := rollout_note(algo, run, cfg)):
+            print(rollout, file=sys.stderr)
         if resume is None:
             training.write_config(run_dir, algo, run, cfg, recipe_record(recipe))
         with cost_function(run.cost_fn):
@@ -230,9 +232,9 @@ def recipe_record(recipe) -> dict | None:
 
 
 def plan(algo: str, run: RunConfig, csac: CSACConfig, ppo: PPOConfig, run_dir: Path | None,
-         resume: Path | None, overwrite: bool) -> tuple[RunConfig, CSACConfig | PPOConfig, Path, dict]:  # fmt: skip
-    """``(run config, algorithm config, run dir, observation shapes)`` of a ``safenav train``
-    command line, every
+         resume: Path | None, overwrite: bool) -> tuple[RunConfig, CSACConfig | PPOConfig, Path, dict, str]:  # fmt: skip
+    """``(run config, algorithm config, run dir, observation shapes, note)`` of a ``safenav
+    train`` command line (``note``: :func:`discrete_note`), every
     check done before anything is written: algorithm, resume config, device, env and its
     spaces, memory. ``SafenavError`` (exit 2) or ``SafenavRuntimeError`` (exit 1) otherwise."""
     from safenav.common.checks import check_device
@@ -300,12 +302,18 @@ def plan(algo: str, run: RunConfig, csac: CSACConfig, ppo: PPOConfig, run_dir: P
     check_budget(family, run, cfg)
     check_cost(algo, run)
     check_training_memory(algo, run, cfg, obs_shapes, action_dim, env_cfg)
-    if num_actions is not None and (cfg.distribution != "beta" or cfg.use_sde):
-        print(f"safenav train: note: {run.env} acts in Discrete({num_actions}): PPO's policy is "
-              f"categorical there (--ppo.distribution {cfg.distribution}"
-              f"{' and --ppo.use-sde' if cfg.use_sde else ''} apply to continuous actions)",
-              file=sys.stderr)  # fmt: skip
-    return run, cfg, Path(run_dir), obs_shapes
+    return run, cfg, Path(run_dir), obs_shapes, discrete_note(run, cfg, num_actions)
+
+
+def discrete_note(run: RunConfig, cfg, num_actions: int | None) -> str:
+    """On a ``Discrete(n)`` task PPO's policy is categorical: the line that says so where the
+    configuration asks for a continuous distribution (a recipe's ``gaussian``, gSDE), else ``""``."""
+    if num_actions is None or (cfg.distribution == "beta" and not cfg.use_sde):
+        return ""
+    asked = [f"--ppo.distribution {cfg.distribution}"] if cfg.distribution != "beta" else []
+    asked += ["--ppo.use-sde"] if cfg.use_sde else []
+    return (f"safenav train: note: {run.env} acts in Discrete({num_actions}): PPO's policy is "
+            f"categorical there ({' and '.join(asked)}: continuous actions only)")  # fmt: skip
 
 
 def changed_options(given_cfg, saved_cfg, prefix: str, args) -> list[str]:
