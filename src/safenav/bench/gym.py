@@ -448,8 +448,9 @@ def _row_notes(rows: list[dict[str, Any]]) -> list[str]:
 
 
 def plot_curves(suite: str, results: list[dict[str, Any]], path: Path, cost_limit: float) -> None:
-    """Evaluation return (and, for the safe suite, episode cost) against env steps: mean over
-    seeds, shaded between the seeds' lowest and highest."""
+    """Evaluation return (and, for the safe suite, episode cost below it) against env steps: mean
+    over seeds, shaded between the seeds' lowest and highest; one panel (pair) per task in the
+    suite's order, three to a row for the gym suite."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -457,22 +458,30 @@ def plot_curves(suite: str, results: list[dict[str, Any]], path: Path, cost_limi
     import matplotlib.ticker
     import numpy as np
 
-    envs = list(dict.fromkeys(r["trial"]["env"] for r in results))
-    nrows = 2 if suite == "safe" else 1
-    fig, axes = plt.subplots(nrows, len(envs), figsize=(4.2 * len(envs), 3.4 * nrows),
+    order = list(SUITES[suite])
+    envs = sorted({r["trial"]["env"] for r in results}, key=order.index)
+    nrows = 2 if suite == "safe" else 1  # return, and cost below it
+    cols = min(len(envs), 3) if suite == "gym" else len(envs)
+    blocks = -(-len(envs) // cols)
+    fig, grid = plt.subplots(nrows * blocks, cols, figsize=(4.2 * cols, 3.4 * nrows * blocks),
                              squeeze=False)  # fmt: skip
+    for k in range(len(envs), blocks * cols):  # the last row's empty places
+        for i in range(nrows):
+            grid[(k // cols) * nrows + i][k % cols].set_visible(False)
     for j, env in enumerate(envs):
+        axes = [grid[(j // cols) * nrows + i] for i in range(nrows)]  # axes[i][j % cols]
+        col = j % cols
         lines: dict[str, list[dict]] = {}
         for r in results:
             t = r["trial"]
             if t["env"] == env:
                 lines.setdefault(f"{t['algo']} ({t['impl']}, {_count(t['steps'])})", []).append(r)
         for label, rs in sorted(lines.items()):
-            for i, col in enumerate((1, 2)[:nrows]):
+            for i, field in enumerate((1, 2)[:nrows]):
                 steps = sorted({p[0] for r in rs for p in r["curve"]})
-                values = np.array([[dict((p[0], p[col]) for p in r["curve"]).get(s, np.nan)
+                values = np.array([[dict((p[0], p[field]) for p in r["curve"]).get(s, np.nan)
                                     for s in steps] for r in rs])  # fmt: skip
-                ax = axes[i][j]
+                ax = axes[i][col]
                 mean = np.nanmean(values, axis=0)
                 ax.plot(steps, mean, label=label, ls="--" if "sb3" in label else "-")
                 ax.fill_between(steps, np.nanmin(values, axis=0), np.nanmax(values, axis=0),
@@ -486,20 +495,20 @@ def plot_curves(suite: str, results: list[dict[str, Any]], path: Path, cost_limi
                           if r["trial"]["env"] == env and r["trial"]["algo"] == algo)  # fmt: skip
                 pts = [(x, y) for x, y in zip(zoo["steps"], zoo["mean"], strict=True) if x <= end]
                 if pts:
-                    axes[0][j].plot(*zip(*pts, strict=True), color="0.45", lw=0.9,
+                    axes[0][col].plot(*zip(*pts, strict=True), color="0.45", lw=0.9,
                                     ls=":" if algo == "sac" else "-.",
                                     label=f"{algo} (SB3 zoo agent, published, 1 seed)")  # fmt: skip
         for row in axes:  # 100k, 1M: plain integers run into each other on a narrow panel
-            row[j].xaxis.set_major_formatter(
+            row[col].xaxis.set_major_formatter(
                 matplotlib.ticker.FuncFormatter(lambda x, _: _count(int(x)) if x else "0")
             )
-        axes[0][j].set_title(env, fontsize=10)
-        axes[0][j].set_ylabel("evaluation return")
-        axes[-1][j].set_xlabel("env steps")
-        axes[0][j].legend(fontsize=7)
+        axes[0][col].set_title(env, fontsize=10)
+        axes[0][col].set_ylabel("evaluation return")
+        axes[-1][col].set_xlabel("env steps")
+        axes[0][col].legend(fontsize=7)
         if suite == "safe":
-            axes[1][j].axhline(cost_limit, color="k", lw=0.8, ls=":")
-            axes[1][j].set_ylabel("evaluation episode cost")
+            axes[1][col].axhline(cost_limit, color="k", lw=0.8, ls=":")
+            axes[1][col].set_ylabel("evaluation episode cost")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
