@@ -187,6 +187,19 @@ def test_published_values_per_family_and_per_env():
     )  # fmt: skip
     lunar = apply(PPOConfig(), load_recipe("box2d-ppo").section("ppo", "LunarLanderContinuous-v3"))
     assert lunar.distribution == "gaussian" and lunar.num_minibatches == 256
+    # the zoo's discrete entries (ppo.yml): CartPole-v1 tuned, Acrobot-v1 normalised
+    cart = apply(PPOConfig(), load_recipe("classic-ppo").section("ppo", "CartPole-v1"))
+    assert (cart.rollout_steps, cart.epochs, cart.num_minibatches, cart.lr) == (32, 20, 1, 1e-3)
+    assert (cart.gamma, cart.gae_lambda, cart.anneal_lr, cart.entropy_coef) == (
+        0.98,
+        0.8,
+        True,
+        0.0,
+    )
+    acro = apply(
+        RunConfig(env="Acrobot-v1"), load_recipe("classic-ppo").section("run", "Acrobot-v1")
+    )
+    assert acro.num_envs == 16 and acro.normalize_obs and acro.normalize_reward
 
 
 def test_the_family_is_read_from_the_env_id():
@@ -211,6 +224,11 @@ CASES = [
     ("ppo", "TinyBox-v0", "gym-ppo", []),
     pytest.param("sac", "LunarLanderContinuous-v3", "box2d-sac", [], marks=BOX2D),
     pytest.param("ppo", "LunarLanderContinuous-v3", "box2d-ppo", ["--num-envs", "2"], marks=BOX2D),
+    # discrete actions (PPO's categorical policy), each with its zoo entry
+    ("ppo", "CartPole-v1", "classic-ppo", []),
+    ("ppo", "Acrobot-v1", "classic-ppo", ["--num-envs", "2"]),
+    ("ppo", "MountainCar-v0", "classic-ppo", ["--num-envs", "2"]),
+    pytest.param("ppo", "LunarLander-v3", "box2d-ppo", ["--num-envs", "2"], marks=BOX2D),
     pytest.param("sac", "Hopper-v5", "mujoco-sac", [], marks=MUJOCO),
     pytest.param("ppo", "HalfCheetah-v5", "mujoco-ppo", [], marks=MUJOCO),
 ]
