@@ -225,3 +225,82 @@ def test_the_categorical_note_appears_only_where_a_continuous_distribution_was_a
     assert discrete_note(run, PPOConfig(distribution="gaussian"), None) == ""  # continuous
     note = discrete_note(run, PPOConfig(distribution="gaussian", use_sde=True), 2)
     assert "Discrete(2)" in note and "--ppo.distribution gaussian and --ppo.use-sde" in note
+
+
+# ------------------------------------------------------------------ discrete observations
+def test_a_discrete_observation_trains_as_its_one_hot_vector_and_renders(tmp_path, capsys):
+    """FrozenLake-v1 observes its cell, Discrete(16): Gymnasium's FlattenObservation turns it
+    into the one-hot vector the networks read, in training and in render alike."""
+    from safenav.algos.policy import load_policy
+    from safenav.envs.vector import flat_observations
+
+    env = flat_observations(gym.make("FrozenLake-v1"))
+    obs, _ = env.reset(seed=0)
+    assert env.observation_space.shape == (16,) and obs.tolist() == [1.0] + [0.0] * 15
+    box = gym.make("Pendulum-v1")
+    assert flat_observations(box) is box  # a Box is read as it is
+
+    run_dir = tmp_path / "lake"
+    code, _, err = run(capsys, ["train", "--algo", "ppo", "--env", "FrozenLake-v1", "--total-steps",
+                                "256", "--ppo.rollout-steps", "256", "--ppo.num-minibatches", "4",
+                                "--run-dir", str(run_dir), "--no-progress", "--no-tensorboard"])  # fmt: skip
+    assert code == 0, err
+    policy = load_policy(run_dir)
+    assert policy.obs_shapes == {"obs": (16,)} and policy.meta["num_actions"] == 4
+    code, out, err = run(capsys, ["render", str(run_dir / "checkpoint.pt"), "--out",
+                                  str(tmp_path / "lake.gif"), "--fps", "4"])  # fmt: skip
+    assert code == 0 and "'ended': True" in out, err
+
+
+def test_a_task_without_a_time_limit_is_said_so_and_its_film_is_bounded(tmp_path):
+    """CliffWalking-v1 has no time limit: train says so (and how to give one), and render stops
+    filming an episode that has not ended after max_frames frames instead of filling the memory."""
+    from safenav.commands.train import time_limit_note
+    from safenav.common.config import RunConfig
+    from safenav.experiments.gym_render import render_gym_episode
+
+    note = time_limit_note(RunConfig(env="CliffWalking-v1"))
+    assert "no time limit" in note and "--env-kwargs max_episode_steps" in note
+    assert (
+        time_limit_note(RunConfig(env="CliffWalking-v1", env_kwargs={"max_episode_steps": 50}))
+        == ""
+    )
+    assert time_limit_note(RunConfig(env="CartPole-v1")) == ""
+
+    class Left:  # a deterministic policy that walks into the west wall for ever
+        meta = {
+            "env_id": "CliffWalking-v1",
+            "num_actions": 4,
+            "action_low": [0.0],
+            "action_high": [3.0],
+        }
+
+        def __call__(self, obs):
+            return torch.tensor([3.0])  # action 3: west
+
+    stats = render_gym_episode(tmp_path / "cliff.gif", Left(), fps=4, max_frames=12)
+    assert stats["ended"] is False and stats["frames"] == 12 and stats["length"] == 12
+    assert (tmp_path / "cliff.gif").stat().st_size > 0
+
+
+def test_a_cost_function_reads_the_envs_own_discrete_observation(tmp_path, capsys, monkeypatch):
+    """--cost-fn sees what the env returns (FrozenLake's cell index), not the one-hot vector."""
+    import sys
+    import types
+
+    seen: list = []
+    module = types.ModuleType("lake_costs")
+
+    def hole_cost(obs, action, next_obs, info):
+        seen.append(next_obs)
+        return float(next_obs in (5, 7, 11, 12))  # FrozenLake 4x4's holes
+
+    module.hole_cost = hole_cost
+    monkeypatch.setitem(sys.modules, "lake_costs", module)
+    code, _, err = run(capsys, ["train", "--algo", "ppo_lag", "--env", "FrozenLake-v1",
+                                "--cost-fn", "lake_costs:hole_cost", "--total-steps", "64",
+                                "--ppo.rollout-steps", "64", "--ppo.num-minibatches", "2",
+                                "--run-dir", str(tmp_path / "run"), "--no-progress",
+                                "--no-tensorboard"])  # fmt: skip
+    assert code == 0, err
+    assert seen and all(np.ndim(o) == 0 and 0 <= int(o) < 16 for o in seen)

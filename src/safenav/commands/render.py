@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Literal
 
@@ -144,4 +145,7 @@ def _load_or_render_gymnasium(checkpoint: Path, out: Path, seed: int, episode: i
     stats = render_gym_episode(out, loaded, seed=seed, episode=episode, fps=fps,
                                cost_fn=run.get("cost_fn"))  # fmt: skip
     print(f"wrote {out}: {stats}")
+    if not stats["ended"]:
+        print(f"safenav render: note: the episode had not ended after {stats['length']:,} steps "
+              f"({stats['frames']:,} frames); the GIF shows them", file=sys.stderr)  # fmt: skip
     return None

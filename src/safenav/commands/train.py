@@ -80,7 +80,7 @@ def train(
             print(recipe_line(recipe, run.env, chosen=config is None))
         if "lidar" not in obs_shapes:  # SafeNav: its range image has an encoder
             warn_images(run.env, obs_shapes)
-        if resume is None and note:  # a discrete task's categorical policy
+        if resume is None and note:  # a discrete task's categorical policy, no time limit
             print(note, file=sys.stderr)
         if resume is None and (rollout := rollout_note(algo, run, cfg)):
             print(rollout, file=sys.stderr)
@@ -234,7 +234,7 @@ def recipe_record(recipe) -> dict | None:
 def plan(algo: str, run: RunConfig, csac: CSACConfig, ppo: PPOConfig, run_dir: Path | None,
          resume: Path | None, overwrite: bool) -> tuple[RunConfig, CSACConfig | PPOConfig, Path, dict, str]:  # fmt: skip
     """``(run config, algorithm config, run dir, observation shapes, note)`` of a ``safenav
-    train`` command line (``note``: :func:`discrete_note`), every
+    train`` command line (``note``: :func:`discrete_note`, :func:`time_limit_note`), every
     check done before anything is written: algorithm, resume config, device, env and its
     spaces, memory. ``SafenavError`` (exit 2) or ``SafenavRuntimeError`` (exit 1) otherwise."""
     from safenav.common.checks import check_device
@@ -302,7 +302,24 @@ def plan(algo: str, run: RunConfig, csac: CSACConfig, ppo: PPOConfig, run_dir: P
     check_budget(family, run, cfg)
     check_cost(algo, run)
     check_training_memory(algo, run, cfg, obs_shapes, action_dim, env_cfg)
-    return run, cfg, Path(run_dir), obs_shapes, discrete_note(run, cfg, num_actions)
+    notes = [n for n in (discrete_note(run, cfg, num_actions), time_limit_note(run)) if n]
+    return run, cfg, Path(run_dir), obs_shapes, "\n".join(notes)
+
+
+def time_limit_note(run: RunConfig) -> str:
+    """The line that says a Gymnasium task has no time limit (CliffWalking-v1), where the run
+    gives it none: an episode of a policy that walks in circles never ends, so an evaluation runs
+    to its cap of 1M steps; ``""`` otherwise."""
+    import gymnasium as gym
+
+    from safenav.envs.vector import is_safenav
+
+    if is_safenav(run.env) or "max_episode_steps" in (run.env_kwargs or {}):
+        return ""
+    if gym.spec(run.env).max_episode_steps is not None:
+        return ""
+    return (f"safenav train: note: {run.env} has no time limit, so an episode may never end (an "
+            "evaluation stops after 1M steps); --env-kwargs max_episode_steps N gives it one")  # fmt: skip
 
 
 def discrete_note(run: RunConfig, cfg, num_actions: int | None) -> str:

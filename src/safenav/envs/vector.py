@@ -4,7 +4,8 @@
 (torch tensors on the training device), anything else as a ``SyncVectorEnv`` created with
 ``SAME_STEP`` autoreset. :class:`TorchVecEnv` then gives every algorithm the same view of it:
 
-- observations as a dict of float32 tensors on ``device`` (a ``Box`` observation is ``{"obs": x}``),
+- observations as a dict of float32 tensors on ``device`` (a ``Box`` observation is ``{"obs": x}``;
+  a ``Discrete`` or ``Tuple`` one, flattened by :func:`flat_observations`, its one-hot vector),
 - actions in ``[-1, 1]^A``, mapped affinely onto the env's action box; for a ``Discrete(n)``
   action space (PPO only) the action is its index ``0 .. n-1`` as a float ``(N, 1)``, handed to
   the env as ``index + start`` (:func:`to_discrete_action`),
@@ -95,6 +96,28 @@ def _make(env_id: str, **kwargs: Any) -> gym.Env:
     return gym.make(env_id, **kwargs)
 
 
+def _box_layout(space: gym.Space) -> bool:
+    """A ``Box`` or a ``Dict`` of ``Box``es: what the networks read as it is."""
+    return isinstance(space, gym.spaces.Box) or (
+        isinstance(space, gym.spaces.Dict)
+        and all(isinstance(s, gym.spaces.Box) for s in space.spaces.values())
+    )
+
+
+def flat_observations(env: gym.Env) -> gym.Env:
+    """``env`` itself where its observation is a ``Box`` or a ``Dict`` of ``Box``es, else wrapped
+    in Gymnasium's ``FlattenObservation``: a ``Discrete(n)`` observation (FrozenLake, Taxi) becomes
+    its one-hot vector, a ``Tuple`` (Blackjack) the concatenation of its parts', as SB3 feeds them
+    to its networks. A space Gymnasium cannot flatten is left to :func:`obs_layout` to refuse."""
+    if _box_layout(env.observation_space):
+        return env
+    try:
+        gym.spaces.flatten_space(env.observation_space)
+    except (NotImplementedError, TypeError, ValueError):
+        return env
+    return gym.wrappers.FlattenObservation(env)
+
+
 def obs_layout(space: gym.Space) -> dict[str, tuple[int, ...]]:
     """Observation space -> ``{key: shape}`` of the observation dict the networks read
     (``{"obs": shape}`` for a ``Box``); ``SafenavError`` for anything else."""
@@ -104,7 +127,10 @@ def obs_layout(space: gym.Space) -> dict[str, tuple[int, ...]]:
         isinstance(s, gym.spaces.Box) for s in space.spaces.values()
     ):
         return {k: tuple(int(d) for d in s.shape) for k, s in space.spaces.items()}
-    raise SafenavError(f"observation space {space} is not supported: use a Box or a Dict of Boxes")
+    raise SafenavError(
+        f"observation space {space} is not supported: use a Box, a Dict of Boxes "
+        "or a space Gymnasium flattens (Discrete, Tuple, MultiDiscrete, ...)"
+    )
 
 
 def is_safenav(env_id: str) -> bool:
@@ -149,7 +175,7 @@ def env_spaces(
             raise SafenavError(f"--env-kwargs: {err}") from None
         return observation_shapes(cfg), 3, cfg, None
     try:
-        env = _make(env_id, **(env_kwargs or {}))
+        env = flat_observations(_make(env_id, **(env_kwargs or {})))
     except Exception as err:  # noqa: BLE001 -- a missing extra (box2d, mujoco), a bad kwarg, ...
         missing = isinstance(err, ImportError) or type(err).__name__ == "DependencyNotInstalled"
         kind = SafenavRuntimeError if missing else SafenavError  # install it vs. fix the command
@@ -206,12 +232,12 @@ def make_vec_env(env_id: str, num_envs: int, device: str = "cpu", preset: str | 
 
     if task_family(env_id)[0] == "mujoco":
         quiet_mujoco()
-    wrappers = None
+    wrappers: list = [flat_observations]  # the cost function reads the env's own observations
     if cost_fn is not None:
         from safenav.common.costs import CostFn, load_cost_fn
 
         fn = load_cost_fn(cost_fn)
-        wrappers = [lambda env: CostFn(env, fn)]
+        wrappers.insert(0, lambda env: CostFn(env, fn))
     return gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="sync", wrappers=wrappers,
                         vector_kwargs={"autoreset_mode": AutoresetMode.SAME_STEP}, **env_kwargs)  # fmt: skip
 
@@ -276,13 +302,15 @@ def to_discrete_action(action: torch.Tensor, start: int, num_actions: int) -> np
     return (index + start).cpu().numpy()
 
 
-def policy_action_to_env(action: torch.Tensor, meta: dict[str, Any]) -> np.ndarray:
+def policy_action_to_env(action: torch.Tensor, meta: dict[str, Any]) -> np.ndarray | int:
     """A deterministic policy's output (:class:`safenav.algos.policy.Policy`, its ``meta``) as
     the env of its training takes it: the index plus ``start`` for discrete actions
-    (``meta["num_actions"]``), else the ``[-1, 1]`` action mapped onto the action box."""
+    (``meta["num_actions"]``; a Python int for one observation, which toy-text envs use as a
+    key), else the ``[-1, 1]`` action mapped onto the action box."""
     low = torch.as_tensor(meta["action_low"], dtype=torch.float32)
     if meta.get("num_actions") is not None:
-        return to_discrete_action(action.cpu(), int(low[0]), int(meta["num_actions"]))
+        index = to_discrete_action(action.cpu(), int(low[0]), int(meta["num_actions"]))
+        return int(index) if index.ndim == 0 else index
     high = torch.as_tensor(meta["action_high"], dtype=torch.float32)
     return to_action_box(action.cpu(), low, high).numpy().astype(np.float64)
 
@@ -537,5 +565,5 @@ def env_horizon(envs: gym.vector.VectorEnv, default: int = 1000) -> int:
 
 
 __all__ = ["Step", "TorchVecEnv", "check_action_space", "check_env", "cost_function", "discrete_actions",
-           "env_horizon", "env_spaces", "is_safenav", "is_safenav_vector", "make_vec_env", "obs_layout",
+           "env_horizon", "env_spaces", "flat_observations", "is_safenav", "is_safenav_vector", "make_vec_env", "obs_layout",
            "policy_action_to_env", "reports_cost", "to_action_box", "to_discrete_action"]  # fmt: skip

@@ -64,19 +64,22 @@ def _frame(env: Any, env_id: str) -> np.ndarray:
 
 @torch.no_grad()
 def render_gym_episode(out: Path, policy: Any, seed: int = 1, episode: int = 0, fps: int = 25,
-                       cost_fn: str | None = None, size: int = 240,
-                       max_steps: int = 100_000) -> dict[str, Any]:  # fmt: skip
+                       cost_fn: str | None = None, size: int = 240, max_steps: int = 100_000,
+                       max_frames: int = 1500) -> dict[str, Any]:  # fmt: skip
     """Fly episode ``episode`` (from 0) after ``reset(seed=seed)`` of ``policy.meta["env_id"]``
     (with the run's ``--cost-fn`` if it had one) with the deterministic ``policy`` (a
     :class:`safenav.algos.policy.Policy`) and write ``out`` at ``fps``, one frame per
     ``round(render_fps / fps)`` env steps (real time where the task declares its
-    ``render_fps``); returns the episode's return, cost and length."""
+    ``render_fps``); returns the episode's return, cost and length. An episode that has not
+    ended by ``max_frames`` frames (a task without a time limit, CliffWalking-v1, and a policy
+    that walks in circles) is filmed that far (``"ended": False``): its frames would otherwise
+    fill the memory. One that is not filmed must end within ``max_steps``."""
     import gymnasium as gym
 
     import safenav  # noqa: F401  (registers the velocity tasks)
     from safenav.common.costs import CostFn
     from safenav.envs.render import write_gif
-    from safenav.envs.vector import policy_action_to_env
+    from safenav.envs.vector import flat_observations, policy_action_to_env
 
     env_id = str(policy.meta.get("env_id", ""))
     _headless_gl()
@@ -95,6 +98,7 @@ def render_gym_episode(out: Path, policy: Any, seed: int = 1, episode: int = 0, 
     _follow_the_body(env)
     if cost_fn is not None:
         env = CostFn(env, cost_fn)
+    env = flat_observations(env)  # as training saw it (a one-hot Discrete observation, ...)
     stride = max(1, round(env.metadata.get("render_fps", fps) / fps))
     obs, _ = env.reset(seed=seed)
     frames: list[np.ndarray] = []
@@ -102,7 +106,7 @@ def render_gym_episode(out: Path, policy: Any, seed: int = 1, episode: int = 0, 
         for k in range(episode + 1):
             ret, cost, steps, done = 0.0, 0.0, 0, False
             filmed, costly = k == episode, False  # costly: a step since the last frame cost
-            while not done and steps < max_steps:
+            while not done and steps < max_steps and not (filmed and len(frames) >= max_frames):
                 action = policy_action_to_env(policy(obs), policy.meta)  # a dict of Boxes too
                 obs, reward, terminated, truncated, info = env.step(action)
                 c = float(info.get("cost", 0.0))
@@ -112,7 +116,7 @@ def render_gym_episode(out: Path, policy: Any, seed: int = 1, episode: int = 0, 
                     text = f"step {steps}  return {ret:.0f}  cost {cost:g}"
                     frames.append(_annotate(_frame(env, env_id), text, costly))
                     costly = False
-            if not done:
+            if not done and not filmed:
                 raise SafenavError(f"episode {k} of {env_id} did not end in {max_steps} steps")
             if not filmed:
                 obs, _ = env.reset()
@@ -122,7 +126,8 @@ def render_gym_episode(out: Path, policy: Any, seed: int = 1, episode: int = 0, 
     Path(out).parent.mkdir(parents=True, exist_ok=True)
     write_gif(out, frames, fps)
     return {"env": env_id, "episode": episode, "return": round(ret, 2), "cost": cost,
-            "length": steps, "frames": len(frames) - fps, "steps_per_frame": stride}  # fmt: skip
+            "length": steps, "ended": done, "frames": len(frames) - fps,
+            "steps_per_frame": stride}  # fmt: skip
 
 
 __all__ = ["render_gym_episode"]
