@@ -469,7 +469,7 @@ def plot_curves(suite: str, results: list[dict[str, Any]], path: Path, cost_limi
         for i in range(nrows):
             grid[(k // cols) * nrows + i][k % cols].set_visible(False)
     for j, env in enumerate(envs):
-        axes = [grid[(j // cols) * nrows + i] for i in range(nrows)]  # axes[i][j % cols]
+        axes = [grid[(j // cols) * nrows + i] for i in range(nrows)]  # this task's: axes[i][col]
         col = j % cols
         lines: dict[str, list[dict]] = {}
         for r in results:
@@ -496,8 +496,8 @@ def plot_curves(suite: str, results: list[dict[str, Any]], path: Path, cost_limi
                 pts = [(x, y) for x, y in zip(zoo["steps"], zoo["mean"], strict=True) if x <= end]
                 if pts:
                     axes[0][col].plot(*zip(*pts, strict=True), color="0.45", lw=0.9,
-                                    ls=":" if algo == "sac" else "-.",
-                                    label=f"{algo} (SB3 zoo agent, published, 1 seed)")  # fmt: skip
+                                      ls=":" if algo == "sac" else "-.",
+                                      label=f"{algo} (SB3 zoo agent, published, 1 seed)")  # fmt: skip
         for row in axes:  # 100k, 1M: plain integers run into each other on a narrow panel
             row[col].xaxis.set_major_formatter(
                 matplotlib.ticker.FuncFormatter(lambda x, _: _count(int(x)) if x else "0")
