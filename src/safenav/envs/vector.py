@@ -112,10 +112,9 @@ def flat_observations(env: gym.Env) -> gym.Env:
     if _box_layout(env.observation_space):
         return env
     try:
-        gym.spaces.flatten_space(env.observation_space)
-    except (NotImplementedError, TypeError, ValueError):
+        return gym.wrappers.FlattenObservation(env)
+    except (NotImplementedError, TypeError, ValueError):  # flatten_space refused the space
         return env
-    return gym.wrappers.FlattenObservation(env)
 
 
 def obs_layout(space: gym.Space) -> dict[str, tuple[int, ...]]:
@@ -123,9 +122,7 @@ def obs_layout(space: gym.Space) -> dict[str, tuple[int, ...]]:
     (``{"obs": shape}`` for a ``Box``); ``SafenavError`` for anything else."""
     if isinstance(space, gym.spaces.Box):
         return {"obs": tuple(int(s) for s in space.shape)}
-    if isinstance(space, gym.spaces.Dict) and all(
-        isinstance(s, gym.spaces.Box) for s in space.spaces.values()
-    ):
+    if _box_layout(space):  # a Dict of Boxes
         return {k: tuple(int(d) for d in s.shape) for k, s in space.spaces.items()}
     raise SafenavError(
         f"observation space {space} is not supported: use a Box, a Dict of Boxes "
@@ -309,7 +306,7 @@ def policy_action_to_env(action: torch.Tensor, meta: dict[str, Any]) -> np.ndarr
     key), else the ``[-1, 1]`` action mapped onto the action box."""
     low = torch.as_tensor(meta["action_low"], dtype=torch.float32)
     if meta.get("num_actions") is not None:
-        index = to_discrete_action(action.cpu(), int(low[0]), int(meta["num_actions"]))
+        index = to_discrete_action(action, int(low[0]), int(meta["num_actions"]))
         return int(index) if index.ndim == 0 else index
     high = torch.as_tensor(meta["action_high"], dtype=torch.float32)
     return to_action_box(action.cpu(), low, high).numpy().astype(np.float64)
@@ -331,10 +328,12 @@ class TorchVecEnv:
         self.num_actions = discrete_actions(act)
         """``n`` of a ``Discrete(n)`` action space, else None (continuous)."""
         if self.num_actions is not None:  # the action is the index: lowest and highest action
-            start = int(act.start)
+            self._start = int(act.start)
             self.action_dim = 1
-            self._low = torch.tensor([float(start)], device=self.device)
-            self._high = torch.tensor([float(start + self.num_actions - 1)], device=self.device)
+            self._low = torch.tensor([float(self._start)], device=self.device)
+            self._high = torch.tensor(
+                [float(self._start + self.num_actions - 1)], device=self.device
+            )
         else:
             self.action_dim = int(act.shape[0])
             self._low = torch.as_tensor(act.low, dtype=torch.float32, device=self.device)
@@ -373,7 +372,7 @@ class TorchVecEnv:
 
     def _to_env(self, action: torch.Tensor):
         if self.num_actions is not None:
-            return to_discrete_action(action.detach(), int(self._low[0]), self.num_actions)
+            return to_discrete_action(action.detach(), self._start, self.num_actions)
         a = self.scale_action(action)
         return a if self._torch_actions else a.detach().cpu().numpy()
 
