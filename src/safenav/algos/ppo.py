@@ -314,12 +314,12 @@ class PPOLearner:
     def __init__(self, env: TorchVecEnv, run: RunConfig, cfg: PPOConfig) -> None:
         self.device = env.device
         n = env.num_actions  # None: continuous actions
-        head = (CATEGORICAL_HEAD if n is not None
-                else GAUSSIAN_HEAD if cfg.distribution == "gaussian" else POLICY_HEAD)  # fmt: skip
+        self.agent = PPO(env.obs_shapes, env.action_dim, cfg, n).to(env.device)
+        head = (CATEGORICAL_HEAD if self.agent.categorical
+                else GAUSSIAN_HEAD if self.agent.gaussian else POLICY_HEAD)  # fmt: skip
         self.policy_meta = {"policy_head": head}  # what load_policy dispatches on
         if n is not None:
             self.policy_meta["num_actions"] = n
-        self.agent = PPO(env.obs_shapes, env.action_dim, cfg, n).to(env.device)
         self.rollout = Rollout(cfg.rollout_steps, env.num_envs, env.obs_shapes, env.action_dim,
                                self.agent.num_values, env.device)  # fmt: skip
         self.rollouts = 0
