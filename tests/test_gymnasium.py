@@ -567,6 +567,36 @@ def test_bench_table_says_when_the_seeds_of_a_row_ran_different_configurations()
     assert "| 17 ± 20 (n=3) | yes (2/3 seeds) |" in markdown_table("safe", rows, 25.0)
 
 
+def test_bench_table_names_a_csac_that_departs_from_the_paper_a_variant():
+    """The safe suite's CSAC runs a recipe whose equations are not all the paper's: its row says
+    "variant" and lists the departures; the paper's config keeps the name csac."""
+    from safenav.algos.config import paper_departures
+    from safenav.bench.gym import markdown_table, summarize
+
+    assert paper_departures({}) == []  # every field at its default: the paper's method
+    recipe = {"cost_target": "max", "cost_critic_output": "clipped", "lambda_lr": 1e-3,
+              "curriculum": {"enabled": False, "d_init": 25.0}}  # fmt: skip
+    assert paper_departures(recipe) == [
+        "cost_target=max (paper: mean)",
+        "cost_critic_output=clipped (paper: linear)",
+        "curriculum.enabled=False (paper: True)",
+    ]  # lambda_lr and d_init are hyperparameters of the same equations
+
+    def result(csac: dict) -> dict:
+        return {"trial": {"env": "SafetyHopperVelocity-v5", "algo": "csac", "impl": "safenav",
+                          "seed": 1, "steps": 400}, "final": {"return": 100.0, "cost": 5.0},
+                "wall_clock_s": 10.0, "config": {"algo": "csac", "csac": csac}}  # fmt: skip
+
+    table = markdown_table("safe", summarize("safe", [result(recipe)], 25.0), 25.0)
+    assert "| SafetyHopperVelocity-v5 | csac (variant) | 400 |" in table
+    assert (
+        "not the paper's CSAC, its config departs from the paper's equations in cost_target=max"
+        in table
+    )
+    paper = markdown_table("safe", summarize("safe", [result({"lambda_lr": 1e-3})], 25.0), 25.0)
+    assert "| SafetyHopperVelocity-v5 | csac | 400 |" in paper and "variant" not in paper
+
+
 def test_an_unconstrained_row_ignores_the_constraints_settings():
     """SAC's seeds that ran under two versions of a recipe whose cost side changed (SAC reads
     none of it) are one configuration; a change SAC reads is still a difference."""

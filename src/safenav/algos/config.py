@@ -194,4 +194,32 @@ class CSACConfig:
         return self.gamma if self.cost_gamma is None else self.cost_gamma
 
 
-__all__ = ["CSACConfig"]
+PAPER_EQUATION_FIELDS = (
+    "cost_target", "cost_critic_output", "cost_scale", "cost_n_step", "cost_gamma",
+    "lambda_warmup_steps", "balance_critic_losses", "action_noise_beta", "planner_share",
+    "curriculum.enabled",
+)  # fmt: skip
+"""The ``CSACConfig`` fields (dotted) whose non-default values change the paper's equations
+(Eqs. 6-11, the constraint curriculum, the rollout actions) rather than a hyperparameter of
+them: the defaults are the paper's."""
+
+
+def paper_departures(csac: dict) -> list[str]:
+    """What a CSAC config (a ``config.json``'s ``csac`` section) changes in the paper's method,
+    as ``field=value (paper: default)``: a result of such a config is a variant and is named so
+    (``safenav bench safe``'s table marks its row). A field the config lacks (written before the
+    field existed) ran with its default."""
+    from dataclasses import asdict
+
+    paper = asdict(CSACConfig())
+    out = []
+    for name in PAPER_EQUATION_FIELDS:
+        head, _, tail = name.partition(".")
+        default = paper[head][tail] if tail else paper[head]
+        value = (csac.get(head) or {}).get(tail, default) if tail else csac.get(head, default)
+        if value != default:
+            out.append(f"{name}={value} (paper: {default})")
+    return out
+
+
+__all__ = ["PAPER_EQUATION_FIELDS", "CSACConfig", "paper_departures"]

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from safenav.algos.config import paper_departures
 from safenav.bench import zoo_curves
 from safenav.bench.suites import CONSTRAINED, DEFAULT_SB3, SUITES, Reference, Task
 from safenav.errors import SafenavError, SafenavRuntimeError
@@ -358,6 +359,9 @@ def summarize(suite: str, results: list[dict[str, Any]], cost_limit: float) -> l
                          "wall_clock_s": wall, "seeds": sorted(x["trial"]["seed"] for x in rs)}  # fmt: skip
             if differ := config_differences(rs):
                 row[impl]["config_differs"] = differ
+            config = next((x["config"] for x in rs if x.get("config")), {})
+            if algo == "csac" and (departs := paper_departures(config.get("csac", {}))):
+                row[impl]["paper_departures"] = departs  # a variant: named so in the table
             if resumed := {x["trial"]["seed"]: x["resumed_at"] for x in rs if x.get("resumed_at")}:
                 row[impl]["resumed"] = resumed  # seed -> the steps it was resumed at
         if len(impls) > 1:  # wall clocks compare only on one machine on one day
@@ -420,17 +424,22 @@ def markdown_table(suite: str, rows: list[dict[str, Any]], cost_limit: float) ->
             at = "" if ref.steps == r["steps"] else f" at {_count(ref.steps)}"
             refs = f"{ref.value:.0f} / {ref.cost:.1f}{at} ({ref.source})"
         wall = f"{s['wall_clock_s']:.0f} s" if s else "-"
-        lines.append(f"| {r['env']} | {r['algo']} | {_count(r['steps'])} | {pm(s, 'return')} | "
+        algo = r["algo"] + (" (variant)" if (s or {}).get("paper_departures") else "")
+        lines.append(f"| {r['env']} | {algo} | {_count(r['steps'])} | {pm(s, 'return')} | "
                      f"{pm(s, 'cost')} | {ok} | {refs} | {wall} |")  # fmt: skip
     return "\n".join(lines + _row_notes(rows)) + "\n"
 
 
 def _row_notes(rows: list[dict[str, Any]]) -> list[str]:
-    """A line under the table for each row whose seeds ran with different configurations, and
+    """A line under the table for each CSAC row whose config departs from the paper's equations
+    (``paper_departures``), each row whose seeds ran with different configurations, and
     for each row with a seed that was stopped and resumed (its figure would not replay bit for
     bit from the command: the envs' states are not checkpointed)."""
     notes = []
     for r in rows:
+        if departs := (r.get("safenav") or {}).get("paper_departures"):
+            notes.append(f"\n{r['env']} {r['algo']} (variant): not the paper's CSAC, its config "
+                         f"departs from the paper's equations in {', '.join(departs)}.")  # fmt: skip
         for impl in ("safenav", "sb3"):
             if resumed := (r.get(impl) or {}).get("resumed"):
                 where = "; ".join(f"seed {seed} at {', '.join(f'{n:,}' for n in steps)} steps"
