@@ -597,6 +597,42 @@ def test_bench_table_names_a_csac_that_departs_from_the_paper_a_variant():
     assert "| SafetyHopperVelocity-v5 | csac | 400 |" in paper and "variant" not in paper
 
 
+def test_bench_safe_states_its_target_with_intervals():
+    """The safe table ends with the target per task: CSAC's mean cost within the limit with the
+    highest constrained return, "shown" only where the intervals support it."""
+    from safenav.bench.gym import markdown_table, safe_targets, summarize
+
+    def result(algo: str, seed: int, ret: float, cost: float) -> dict:
+        return {"trial": {"env": "SafetyHopperVelocity-v5", "algo": algo, "impl": "safenav",
+                          "seed": seed, "steps": 400}, "final": {"return": ret, "cost": cost},
+                "wall_clock_s": 10.0}  # fmt: skip
+
+    def target(csac: list[tuple[float, float]], lag: list[tuple[float, float]]) -> dict:
+        results = [result("csac", i + 1, r, c) for i, (r, c) in enumerate(csac)]
+        results += [result("sac_lag", i + 1, r, c) for i, (r, c) in enumerate(lag)]
+        results.append(result("sac", 1, 5000.0, 900.0))  # unconstrained: not compared
+        (t,) = safe_targets(summarize("safe", results, 25.0), 25.0)
+        return t
+
+    far = target([(2000, 1), (2100, 2), (2050, 0)], [(1000, 3), (1100, 1), (1050, 2)])
+    assert far["verdict"] == "shown" and [v["algo"] for v in far["versus"]] == ["sac_lag"]
+    assert far["versus"][0]["difference"] == pytest.approx(1000.0)
+    assert far["cost_ci95"][1] < 25 and far["seeds_under_limit"] == 3
+    near = target([(2000, 1), (1000, 20), (1500, 5)], [(1400, 3), (1100, 1), (1600, 2)])
+    assert near["verdict"] == "not shown"  # the means meet it, the intervals do not
+    over = target([(2000, 1), (2100, 60), (2050, 30)], [(1000, 3), (1100, 1), (1050, 2)])
+    assert over["verdict"] == "not met"  # mean cost 30.3 over the limit
+    lower = target([(900, 1), (1000, 2), (950, 0)], [(1000, 3), (1100, 1), (1050, 2)])
+    assert lower["verdict"] == "not met"  # within the limit, a lower return
+    one = target([(2000, 1)], [(1000, 3), (1100, 1)])
+    assert one["verdict"] is None and one["cost_ci95"] is None
+    rows = summarize("safe", [result("csac", 1, 2000, 1), result("csac", 2, 2100, 2),
+                              result("sac_lag", 1, 1000, 3), result("sac_lag", 2, 1100, 1)], 25.0)  # fmt: skip
+    table = markdown_table("safe", rows, 25.0)
+    assert "**Target on SafetyHopperVelocity-v5** (CSAC's mean episode cost <= 25" in table
+    assert "against sac_lag (400) +1000 (Welch 95 % CI" in table
+
+
 def test_an_unconstrained_row_ignores_the_constraints_settings():
     """SAC's seeds that ran under two versions of a recipe whose cost side changed (SAC reads
     none of it) are one configuration; a change SAC reads is still a difference."""
@@ -757,7 +793,10 @@ def test_bench_safe_on_a_tiny_budget(tmp_path, capsys):
         trial["config"]["csac"]["curriculum"]["d_min"] == 25.0
         and trial["config"]["csac"]["learning_starts"] == 100
     )
-    assert "| SafetyHopperVelocity-v5 | csac | 300 |" in (out / "table.md").read_text()
+    table = (out / "table.md").read_text()
+    assert "| SafetyHopperVelocity-v5 | csac (variant) | 300 |" in table  # the recipe departs
+    assert "cost_critic_output=clipped (paper: linear)" in table
+    assert "its return: not compared (no other constrained row)" in table
     # the recipe's cost critics are non-negative, and the bias check reads them on a Gymnasium
     # task (no collisions there: its "cost ahead" fields, not SafeNav's "near collision")
     assert trial["config"]["csac"]["cost_critic_output"] == "clipped"

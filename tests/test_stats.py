@@ -46,6 +46,31 @@ def test_mean_difference_is_resolved_only_when_its_interval_excludes_zero():
     assert stats.mean_difference([0.1], [0.2, 0.3]) is None
 
 
+def test_welch_difference_and_the_mean_t_interval_match_their_textbook_values():
+    """Welch's interval on two groups of seeds (the safe suite's target) against the formula with
+    Welch-Satterthwaite degrees of freedom; the mean's t-interval against mean +- t * s / sqrt(n)."""
+    import numpy as np
+    from scipy.stats import t
+
+    a, b = [497.4, 1060.6], [1685.0, 1460.0, 1061.0]
+    w = stats.welch_difference(a, b)
+    va, vb = np.var(a, ddof=1) / 2, np.var(b, ddof=1) / 3
+    dof = (va + vb) ** 2 / (va**2 / 1 + vb**2 / 2)
+    half = t.ppf(0.975, dof) * np.sqrt(va + vb)
+    assert w["difference"] == pytest.approx(np.mean(a) - np.mean(b))
+    assert w["ci95"] == pytest.approx([w["difference"] - half, w["difference"] + half])
+    assert not w["resolved"] and 0.05 < w["p_value"] < 1
+    assert stats.welch_difference([10.0, 11.0, 12.0], [1.0, 2.0, 1.5])["resolved"]
+    assert stats.welch_difference([1.0], [1.0, 2.0]) is None
+    exact = stats.welch_difference([3.0, 3.0], [1.0, 1.0])  # no spread: the difference is exact
+    assert exact["ci95"] == [2.0, 2.0] and exact["resolved"]
+    costs = [0.0, 44.0, 28.5]
+    half = t.ppf(0.975, 2) * np.std(costs, ddof=1) / np.sqrt(3)
+    assert stats.mean_t_interval(costs) == pytest.approx([np.mean(costs) - half,
+                                                         np.mean(costs) + half])  # fmt: skip
+    assert stats.mean_t_interval([5.0]) is None and stats.mean_t_interval([2.0, 2.0]) == [2.0, 2.0]
+
+
 def record(algo, seed, outcomes):
     n = len(outcomes)
     return {"algo": algo, "seed": seed, "success_rate": outcomes.count("S") / n,

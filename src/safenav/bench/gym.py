@@ -355,8 +355,11 @@ def summarize(suite: str, results: list[dict[str, Any]], cost_limit: float) -> l
             ret, ret_std = _mean_std([x["final"]["return"] for x in rs])
             cost, cost_std = _mean_std([x["final"]["cost"] for x in rs])
             wall, _ = _mean_std([x["wall_clock_s"] for x in rs])
+            by_seed = sorted(rs, key=lambda x: x["trial"]["seed"])
             row[impl] = {"return": ret, "return_std": ret_std, "cost": cost, "cost_std": cost_std,
-                         "wall_clock_s": wall, "seeds": sorted(x["trial"]["seed"] for x in rs)}  # fmt: skip
+                         "wall_clock_s": wall, "seeds": [x["trial"]["seed"] for x in by_seed],
+                         "returns": [x["final"]["return"] for x in by_seed],
+                         "costs": [x["final"]["cost"] for x in by_seed]}  # fmt: skip
             if differ := config_differences(rs):
                 row[impl]["config_differs"] = differ
             config = next((x["config"] for x in rs if x.get("config")), {})
@@ -384,6 +387,62 @@ def summarize(suite: str, results: list[dict[str, Any]], cost_limit: float) -> l
     order = list(SUITES[suite])
     rows.sort(key=lambda x: (order.index(x["env"]), x["algo"], x["steps"]))
     return rows
+
+
+def safe_targets(rows: list[dict[str, Any]], cost_limit: float) -> list[dict[str, Any]]:
+    """The safe suite's target per task, from the rows' final evaluations: CSAC's mean episode
+    cost within the limit, with the highest return of the constrained algorithms. Each part with
+    its 95 % interval (the mean cost's t-interval; Welch's interval on CSAC's return minus each
+    other constrained row's). ``verdict``: ``shown`` where the intervals support both parts (the
+    cost interval under the limit, every return interval above 0), ``not shown`` where only the
+    means do, ``not met`` where a mean does not; None below two seeds a row."""
+    from safenav.experiments.stats import mean_t_interval, welch_difference
+
+    targets = []
+    for csac in (r for r in rows if r["algo"] == "csac" and "safenav" in r):
+        c = csac["safenav"]
+        if "returns" not in c:  # a summary written before the rows kept their seeds' finals
+            continue
+        others = [r for r in rows if r["env"] == csac["env"] and r["algo"] in CONSTRAINED
+                  and r["algo"] != "csac" and "safenav" in r]  # fmt: skip
+        versus = [{"algo": r["algo"], "steps": r["steps"],
+                   **(welch_difference(c["returns"], r["safenav"]["returns"]) or {})}
+                  for r in others]  # fmt: skip
+        cost_ci = mean_t_interval(c["costs"])
+        verdict = None
+        if cost_ci is not None and all("ci95" in v for v in versus):
+            if c["cost"] > cost_limit or any(v["difference"] < 0 for v in versus):
+                verdict = "not met"
+            elif cost_ci[1] <= cost_limit and all(v["ci95"][0] > 0 for v in versus):
+                verdict = "shown"
+            else:
+                verdict = "not shown"
+        targets.append({"env": csac["env"], "steps": csac["steps"], "cost": c["cost"],
+                        "cost_ci95": cost_ci, "seeds_under_limit": csac.get("seeds_under_limit"),
+                        "seeds": len(c["seeds"]), "versus": versus, "verdict": verdict})  # fmt: skip
+    return targets
+
+
+def _target_lines(targets: list[dict[str, Any]], cost_limit: float) -> list[str]:
+    def ci(pair: list[float] | None, digits: int = 0) -> str:
+        if pair is None:
+            return "n/a (one seed)"
+        low, high = (f"{x:.{digits}f}".replace(f"-{0:.{digits}f}", f"{0:.{digits}f}") for x in pair)
+        return f"{low} to {high}"
+
+    lines = []
+    for t in targets:
+        versus = "; ".join(
+            f"against {v['algo']} ({_count(v['steps'])}) {v['difference']:+.0f} (Welch 95 % CI "
+            f"{ci(v['ci95'])}, p = {v['p_value']:.2f})" if "ci95" in v else
+            f"against {v['algo']} ({_count(v['steps'])}): n/a (one seed)"
+            for v in t["versus"]
+        ) or "not compared (no other constrained row)"  # fmt: skip
+        lines.append(f"\n**Target on {t['env']}** (CSAC's mean episode cost <= {cost_limit:g} "
+                     f"with the highest constrained return): **{t['verdict'] or 'not yet (one seed)'}**"
+                     f". CSAC's cost {t['cost']:.1f} (95 % t-interval {ci(t['cost_ci95'], 1)}, "
+                     f"{t['seeds_under_limit']}/{t['seeds']} seeds within); its return: {versus}.")  # fmt: skip
+    return lines
 
 
 def markdown_table(suite: str, rows: list[dict[str, Any]], cost_limit: float) -> str:
@@ -427,7 +486,8 @@ def markdown_table(suite: str, rows: list[dict[str, Any]], cost_limit: float) ->
         algo = r["algo"] + (" (variant)" if (s or {}).get("paper_departures") else "")
         lines.append(f"| {r['env']} | {algo} | {_count(r['steps'])} | {pm(s, 'return')} | "
                      f"{pm(s, 'cost')} | {ok} | {refs} | {wall} |")  # fmt: skip
-    return "\n".join(lines + _row_notes(rows)) + "\n"
+    targets = _target_lines(safe_targets(rows, cost_limit), cost_limit)
+    return "\n".join(lines + _row_notes(rows) + targets) + "\n"
 
 
 def _row_notes(rows: list[dict[str, Any]]) -> list[str]:
@@ -533,11 +593,14 @@ def report(suite: str, trials: list[Trial], out: Path, cost_limit: float) -> lis
         raise SafenavRuntimeError(f"no finished trial of the {suite} suite in {out / 'trials'}")
     rows = summarize(suite, results, cost_limit)
     table = markdown_table(suite, rows, cost_limit)
-    for note in _row_notes(rows):
-        say(note.strip())
+    for note in _row_notes(rows) + _target_lines(safe_targets(rows, cost_limit), cost_limit):
+        say(note.strip().replace("**", ""))
     write_text_atomic(out / "table.md", table)
-    write_json(out / "summary.json", {"suite": suite, "cost_limit": cost_limit, "rows": rows,
-                                      "trials": len(results), "selected": len(trials)})  # fmt: skip
+    summary = {"suite": suite, "cost_limit": cost_limit, "rows": rows, "trials": len(results),
+               "selected": len(trials)}  # fmt: skip
+    if suite == "safe":
+        summary["targets"] = safe_targets(rows, cost_limit)
+    write_json(out / "summary.json", summary)
     plot_curves(suite, results, out / "curves.png", cost_limit)
     return rows
 

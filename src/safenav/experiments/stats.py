@@ -16,6 +16,9 @@ Every figure comes from scipy (no hand-written distribution):
 - **Difference of means over seeds** with a 95 % bootstrap CI (two independent samples of seeds,
   ``scipy.stats.bootstrap``): the seed-to-seed uncertainty, the one a claim about the algorithm
   must survive. A difference is *resolved* only where this interval excludes 0.
+- **Welch's t-interval** on a difference of means over seeds (``scipy.stats.ttest_ind``,
+  ``equal_var=False``) and the t-interval of one mean (``scipy.stats.ttest_1samp``): the
+  ``safenav bench safe`` target on rows of 2-3 seeds, where a bootstrap has too few values.
 """
 
 from __future__ import annotations
@@ -102,6 +105,42 @@ def mean_difference(a: Sequence[float], b: Sequence[float]) -> dict[str, Any] | 
         return None
     diff = float(xa.mean() - xb.mean())
     return {"difference": diff, "ci95": ci, "resolved": bool(ci[0] > 0 or ci[1] < 0)}
+
+
+def welch_difference(a: Sequence[float], b: Sequence[float]) -> dict[str, Any] | None:
+    """``mean(a) - mean(b)`` with Welch's 95 % t-interval and two-sided p
+    (``scipy.stats.ttest_ind``, ``equal_var=False``): two small groups of seeds whose spreads
+    differ, as the safe suite's rows of 2-3 seeds are (the percentile bootstrap of 3 values is far
+    narrower than their spread). None when a group has fewer than 2 values; a difference is
+    *resolved* only where the interval excludes 0."""
+    from scipy import stats
+
+    xa, xb = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    if len(xa) < 2 or len(xb) < 2:
+        return None
+    diff = float(xa.mean() - xb.mean())
+    if np.ptp(xa) == 0 and np.ptp(xb) == 0:  # no spread: t is undefined, the difference exact
+        return {"difference": diff, "ci95": [diff, diff], "p_value": float(diff == 0),
+                "resolved": diff != 0}  # fmt: skip
+    res = stats.ttest_ind(xa, xb, equal_var=False)
+    ci = res.confidence_interval(0.95)
+    low, high = float(ci.low), float(ci.high)
+    return {"difference": diff, "ci95": [low, high], "p_value": float(res.pvalue),
+            "resolved": bool(low > 0 or high < 0)}  # fmt: skip
+
+
+def mean_t_interval(values: Sequence[float]) -> list[float] | None:
+    """95 % t-interval of the mean of ``values`` (``scipy.stats.ttest_1samp``); None below 2
+    values, the mean itself as both ends when they do not vary."""
+    from scipy import stats
+
+    x = np.asarray(values, dtype=float)
+    if len(x) < 2:
+        return None
+    if np.ptp(x) == 0:
+        return [float(x[0]), float(x[0])]
+    ci = stats.ttest_1samp(x, 0.0).confidence_interval(0.95)
+    return [float(ci.low), float(ci.high)]
 
 
 def compare(reference: Sequence[dict[str, Any]], other: Sequence[dict[str, Any]]) -> dict[str, Any]:
