@@ -427,8 +427,8 @@ def _target_lines(targets: list[dict[str, Any]], cost_limit: float) -> list[str]
     def ci(pair: list[float] | None, digits: int = 0) -> str:
         if pair is None:
             return "n/a (one seed)"
-        low, high = (f"{x:.{digits}f}".replace(f"-{0:.{digits}f}", f"{0:.{digits}f}") for x in pair)
-        return f"{low} to {high}"
+        low, high = (round(x, digits) + 0.0 for x in pair)  # + 0.0: no "-0"
+        return f"{low:.{digits}f} to {high:.{digits}f}"
 
     lines = []
     for t in targets:
@@ -469,7 +469,7 @@ def markdown_table(suite: str, rows: list[dict[str, Any]], cost_limit: float) ->
                 refs += f"; **{_ref_text(Reference(**same), r['steps'])}**"
             lines.append(f"| {r['env']} | {r['algo']} | {_count(r['steps'])} | {pm(s, 'return')} | "
                          f"{refs} | {ok} | {pm(b, 'return')} | {wall} |")  # fmt: skip
-        return "\n".join(lines + _row_notes(rows)) + "\n"
+        return "\n".join(lines + _notes(suite, rows, cost_limit)) + "\n"
     lines = [f"| task | algo | steps | return | episode cost | mean cost <= {cost_limit:g} | OmniSafe "
              "(published): return / cost | wall clock |", "|---|---|---:|---:|---:|:---:|---|---:|"]  # fmt: skip
     for r in rows:
@@ -486,8 +486,14 @@ def markdown_table(suite: str, rows: list[dict[str, Any]], cost_limit: float) ->
         algo = r["algo"] + (" (variant)" if (s or {}).get("paper_departures") else "")
         lines.append(f"| {r['env']} | {algo} | {_count(r['steps'])} | {pm(s, 'return')} | "
                      f"{pm(s, 'cost')} | {ok} | {refs} | {wall} |")  # fmt: skip
-    targets = _target_lines(safe_targets(rows, cost_limit), cost_limit)
-    return "\n".join(lines + _row_notes(rows) + targets) + "\n"
+    return "\n".join(lines + _notes(suite, rows, cost_limit)) + "\n"
+
+
+def _notes(suite: str, rows: list[dict[str, Any]], cost_limit: float) -> list[str]:
+    """The lines under a suite's table (and on the terminal): the rows' notes, then the safe
+    suite's target per task."""
+    targets = safe_targets(rows, cost_limit) if suite == "safe" else []
+    return _row_notes(rows) + _target_lines(targets, cost_limit)
 
 
 def _row_notes(rows: list[dict[str, Any]]) -> list[str]:
@@ -593,7 +599,7 @@ def report(suite: str, trials: list[Trial], out: Path, cost_limit: float) -> lis
         raise SafenavRuntimeError(f"no finished trial of the {suite} suite in {out / 'trials'}")
     rows = summarize(suite, results, cost_limit)
     table = markdown_table(suite, rows, cost_limit)
-    for note in _row_notes(rows) + _target_lines(safe_targets(rows, cost_limit), cost_limit):
+    for note in _notes(suite, rows, cost_limit):
         say(note.strip().replace("**", ""))
     write_text_atomic(out / "table.md", table)
     summary = {"suite": suite, "cost_limit": cost_limit, "rows": rows, "trials": len(results),
