@@ -6,7 +6,7 @@ linear output ``z`` (before the ``softplus`` or ``clipped`` read-out) at the sto
 in slices of the buffer in storage order (the order collected, until a full buffer wraps). For a
 softplus critic the gradient of ``Q_C = softplus(z)`` is ``sigmoid(z)``: once ``z`` lies far below
 0 on every transition (``sigmoid`` below Adam's ``eps`` of 1e-8 relative to the loss), no target
-brings it back, and Q_C stays ~0 whatever the episodes cost (docs/gymnasium.md, the lambda warm-up
+brings it back, and Q_C stays ~0 whatever the episodes cost (docs/gymnasium-results.md, the lambda warm-up
 screen).
 
 Run: ``.venv/bin/python experiments/cost_critic_preactivation.py RUN/checkpoint.pt

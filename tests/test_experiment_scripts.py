@@ -4,7 +4,7 @@ tiny CSAC run: ``checkpoint_sweep.py`` (with ``--sampled``), ``cost_critic_bias.
 ``vecenv_overhead.py`` (docs/gymnasium.md) on Pendulum-v1; ``shield_memory.py`` (docs/deployment.md);
 ``finish_runs.py`` (docs/csac-v1.md); ``shield_collisions.py`` (docs/deployment.md);
 ``collision_rule.py`` (docs/csac-v1.md); ``cost_critic_preactivation.py`` and
-``velocity_profile.py`` (docs/gymnasium.md) on a tiny CSAC run of SafetyHopperVelocity-v5."""
+``velocity_profile.py`` (docs/gymnasium-results.md) on a tiny CSAC run of SafetyHopperVelocity-v5."""
 
 from __future__ import annotations
 
