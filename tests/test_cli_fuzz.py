@@ -276,6 +276,7 @@ VERDICTS: dict[str, dict[str, int]] = {
     "bench --repeats": {}, "bench --num-envs": MEMORY, "bench --env-steps": POSITIVE,
     "bench --updates": POSITIVE, "bench --seeds": {}, "bench --first-seed": {},
     "bench --steps": NONNEG, "bench --jobs": {}, "bench --cost-limit": NONNEG,
+    "bench --max-trials": {"0": ACCEPTED},  # fuzzed on bench env, where N > 0 is refused
     "tune --trials": {}, "tune --total-steps": POSITIVE, "tune --seed": {"0": ACCEPTED},
     "tune --episodes": {}, "tune --jobs": {}, "tune --torch-threads": {},
     "tune --space-seed": {"0": ACCEPTED},

@@ -524,6 +524,29 @@ def test_bench_gym_on_a_tiny_budget_writes_its_files_and_resumes(tmp_path, capsy
     assert json.loads((out / "summary.json").read_text())["rows"][0]["sb3"]["seeds"] == [1]
 
 
+@pytest.mark.long
+def test_bench_max_trials_runs_a_suite_in_pieces(tmp_path, capsys):
+    """--max-trials N runs the first N pending trials whole and reports; the next run takes the
+    next ones. Nothing is stopped midway, so no row is a resumed run."""
+    out = tmp_path / "gym"
+    argv = ["bench", "gym", "--tasks", "Pendulum-v1", "--algos", "sac", "--seeds", "2", "--steps",
+            "300", "--sb3", "--out", str(out), "--no-progress", "--max-trials", "1"]  # fmt: skip
+    code, _, err = run(capsys, argv)
+    assert code == 0, err
+    assert "0 already done (skipped), 1 to run (1 left for a later run: --max-trials)" in err
+    assert sorted(p.name for p in (out / "trials").iterdir()) == [
+        "Pendulum-v1-sac-safenav-300-s1.json"
+    ]
+    assert "| Pendulum-v1 | sac | 300 | -" in (out / "table.md").read_text()  # seed 1's row
+    code, _, err = run(capsys, argv)
+    assert code == 0 and "1 already done (skipped), 1 to run; results" in err
+    trials = sorted(p.name for p in (out / "trials").iterdir())
+    assert trials[-1] == "Pendulum-v1-sac-safenav-300-s2.json"
+    assert not any(json.loads((out / "trials" / t).read_text())["resumed_at"] for t in trials)
+    code, _, err = run(capsys, ["bench", "env", "--max-trials", "1"])
+    assert code == 2 and "--max-trials applies to bench gym and bench safe" in err
+
+
 def test_bench_first_seed_screens_on_seeds_clear_of_the_reported_ones():
     from safenav.bench.gym import plan_trials
 

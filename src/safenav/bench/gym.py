@@ -217,9 +217,11 @@ def say(text: str) -> None:
 
 
 def run_trials(trials: list[Trial], out: Path, cost_limit: float, jobs: int = 1,
-               progress: bool = True, extra: tuple[str, ...] = ()) -> list[str]:  # fmt: skip
-    """Run the trials that have no trial file yet, ``jobs`` at a time (each a child process,
-    :func:`safenav.common.child_runs.run_queue`); returns the failures."""
+               progress: bool = True, extra: tuple[str, ...] = (),
+               max_trials: int = 0) -> list[str]:  # fmt: skip
+    """Run the trials that have no trial file yet (the first ``max_trials`` of them, 0 = all),
+    ``jobs`` at a time (each a child process, :func:`safenav.common.child_runs.run_queue`);
+    returns the failures."""
     from rich.console import Console
 
     from safenav.common.child_runs import ChildRun, run_queue
@@ -227,9 +229,12 @@ def run_trials(trials: list[Trial], out: Path, cost_limit: float, jobs: int = 1,
 
     for sub in ("trials", "runs", "logs"):
         (out / sub).mkdir(parents=True, exist_ok=True)
-    todo = [t for t in trials if not (out / "trials" / f"{t.name}.json").is_file()]
-    say(f"{len(trials)} trials, {len(trials) - len(todo)} already done (skipped), {len(todo)} to "
-        f"run; results in {out}")  # fmt: skip
+    pending = [t for t in trials if not (out / "trials" / f"{t.name}.json").is_file()]
+    todo = pending[:max_trials] if max_trials else pending
+    left = len(pending) - len(todo)
+    later = f" ({left} left for a later run: --max-trials)" if left else ""
+    say(f"{len(trials)} trials, {len(trials) - len(pending)} already done (skipped), {len(todo)} "
+        f"to run{later}; results in {out}")  # fmt: skip
 
     def child(trial: Trial) -> ChildRun:
         def finish(wall_s: float) -> str:
@@ -615,13 +620,14 @@ def bench_suite(suite: str, out: Path, tasks: tuple[str, ...] = (), algos: tuple
                 seeds: int = 3, steps: int = 0, sb3: tuple[str, ...] | None = None,
                 jobs: int = 1, cost_limit: float = 25.0, report_only: bool = False,
                 progress: bool = True, extra: tuple[str, ...] = (),
-                first_seed: int = 1) -> list[dict[str, Any]]:  # fmt: skip
+                first_seed: int = 1, max_trials: int = 0) -> list[dict[str, Any]]:  # fmt: skip
     """Run (or, with ``report_only``, only report) a suite; see the module docstring. ``extra``:
     more ``safenav train`` options for every safenav trial (not part of a trial's name: give a
     new ``out`` when they change). ``first_seed``: 101 and up screen on seeds that no reported
-    row uses (those are 1..N)."""
+    row uses (those are 1..N). ``max_trials``: run only the first that many pending trials."""
     trials = plan_trials(suite, tasks, algos, seeds, steps, sb3, first_seed)
-    failures = [] if report_only else run_trials(trials, out, cost_limit, jobs, progress, extra)
+    failures = [] if report_only else run_trials(trials, out, cost_limit, jobs, progress, extra,
+                                                 max_trials)  # fmt: skip
     rows = report(suite, trials, out, cost_limit)
     print((out / "table.md").read_text(), end="")
     print(

@@ -29,6 +29,7 @@ def bench(
     steps: int = 0,
     sb3: tuple[str, ...] | None = None,
     jobs: int = 1,
+    max_trials: int = 0,
     cost_limit: float = 25.0,
     report_only: bool = False,
     progress: bool = True,
@@ -66,6 +67,10 @@ def bench(
         steps: gym, safe: env steps per trial; 0 = each task's budget (docs/gymnasium.md).
         sb3: gym: tasks on which Stable-Baselines3 runs too (default Pendulum-v1 Hopper-v5).
         jobs: gym, safe: trials run at once, one torch thread each.
+        max_trials: gym, safe: run at most this many of the pending trials (in the plan's order),
+            then report; 0 = all. A long suite in pieces that each end with their trials
+            finished (a stopped trial resumes, but continues differently from a run that was not
+            stopped, and its row says so).
         cost_limit: safe: the episode-cost limit of the constrained algorithms.
         report_only: gym, safe: write the table and figure from the trial files, run nothing.
         progress: gym, safe: the live progress bars.
@@ -94,10 +99,11 @@ def bench(
     in_range("--first-seed", first_seed, 1, 1_000_000)
     in_range("--jobs", jobs, 1, os.cpu_count() or 1, "CPU cores of this machine")
     at_least("--steps", steps, 0)
+    at_least("--max-trials", max_trials, 0)
     at_least("--cost-limit", cost_limit, 0)
     suite = which in ("gym", "safe")
     for flag, given in (("--tasks", tasks), ("--algos", algos), ("--sb3", sb3),
-                        ("--train-args", train_args)):  # fmt: skip
+                        ("--train-args", train_args), ("--max-trials", max_trials)):  # fmt: skip
         if given and not suite:
             from safenav.errors import SafenavError
 
@@ -113,7 +119,7 @@ def bench(
         extra = split_train_args(train_args)
         out = Path("benchmarks/results") / which if out is None else out
         bench_suite(which, out, tasks, algos, seeds, steps, sb3, jobs, cost_limit, report_only,
-                    progress, extra, first_seed)  # fmt: skip
+                    progress, extra, first_seed, max_trials)  # fmt: skip
     elif which == "env":
         from safenav.bench.env import bench_env
 
