@@ -116,8 +116,8 @@ def train_command(trial: Trial, out: Path, cost_limit: float,
             str(run_dir), "--overwrite", "--eval-every", str(trial.eval_every), "--eval-episodes",
             str(EVAL_EPISODES), "--log-every", str(max(1, trial.steps // 100)),
             "--checkpoint-every", str(max(1, trial.steps // 10))]  # fmt: skip
-    if trial.algo not in PPO_ALGOS:  # an off-policy trial resumes with its replay buffer,
-        cmd.append("--save-buffer")  # as if it had never stopped (else it refills it first)
+    if trial.algo not in PPO_ALGOS:  # an off-policy trial resumes with its replay buffer
+        cmd.append("--save-buffer")  # (else it would refill it first)
     if trial.algo in CONSTRAINED:  # the cost limit: a fixed episode-cost budget d
         family = "ppo" if trial.algo == "ppo_lag" else "csac"
         cmd += [f"--{family}.curriculum.no-enabled", f"--{family}.curriculum.d-init",
