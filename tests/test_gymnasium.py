@@ -649,6 +649,9 @@ def test_bench_safe_states_its_target_with_intervals():
     assert lower["verdict"] == "not met"  # within the limit, a lower return
     one = target([(2000, 1)], [(1000, 3), (1100, 1)])
     assert one["verdict"] is None and one["cost_ci95"] is None
+    # a mean over the limit is "not met" before the other rows have their seeds
+    early = target([(2000, 1), (2100, 60)], [(1000, 3)])
+    assert early["verdict"] == "not met" and "ci95" not in early["versus"][0]
     rows = summarize("safe", [result("csac", 1, 2000, 1), result("csac", 2, 2100, 2),
                               result("sac_lag", 1, 1000, 3), result("sac_lag", 2, 1100, 1)], 25.0)  # fmt: skip
     table = markdown_table("safe", rows, 25.0)
