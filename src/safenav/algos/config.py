@@ -85,12 +85,12 @@ class CSACConfig:
     ``max(Q_C, 0)`` by Eq. 6's targets, the actor's Eq. 9 and Eq. 11). Beyond the paper: a linear
     Q_C extrapolates below 0 at actions the data never showed, the actor's ``lambda * Q_C`` term
     (Eq. 9) seeks them out, the negative values feed Eq. 6's targets and Eq. 11 reads a constraint
-    met (docs/gymnasium-results.md, Hopper). A softplus critic pulled towards targets of 0 is driven far
-    below 0 by Adam (whose step does not shrink with the vanishing gradient) and then cannot come
-    back: on SafetyHopperVelocity-v5 its pre-activations reached -15 to -3,800 on every replayed
-    transition, Q_C ~1e-13 while 9 in 10 steps cost 1. ``clipped`` keeps both properties apart:
-    no reader sees a value below 0 (none seeks one: no gradient there), and the loss always has a
-    gradient."""
+    met (docs/gymnasium-results.md, Hopper). A softplus critic pulled towards targets of 0 is
+    driven far below 0 by Adam (whose step does not shrink with the vanishing gradient) and then
+    cannot come back: on SafetyHopperVelocity-v5 its pre-activations reached -15 to -3,800 on
+    every replayed transition, Q_C ~1e-13 while 9 in 10 steps cost 1. ``clipped`` keeps both
+    properties apart: no reader sees a value below 0 (none seeks one: no gradient there), and the
+    loss always has a gradient."""
     cost_n_step: int = 1
     """Steps of the cost target: 1 = Eq. 6; n > 1 = the n-step return of the behaviour policy's
     costs, then the target critics (beyond the paper, ``common.nstep``); reward stays one-step."""

@@ -452,7 +452,13 @@ def _target_lines(targets: list[dict[str, Any]], cost_limit: float) -> list[str]
     return lines
 
 
-def markdown_table(suite: str, rows: list[dict[str, Any]], cost_limit: float) -> str:
+def markdown_table(
+    suite: str, rows: list[dict[str, Any]], cost_limit: float, notes: list[str] | None = None
+) -> str:
+    """The suite's table, then the lines under it (``notes``: :func:`_notes`, computed here
+    unless the caller has them)."""
+    notes = _notes(suite, rows, cost_limit) if notes is None else notes
+
     def pm(d: dict | None, key: str) -> str:
         if d is None:
             return "-"
@@ -476,7 +482,7 @@ def markdown_table(suite: str, rows: list[dict[str, Any]], cost_limit: float) ->
                 refs += f"; **{_ref_text(Reference(**same), r['steps'])}**"
             lines.append(f"| {r['env']} | {r['algo']} | {_count(r['steps'])} | {pm(s, 'return')} | "
                          f"{refs} | {ok} | {pm(b, 'return')} | {wall} |")  # fmt: skip
-        return "\n".join(lines + _notes(suite, rows, cost_limit)) + "\n"
+        return "\n".join(lines + notes) + "\n"
     lines = [f"| task | algo | steps | return | episode cost | mean cost <= {cost_limit:g} | OmniSafe "
              "(published): return / cost | wall clock |", "|---|---|---:|---:|---:|:---:|---|---:|"]  # fmt: skip
     for r in rows:
@@ -493,13 +499,19 @@ def markdown_table(suite: str, rows: list[dict[str, Any]], cost_limit: float) ->
         algo = r["algo"] + (" (variant)" if (s or {}).get("paper_departures") else "")
         lines.append(f"| {r['env']} | {algo} | {_count(r['steps'])} | {pm(s, 'return')} | "
                      f"{pm(s, 'cost')} | {ok} | {refs} | {wall} |")  # fmt: skip
-    return "\n".join(lines + _notes(suite, rows, cost_limit)) + "\n"
+    return "\n".join(lines + notes) + "\n"
 
 
-def _notes(suite: str, rows: list[dict[str, Any]], cost_limit: float) -> list[str]:
+def _notes(
+    suite: str,
+    rows: list[dict[str, Any]],
+    cost_limit: float,
+    targets: list[dict[str, Any]] | None = None,
+) -> list[str]:
     """The lines under a suite's table (and on the terminal): the rows' notes, then the safe
-    suite's target per task."""
-    targets = safe_targets(rows, cost_limit) if suite == "safe" else []
+    suite's target per task (``targets``: :func:`safe_targets`, computed here if not given)."""
+    if targets is None:
+        targets = safe_targets(rows, cost_limit) if suite == "safe" else []
     return _row_notes(rows) + _target_lines(targets, cost_limit)
 
 
@@ -605,14 +617,15 @@ def report(suite: str, trials: list[Trial], out: Path, cost_limit: float) -> lis
     if not results:
         raise SafenavRuntimeError(f"no finished trial of the {suite} suite in {out / 'trials'}")
     rows = summarize(suite, results, cost_limit)
-    table = markdown_table(suite, rows, cost_limit)
-    for note in _notes(suite, rows, cost_limit):
+    targets = safe_targets(rows, cost_limit) if suite == "safe" else []
+    notes = _notes(suite, rows, cost_limit, targets)  # under the table and on the terminal
+    for note in notes:
         say(note.strip().replace("**", ""))
-    write_text_atomic(out / "table.md", table)
+    write_text_atomic(out / "table.md", markdown_table(suite, rows, cost_limit, notes))
     summary = {"suite": suite, "cost_limit": cost_limit, "rows": rows, "trials": len(results),
                "selected": len(trials)}  # fmt: skip
     if suite == "safe":
-        summary["targets"] = safe_targets(rows, cost_limit)
+        summary["targets"] = targets
     write_json(out / "summary.json", summary)
     plot_curves(suite, results, out / "curves.png", cost_limit)
     return rows

@@ -116,10 +116,10 @@ class MeasuredCostScale:
             self.last = self.q_mean / self.cost_mean
         if self.cost_n < self.min_episodes:
             return self.fallback
-        # Why a band: a cost critic sliding below its floor (Hopper, docs/gymnasium-results.md) took the
-        # ratio, hence d_Q, to ~0, and every Q_C then read as a violation; the modelled ratio
-        # (cost spread evenly) is within a factor 6 of every ratio measured (SafeNav 0.03-0.1 vs
-        # 0.062, Hopper 0.036-0.54 vs 0.090)
+        # Why a band: a cost critic sliding below its floor (Hopper, docs/gymnasium-results.md)
+        # took the ratio, hence d_Q, to ~0, and every Q_C then read as a violation; the modelled
+        # ratio (cost spread evenly) is within a factor 6 of every ratio measured (SafeNav
+        # 0.03-0.1 vs 0.062, Hopper 0.036-0.54 vs 0.090)
         return min(max(self.last, self.fallback / self.BAND), self.fallback * self.BAND)
 
     def d_q(self, d: float) -> float:
