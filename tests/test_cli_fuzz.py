@@ -228,6 +228,8 @@ VERDICTS: dict[str, dict[str, int]] = {
     "train --csac.lambda-every": POSITIVE, "train --csac.episode-lambda-lr": POSITIVE,
     "train --csac.lambda-window": NONNEG, "train --csac.cost-scale-episodes": POSITIVE,
     "train --csac.lambda-warmup-steps": NONNEG,
+    **{f"train --csac.pid-{g}": NONNEG for g in ("kp", "ki", "kd")},
+    "train --csac.pid-ema": {"0": ACCEPTED}, "train --csac.pid-d-delay": {},  # <= 1e6
     "train --csac.cost-n-step": MEMORY, "train --csac.cost-horizon": NONNEG,
     "train --csac.cost-gamma": {},  # in (0, 1]
     "train --csac.planner-share": {"0": ACCEPTED},  # in [0, 1)

@@ -16,7 +16,7 @@ from safenav.algos.losses import (
     lagrange_loss,
     reward_target,
 )
-from safenav.common.lagrange import Lagrange
+from safenav.common.lagrange import Lagrange, PIDLagrange
 from safenav.nn.networks import squashed_gaussian
 
 T = torch.tensor
@@ -124,6 +124,82 @@ def test_lagrange_is_never_negative_from_any_start_and_respects_a_cap():
     assert capped.value.item() == pytest.approx(1.0)
     with pytest.raises(ValueError):
         Lagrange(init=-1.0)
+
+
+def pid_steps(pid, signals, d):
+    """lambda after each of ``signals`` (each a batch of one)."""
+    out = []
+    for j in signals:
+        pid.update(T([j]), d=d)
+        out.append(pid.value.item())
+    return out
+
+
+def reference_pid(signals, d, kp, ki, kd, d_delay, ema, init=0.0, cap=None):
+    """Stooke et al. 2020, Algorithm 2, written out in floats: the lambda after each signal."""
+    integral, p, js, history, out = init, None, None, [], []
+    for j in signals:
+        e = j - d
+        integral = max(0.0, integral + ki * e)
+        p = e if p is None else ema * p + (1 - ema) * e
+        js = j if js is None else ema * js + (1 - ema) * j
+        history.append(js)
+        oldest = history[-d_delay - 1] if len(history) > d_delay else history[0] if len(
+            history) > 1 else js  # fmt: skip
+        lam = max(0.0, kp * p + integral + kd * max(0.0, js - oldest))
+        out.append(lam if cap is None else min(lam, cap))
+    return out
+
+
+@pytest.mark.parametrize("gains", [(0.0, 0.1, 0.0), (2.0, 0.0, 0.0), (0.0, 0.0, 3.0),
+                                   (1.0, 0.05, 2.0)])  # fmt: skip
+def test_pid_lagrange_follows_algorithm_2(gains):
+    kp, ki, kd = gains
+    signals = [0.5, 0.9, 1.4, 1.2, 0.3, 0.1, 0.0, 0.8, 2.0, 1.9, 0.2, 0.0]
+    pid = PIDLagrange(kp, ki, kd, d_delay=3, ema=0.6)
+    got = pid_steps(pid, signals, d=0.7)
+    want = reference_pid(signals, 0.7, kp, ki, kd, d_delay=3, ema=0.6)
+    assert got == pytest.approx(want, abs=1e-6)
+    assert min(got) >= 0.0
+
+
+def test_pid_lagrange_answers_a_violation_at_once_where_adam_creeps():
+    """The proportional term: one violated step moves lambda by kp * e at once; the gradient
+    step of Eq. 11 by about its learning rate. Met again, the proportional term pulls it back."""
+    pid, adam = PIDLagrange(kp=1.0, ki=1e-3, kd=0.0, d_delay=10, ema=0.0), Lagrange(lr=1e-3)
+    for lag in (pid, adam):
+        lag.update(T([3.0]), d=1.0)
+    assert pid.value.item() == pytest.approx(2.0 + 2e-3)
+    assert adam.value.item() == pytest.approx(1e-3, rel=0.01)
+    pid.update(T([0.0]), d=1.0)  # met by 1: kp * -1 + the integral 1e-3, projected to 0
+    assert pid.value.item() == 0.0 and pid.integral.item() == pytest.approx(1e-3)
+
+
+def test_pid_lagrange_derivative_only_on_a_rising_signal_and_a_cap():
+    pid = PIDLagrange(kp=0.0, ki=0.0, kd=1.0, d_delay=2, ema=0.0)
+    rising = pid_steps(pid, (1.0, 2.0, 4.0, 3.0), d=5.0)
+    assert rising == pytest.approx([0.0, 1.0, 3.0, 1.0])  # J now minus J two steps back (or first)
+    assert pid_steps(pid, (1.0, 0.5), d=5.0) == [0.0, 0.0]  # below 4.0 and 3.0: falling
+    capped = PIDLagrange(kp=10.0, ki=1.0, kd=0.0, d_delay=1, ema=0.0, max_value=2.0)
+    capped.update(T([9.0]), d=0.0)
+    assert capped.value.item() == 2.0
+    with pytest.raises(ValueError, match="constraint signal"):
+        capped.update(T([float("nan")]), d=0.0)
+
+
+def test_pid_lagrange_state_dict_resumes_the_controller_exactly():
+    signals = torch.linspace(0.0, 3.0, 25).tolist()
+    whole = PIDLagrange(kp=1.0, ki=0.1, kd=2.0, d_delay=4, ema=0.8)
+    for j in signals:
+        whole.update(T([j]), d=1.0)
+    first = PIDLagrange(kp=1.0, ki=0.1, kd=2.0, d_delay=4, ema=0.8)
+    for j in signals[:11]:
+        first.update(T([j]), d=1.0)
+    resumed = PIDLagrange(kp=1.0, ki=0.1, kd=2.0, d_delay=4, ema=0.8)
+    resumed.load_state_dict(first.state_dict())
+    for j in signals[11:]:
+        resumed.update(T([j]), d=1.0)
+    assert resumed.value.item() == whole.value.item()
 
 
 def test_squashed_gaussian_log_prob_matches_torch_distributions():

@@ -312,3 +312,57 @@ def test_lambda_warmup_holds_lambda_then_lets_it_rise(lambda_from):
     with pytest.raises(ValueError, match="lambda-warmup-steps"):
         CSACConfig(lambda_warmup_steps=-1)
     env.close()
+
+
+@pytest.mark.parametrize("lambda_from", ["q_cost", "episode_cost"])
+def test_pid_lambda_update_answers_either_signal_at_once_and_is_named_a_variant(lambda_from):
+    """``lambda_update="pid"``: the PID Lagrangian reads the signal ``lambda_from`` names (CSAC's
+    E[Q_C] against d_Q, SAC-Lag's episode cost against d); its proportional term moves lambda on
+    the first violated step; its state lives in the agent (no optimiser); a run is a variant."""
+    from dataclasses import asdict
+
+    from safenav.algos.config import paper_departures
+    from safenav.algos.csac import CSACLearner
+    from safenav.common.config import RunConfig
+    from safenav.common.lagrange import PIDLagrange
+    from safenav.envs.vector import TorchVecEnv, make_vec_env
+
+    env = TorchVecEnv(make_vec_env("Pendulum-v1", 1, "cpu"), "cpu")
+    cfg = CSACConfig(learning_starts=0, updates_per_step=1.0, batch_size=8, lambda_from=lambda_from,
+                     lambda_every=1, lambda_update="pid", pid_kp=0.5, pid_ki=0.01, pid_kd=0.0,
+                     net=NetConfig(hidden=(8, 8)))  # fmt: skip
+    learner = CSACLearner(env, RunConfig(env="Pendulum-v1", total_steps=1000), cfg)
+    assert isinstance(learner.agent.lagrange, PIDLagrange)
+    g = torch.Generator().manual_seed(0)
+    obs, nxt = {"obs": torch.randn(64, 3, generator=g)}, {"obs": torch.randn(64, 3, generator=g)}
+    learner.buffer.add(obs, torch.rand(64, 1, generator=g) * 2 - 1, torch.randn(64, generator=g),
+                       torch.ones(64), nxt, torch.zeros(64, dtype=torch.bool))  # fmt: skip
+    learner.warmup_until = 0
+    learner.observe({"cost": [40.0]})
+    d = -100.0 if lambda_from == "q_cost" else 25.0  # q_cost: d_Q far below any E[Q_C] at init
+    _, metrics = learner.update(1, d)
+    lam = float(learner.agent.lam)
+    if lambda_from == "episode_cost":  # J_c 40 against d 25: kp * 15 + ki * 15
+        assert lam == pytest.approx(0.5 * 15 + 0.01 * 15)
+    else:  # E[Q_C] of the batch against d_Q (d on the Q_C scale): kp * e + ki * e
+        e = float(metrics[0]["constraint/qc_pi"]) - learner.d_q(d)
+        assert e > 0 and lam == pytest.approx(0.51 * e, rel=1e-4)
+    assert "lambda" not in learner.agent.optimizer_state()
+    assert "lagrange.integral" in learner.agent.state_dict()
+    assert paper_departures(asdict(cfg)) == ["lambda_update=pid (paper: adam)"]
+    with pytest.raises(ValueError, match="pid-kp"):
+        CSACConfig(pid_kp=-1.0)
+    env.close()
+
+
+def test_csac_with_a_pid_lagrangian_trains_and_resumes_through_the_cli(tmp_path):
+    small = ["--csac.learning-starts", "128", "--csac.batch-size", "32", "--csac.net.hidden", "32",
+             "32", "--csac.lambda-update", "pid", "--csac.pid-kp", "0.5"]  # fmt: skip
+    run_dir = train(tmp_path, "csac", *small, env="Pendulum-v1", steps=256, envs=1)
+    cfg = json.loads((run_dir / "config.json").read_text())["csac"]
+    assert cfg["lambda_update"] == "pid" and cfg["pid_kp"] == 0.5
+    state = load_checkpoint(run_dir)["agent"]
+    steps = int(state["lagrange.steps"])
+    assert steps > 0
+    main(["train", "--resume", str(run_dir), "--total-steps", "384", *FAST])
+    assert int(load_checkpoint(run_dir)["agent"]["lagrange.steps"]) > steps

@@ -46,6 +46,22 @@ class CSACConfig:
     """Lagrange multiplier at the start (>= 0)."""
     lambda_max: float | None = None
     """Optional cap on lambda; None = unbounded (paper)."""
+    lambda_update: Literal["adam", "pid"] = "adam"
+    """How lambda follows its signal (``lambda_from``): ``adam``, the projected Adam step of
+    Eq. 11 at ``lambda_lr`` (``episode_lambda_lr``) (paper); ``pid``, beyond the paper, a PID
+    controller on the same violation (Stooke et al. 2020, ``common.lagrange.PIDLagrange``), whose
+    proportional and derivative terms answer a violation before the integral has built up: the
+    gradient step alone is an integral controller, which overshoots and swings around the limit."""
+    pid_kp: float = 1.0
+    """``pid``: proportional gain, lambda per unit of the (smoothed) violation ``J - d``."""
+    pid_ki: float = 1e-3
+    """``pid``: integral gain per update; with a violation of 1 the step of ``lambda_lr`` 1e-3."""
+    pid_kd: float = 1.0
+    """``pid``: derivative gain on the rise of the smoothed signal over ``pid_d_delay`` updates."""
+    pid_d_delay: int = 1000
+    """``pid``: updates the derivative term looks back."""
+    pid_ema: float = 0.95
+    """``pid``: smoothing of the proportional and derivative terms (OmniSafe's 0.95)."""
     lambda_warmup_steps: int = 0
     """Beyond the paper: lambda stays at ``init_lambda`` (no Eq. 11 step, no episode-cost step)
     for the first this many env steps, so that the policy learns to move before the constraint
@@ -163,6 +179,14 @@ class CSACConfig:
             raise ValueError(
                 f"lambda-warmup-steps={self.lambda_warmup_steps} must be >= 0 (0 = off)"
             )
+        if self.lambda_update not in ("adam", "pid"):
+            raise ValueError(f"lambda-update={self.lambda_update!r}: adam (Eq. 11) or pid")
+        gains = (self.pid_kp, self.pid_ki, self.pid_kd)
+        if not (all(math.isfinite(g) and g >= 0 for g in gains) and 0 <= self.pid_ema < 1
+                and 1 <= self.pid_d_delay <= 1_000_000):  # fmt: skip
+            raise ValueError(f"pid-kp={self.pid_kp}, pid-ki={self.pid_ki} and pid-kd={self.pid_kd}"
+                             f" must be finite and >= 0, pid-ema={self.pid_ema} in [0, 1) and "
+                             f"pid-d-delay={self.pid_d_delay} in [1, 1e6]")  # fmt: skip
         if self.init_alpha <= 0 or self.init_lambda < 0:
             raise ValueError("init-alpha must be > 0 and init-lambda >= 0")
         if self.lambda_max is not None and self.lambda_max < 0:
@@ -196,7 +220,7 @@ class CSACConfig:
 
 PAPER_EQUATION_FIELDS = (
     "cost_target", "cost_critic_output", "cost_scale", "cost_n_step", "cost_gamma",
-    "lambda_warmup_steps", "balance_critic_losses", "action_noise_beta", "planner_share",
+    "lambda_warmup_steps", "lambda_update", "balance_critic_losses", "action_noise_beta", "planner_share",
     "curriculum.enabled",
 )  # fmt: skip
 """The ``CSACConfig`` fields (dotted) whose non-default values change the paper's equations

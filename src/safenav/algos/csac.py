@@ -46,7 +46,7 @@ from safenav.common.buffer import Batch, ReplayBuffer, cat_batches
 from safenav.common.colored_noise import ColoredNoise
 from safenav.common.config import RunConfig
 from safenav.common.curriculum import MeasuredCostScale, episode_cost_to_q_scale
-from safenav.common.lagrange import Lagrange
+from safenav.common.lagrange import Lagrange, PIDLagrange
 from safenav.common.nstep import NStepWindow
 from safenav.envs.vector import TorchVecEnv, check_action_space, env_horizon
 from safenav.nn.networks import Actor, DeterministicActor, QEnsemble, input_order, make_extractor
@@ -95,9 +95,12 @@ class CSAC(nn.Module):
             -float(action_dim) if cfg.target_entropy is None else cfg.target_entropy
         )
         lambda_lr = cfg.lambda_lr if cfg.lambda_from == "q_cost" else cfg.episode_lambda_lr
-        self.lagrange = (
-            Lagrange(cfg.init_lambda, lambda_lr, cfg.lambda_max) if cfg.constrained else None
-        )
+        self.lagrange: Lagrange | PIDLagrange | None = None
+        if cfg.constrained and cfg.lambda_update == "pid":
+            self.lagrange = PIDLagrange(cfg.pid_kp, cfg.pid_ki, cfg.pid_kd, cfg.pid_d_delay,
+                                        cfg.pid_ema, cfg.init_lambda, cfg.lambda_max)  # fmt: skip
+        elif cfg.constrained:
+            self.lagrange = Lagrange(cfg.init_lambda, lambda_lr, cfg.lambda_max)
         # -- optimisers: one Adam per role, separate learning rates (paper IV)
         groups = [{"params": list(self.qr.parameters()), "lr": cfg.reward_critic_lr}]
         if self.qc is not None:
@@ -231,7 +234,7 @@ class CSAC(nn.Module):
             "critic": self.critic_optimizer.state_dict(),
             "actor": self.actor_optimizer.state_dict(),
         }
-        if self.lagrange is not None:
+        if isinstance(self.lagrange, Lagrange):  # a PID keeps its state in the agent's buffers
             state["lambda"] = self.lagrange.optimizer.state_dict()
         return state
 
@@ -244,7 +247,7 @@ class CSAC(nn.Module):
             actor = {"state": {**actor["state"], **{n + int(k): v for k, v in alpha["state"].items()}},
                      "param_groups": [actor["param_groups"][0], {**alpha["param_groups"][0], "params": [n]}]}  # fmt: skip
         self.actor_optimizer.load_state_dict(actor)
-        if self.lagrange is not None:
+        if isinstance(self.lagrange, Lagrange):
             self.lagrange.optimizer.load_state_dict(state["lambda"])
 
 
