@@ -94,12 +94,12 @@ class CSAC(nn.Module):
         self.target_entropy = (
             -float(action_dim) if cfg.target_entropy is None else cfg.target_entropy
         )
-        lambda_lr = cfg.lambda_lr if cfg.lambda_from == "q_cost" else cfg.episode_lambda_lr
         self.lagrange: Lagrange | PIDLagrange | None = None
         if cfg.constrained and cfg.lambda_update == "pid":
             self.lagrange = PIDLagrange(cfg.pid_kp, cfg.pid_ki, cfg.pid_kd, cfg.pid_d_delay,
                                         cfg.pid_ema, cfg.init_lambda, cfg.lambda_max)  # fmt: skip
         elif cfg.constrained:
+            lambda_lr = cfg.lambda_lr if cfg.lambda_from == "q_cost" else cfg.episode_lambda_lr
             self.lagrange = Lagrange(cfg.init_lambda, lambda_lr, cfg.lambda_max)
         # -- optimisers: one Adam per role, separate learning rates (paper IV)
         groups = [{"params": list(self.qr.parameters()), "lr": cfg.reward_critic_lr}]
