@@ -5,13 +5,14 @@ costs 1 when the forward velocity exceeds the task's threshold (``safenav.common
 and an episode cost do not say *how* a policy keeps the limit: standing still (return ~1000 on the
 Hopper, cost 0), a gait below the threshold (PPO-Lag's), or sprints cut short by a fall. This
 flies ``--episodes`` deterministic episodes of each policy (reset seeds ``--seed``, ``--seed``+1,
-...) and counts the steps by forward velocity ``v``: standing (``|v| < --still``), moving forward
+...; ``--stochastic``: actions drawn as in training, ``Policy.sample``, the policy the constraint
+binds) and counts the steps by forward velocity ``v``: standing (``|v| < --still``), moving forward
 within the limit (``--still <= v <= threshold``), over the limit (``|v| > threshold``, the costly
 ones: the cost compares the speed, backward too), and backward within it; with the mean velocity,
 return, cost and length.
 
 Run: ``.venv/bin/python experiments/velocity_profile.py RUN[/checkpoint.pt] [RUN ...]
-[--episodes 5] [--seed 1] [--json OUT]``. A run directory means its ``checkpoint.pt`` (as for
+[--episodes 5] [--seed 1] [--stochastic] [--json OUT]``. A run directory means its ``checkpoint.pt`` (as for
 ``safenav render``). Validation runs: use ``--seed 101``; seed 1 is the test scenario.
 """
 
@@ -32,7 +33,7 @@ from safenav.envs.vector import to_action_box
 
 
 @torch.no_grad()
-def profile(path: Path, episodes: int, seed: int, still: float) -> dict:
+def profile(path: Path, episodes: int, seed: int, still: float, stochastic: bool = False) -> dict:
     policy = load_policy(path)  # a run directory: its checkpoint.pt, as safenav render reads it
     env_id = str(policy.meta.get("env_id", ""))
     if env_id not in VELOCITY_TASKS:
@@ -42,6 +43,8 @@ def profile(path: Path, episodes: int, seed: int, still: float) -> dict:
     low = torch.as_tensor(policy.meta["action_low"], dtype=torch.float32)
     high = torch.as_tensor(policy.meta["action_high"], dtype=torch.float32)
     env = gym.make(env_id)
+    draws = torch.Generator().manual_seed(seed)  # the stochastic actions' noise, reproducible
+    act = (lambda o: policy.sample(o, draws)) if stochastic else policy
     rows, speeds = [], []
     for k in range(episodes):
         obs, _ = env.reset(seed=seed + k)
@@ -49,7 +52,7 @@ def profile(path: Path, episodes: int, seed: int, still: float) -> dict:
         v_ep: list[float] = []
         done = False
         while not done:
-            action = to_action_box(policy(obs).cpu(), low, high).numpy().astype(np.float64)
+            action = to_action_box(act(obs).cpu(), low, high).numpy().astype(np.float64)
             obs, reward, terminated, truncated, info = env.step(action)
             ret, cost = ret + float(reward), cost + float(info.get("cost", 0.0))
             v_ep.append(float(info["x_velocity"]))
@@ -62,6 +65,7 @@ def profile(path: Path, episodes: int, seed: int, still: float) -> dict:
     share = lambda mask: float(mask.mean())  # noqa: E731
     return {
         "policy": str(path), "env_id": env_id, "threshold": threshold, "still": still,
+        "actions": "stochastic" if stochastic else "deterministic",
         "steps": int(v.size),
         "share_still": share(np.abs(v) < still),
         "share_forward_within": share((v >= still) & (v <= threshold)),
@@ -83,11 +87,15 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--still", type=float, default=0.1,
                         help="|v| below this (m/s) counts as standing")  # fmt: skip
+    parser.add_argument("--stochastic", action="store_true",
+                        help="actions drawn as in training (default: deterministic)")  # fmt: skip
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args()
     if args.episodes < 1 or args.still <= 0:
         raise SystemExit("--episodes must be >= 1 and --still > 0")
-    results = [profile(p, args.episodes, args.seed, args.still) for p in args.policies]
+    results = [
+        profile(p, args.episodes, args.seed, args.still, args.stochastic) for p in args.policies
+    ]
     print(f"{'policy':60s} {'return':>7s} {'cost':>6s} {'len':>6s} {'falls':>5s} {'v mean':>6s} "
           f"{'still':>6s} {'fwd<=lim':>8s} {'over':>6s} {'back':>6s}")  # fmt: skip
     for r in results:

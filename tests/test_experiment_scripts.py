@@ -640,6 +640,14 @@ def test_velocity_profile_counts_every_step_once_and_its_costly_ones(tiny_hopper
     assert res["share_over"] * res["steps"] == pytest.approx(total_cost)
 
 
+def test_velocity_profile_stochastic_draws_reproducibly(tiny_hopper_run):
+    vp = script("velocity_profile")
+    first = vp.profile(tiny_hopper_run, 1, 101, 0.1, stochastic=True)
+    assert first["actions"] == "stochastic" and first["episodes"] == vp.profile(
+        tiny_hopper_run, 1, 101, 0.1, stochastic=True)["episodes"]  # fmt: skip
+    assert vp.profile(tiny_hopper_run, 1, 101, 0.1)["actions"] == "deterministic"
+
+
 def test_velocity_profile_refuses_a_policy_of_another_task(tiny_run):
     with pytest.raises(SystemExit, match="not a velocity task"):
         script("velocity_profile").profile(tiny_run / "checkpoint.pt", 1, 101, 0.1)

@@ -222,6 +222,34 @@ def test_load_policy(csac_run):
         policy({"state": obs["state"]})
 
 
+def test_policy_sample_draws_the_training_gaussian(csac_run):
+    from safenav.algos.policy import Policy
+    from safenav.common.normalize import NormalizedActor, ObsNormalizer
+
+    policy = load_policy(csac_run / "checkpoint.pt")
+    g = torch.Generator().manual_seed(1)
+    obs = {"state": torch.rand(7, 8, generator=g), "lidar": torch.rand(7, 4, 36, generator=g),
+           "dynamic": torch.rand(7, 5, 10, generator=g)}  # fmt: skip
+    a = policy.sample(obs, torch.Generator().manual_seed(3))
+    assert a.shape == (7, 3) and a.abs().max() <= 1.0 and not torch.equal(a, policy(obs))
+    torch.testing.assert_close(a, policy.sample(obs, torch.Generator().manual_seed(3)))
+    # the draw is tanh(mean + std * eps), eps the generator's standard normals (SAC's sampling)
+    det = policy.actor
+    mean, log_std = det.actor(det.encoder(obs))
+    eps = torch.randn(mean.shape, generator=torch.Generator().manual_seed(3))
+    torch.testing.assert_close(a, torch.tanh(mean + log_std.exp() * eps))
+    one = policy.sample({k: v[0].numpy() for k, v in obs.items()}, torch.Generator().manual_seed(3))
+    assert one.shape == (3,)
+    # behind --normalize-obs statistics: the same draw as the bare actor on normalised inputs
+    norm = ObsNormalizer(policy.obs_shapes)
+    norm.update({k: 3.0 * v + 1.0 for k, v in obs.items()})
+    wrapped = Policy(NormalizedActor(norm, policy.actor), policy.meta)
+    torch.testing.assert_close(wrapped.sample(obs, torch.Generator().manual_seed(3)),
+                               policy.sample(norm(obs), torch.Generator().manual_seed(3)))  # fmt: skip
+    with pytest.raises(SafenavError, match="PPO policy"):
+        Policy(policy.actor, {**policy.meta, "policy_head": "beta"}).sample(obs)
+
+
 def test_load_policy_errors(csac_run, tmp_path):
     with pytest.raises(SafenavError, match="not found"):
         load_policy(tmp_path / "missing.pt")

@@ -5,6 +5,7 @@ observations) to deterministic actions in ``[-1, 1]`` as a ``(B, A)`` tensor (SA
 PPO's Beta mean or clipped Gaussian mean); a policy of a ``Discrete(n)`` task (PPO,
 ``meta["num_actions"]``) gives the most probable action's index ``0 .. n-1`` as a float ``(B, 1)``.
 :func:`safenav.envs.vector.policy_action_to_env` turns either into what the env takes.
+``Policy.sample(obs)`` draws a SAC-family policy's actions as training drew them instead.
 ``Policy.actor`` is the underlying :class:`~safenav.nn.networks.DeterministicActor`, an
 ``nn.Module`` taking the observation tensors positionally (``state, lidar, dynamic`` for SafeNav)
 - what ``safenav export`` traces to ONNX. ``Policy.meta`` says what the policy is: algorithm, env
@@ -23,6 +24,7 @@ import numpy as np
 import torch
 
 from safenav.common.checkpoint import load_checkpoint
+from safenav.common.normalize import NormalizedActor, ObsNormalizer
 from safenav.envs.config import observation_shapes
 from safenav.errors import SafenavError, one_line
 from safenav.nn.config import NetConfig
@@ -32,6 +34,7 @@ from safenav.nn.networks import (
     input_order,
     is_nav_layout,
     make_extractor,
+    squashed_gaussian,
 )
 
 POLICY_FORMAT_VERSION = 1
@@ -97,6 +100,25 @@ class Policy:
         action = self.actor(*self._prepare(obs))
         return action[0] if self._unbatched else action
 
+    @torch.no_grad()
+    def sample(self, obs, generator: torch.Generator | None = None) -> torch.Tensor:
+        """Actions drawn as SAC-family training draws them, ``tanh(mean + std * eps)`` with
+        ``eps ~ N(0, I)`` (:func:`~safenav.nn.networks.squashed_gaussian`), shaped as
+        :meth:`__call__`'s: what the constraint of a CSAC run binds, where ``__call__`` gives the
+        deterministic ``tanh(mean)`` that evaluation flies. PPO policies are refused."""
+        if self.meta.get("policy_head") is not None:
+            raise SafenavError(f"a {self.meta['policy_head']} PPO policy: sample() draws the "
+                               "squashed Gaussian of SAC, SAC-Lag and CSAC policies only")  # fmt: skip
+        inputs, det = self._prepare(obs), self.actor
+        if isinstance(det, NormalizedActor):  # --normalize-obs: the saved statistics first
+            normed = det.normalizer(dict(zip(det.input_names, inputs, strict=True)))
+            inputs, det = [normed[k] for k in det.input_names], det.actor
+        x = dict(zip(det.input_names, inputs, strict=True))
+        mean, log_std = det.actor(det.encoder(x) if det.encoder is not None else x)
+        noise = torch.randn(mean.shape, generator=generator, device=mean.device)
+        action, _ = squashed_gaussian(mean, log_std, noise)
+        return action[0] if self._unbatched else action
+
 
 def build_actor(meta: dict[str, Any]) -> DeterministicActor:
     """An untrained :class:`DeterministicActor` with the architecture ``meta`` describes (for PPO
@@ -108,8 +130,6 @@ def build_actor(meta: dict[str, Any]) -> DeterministicActor:
     norm = meta.get("obs_normalization")
     if norm is None:
         return actor
-    from safenav.common.normalize import NormalizedActor, ObsNormalizer
-
     shapes = {k: tuple(v) for k, v in meta["obs_shapes"].items()}
     return NormalizedActor(
         ObsNormalizer(shapes, float(norm["clip"]), float(norm["epsilon"])), actor
