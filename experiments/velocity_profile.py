@@ -13,7 +13,8 @@ return, cost and length.
 
 Run: ``.venv/bin/python experiments/velocity_profile.py RUN[/checkpoint.pt] [RUN ...]
 [--episodes 5] [--seed 1] [--stochastic] [--json OUT]``. A run directory means its
-``checkpoint.pt`` (as for ``safenav render``). Validation runs: use ``--seed 101``; seed 1 is the test scenario.
+``checkpoint.pt`` (as for ``safenav render``). Validation runs: use ``--seed 101``; seed 1 is the
+test scenario.
 """
 
 from __future__ import annotations

@@ -109,12 +109,7 @@ class Policy:
         if self.meta.get("policy_head") is not None:
             raise SafenavError(f"a {self.meta['policy_head']} PPO policy: sample() draws the "
                                "squashed Gaussian of SAC, SAC-Lag and CSAC policies only")  # fmt: skip
-        inputs, det = self._prepare(obs), self.actor
-        if isinstance(det, NormalizedActor):  # --normalize-obs: the saved statistics first
-            normed = det.normalizer(dict(zip(det.input_names, inputs, strict=True)))
-            inputs, det = [normed[k] for k in det.input_names], det.actor
-        x = dict(zip(det.input_names, inputs, strict=True))
-        mean, log_std = det.actor(det.encoder(x) if det.encoder is not None else x)
+        mean, log_std = self.actor.gaussian(*self._prepare(obs))
         noise = torch.randn(mean.shape, generator=generator, device=mean.device)
         action, _ = squashed_gaussian(mean, log_std, noise)
         return action[0] if self._unbatched else action

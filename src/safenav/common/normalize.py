@@ -171,9 +171,16 @@ class NormalizedActor(nn.Module):
         self.actor = actor
         self.input_names = tuple(actor.input_names)
 
-    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+    def _normalized(self, inputs: tuple[torch.Tensor, ...]) -> list[torch.Tensor]:
         obs = self.normalizer(dict(zip(self.input_names, inputs, strict=True)))
-        return self.actor(*(obs[k] for k in self.input_names))
+        return [obs[k] for k in self.input_names]
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        return self.actor(*self._normalized(inputs))
+
+    def gaussian(self, *inputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The wrapped SAC-family actor's ``gaussian`` on the normalised inputs."""
+        return self.actor.gaussian(*self._normalized(inputs))
 
 
 class RewardScaler(nn.Module):

@@ -164,10 +164,14 @@ class DeterministicActor(nn.Module):
         self.actor = actor
         self.input_names = tuple(input_names)
 
-    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+    def gaussian(self, *inputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The Gaussian before the tanh, ``(mean, log_std)``, each ``(N, A)``: ``forward`` takes its
+        mean, ``Policy.sample`` draws from it."""
         obs = dict(zip(self.input_names, inputs, strict=True))
-        x = self.encoder(obs) if self.encoder is not None else obs
-        mean, _ = self.actor(x)
+        return self.actor(self.encoder(obs) if self.encoder is not None else obs)
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        mean, _ = self.gaussian(*inputs)
         return torch.tanh(mean)
 
 
