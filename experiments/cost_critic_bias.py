@@ -26,7 +26,6 @@ Run: ``.venv/bin/python experiments/cost_critic_bias.py runs/NAME/checkpoint.pt 
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import torch
@@ -35,6 +34,7 @@ from safenav.algos.config import CSACConfig
 from safenav.algos.csac import CSAC
 from safenav.common.checkpoint import load_checkpoint, restore_agent
 from safenav.common.config import RunConfig, from_dict
+from safenav.common.jsonout import write_json
 from safenav.envs.vector import TorchVecEnv, cost_function, is_safenav, make_vec_env
 
 
@@ -139,7 +139,7 @@ def main() -> None:
     for k, v in res.items():
         print(f"{k:30s} {v:.4f}" if isinstance(v, float) else f"{k:30s} {v}")
     if args.json:
-        args.json.write_text(json.dumps(res, indent=1) + "\n")
+        write_json(args.json, res)  # strict: a ratio with no costly step is null, not NaN
 
 
 if __name__ == "__main__":
