@@ -15,13 +15,13 @@ collisions were with. Validation maps only: the test and held-out scenarios are 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from safenav.common.jsonout import write_json
 from safenav.experiments.evaluate import evaluate
 from safenav.experiments.flight import resolve_policy
 from safenav.experiments.selection import RESERVED_SEEDS, VALIDATION_SEEDS
@@ -92,10 +92,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['far_z_mean']:.2f} ({r['far_z_p10']:.2f}-{r['far_z_p50']:.2f}-"
               f"{r['far_z_p90']:.2f}) | {r['far_below_1m']:.2f} |", flush=True)  # fmt: skip
     if args.json:  # strict JSON: null where no step was that far from the goal
-        clean = [
-            {k: None if isinstance(v, float) and v != v else v for k, v in r.items()} for r in rows
-        ]
-        args.json.write_text(json.dumps(clean, indent=1, allow_nan=False) + "\n")
+        write_json(args.json, rows)
     return 0
 
 

@@ -27,7 +27,6 @@ Run: ``.venv/bin/python experiments/checkpoint_sweep.py runs/NAME/policies [--av
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 from pathlib import Path
 
@@ -38,6 +37,7 @@ from rich.table import Table
 from safenav.algos.averaging import average_policy_states, between_steps, policy_files
 from safenav.algos.policy import load_policy
 from safenav.common.checkpoint import load_checkpoint, save_checkpoint
+from safenav.common.jsonout import write_json
 from safenav.experiments.evaluate import evaluate
 from safenav.experiments.flight import resolve_policy
 from safenav.experiments.soup import greedy_soup, validation_score
@@ -158,7 +158,7 @@ def main() -> None:
                       *(f"{r[part][k]:.3f}" for part in parts for k in KEYS))  # fmt: skip
     Console(width=150).print(table)
     if args.json:
-        args.json.write_text(json.dumps(rows, indent=1) + "\n")
+        write_json(args.json, rows)
 
 
 if __name__ == "__main__":

@@ -26,13 +26,13 @@ Run: ``.venv/bin/python experiments/collision_causes.py checkpoints/csac-paper.p
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from collections import Counter
 from pathlib import Path
 
 import torch
 
+from safenav.common.jsonout import write_json
 from safenav.envs.nav import SafeNavVectorEnv
 from safenav.envs.sensors import moving_obstacle_clearance
 from safenav.envs.world import CUBOID_HEIGHT, CYLINDER_HEIGHT
@@ -156,7 +156,7 @@ def main() -> None:
         print(f"  {cause:22s} {n:4d}  ({n / result['episodes']:.1%} of episodes)")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result, indent=2))
+        write_json(args.json, result)
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from safenav.common.jsonout import write_json
 from safenav.experiments.selection import TEST_SEED, VALIDATION_SEEDS
 
 RULES = ("body", "navrl")
@@ -58,7 +59,7 @@ def main() -> None:
         for rule in RULES:
             test = flight(policy, rule, TEST_SEED, 200, args.out)
             summary[policy.stem][rule]["test"] = pooled([test])
-    (args.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    write_json(args.out / "summary.json", summary)
     print("| policy | maps | rule | success | collision (static / moving) | timeout |")
     print("|---|---|---|---:|---:|---:|")
     for name, rules in summary.items():

@@ -41,6 +41,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from safenav.common.config import flight_shield_spec
+from safenav.common.jsonout import write_json
 from safenav.deploy.shield import brake_setting
 from safenav.envs.planner import shield_under_filter
 from safenav.experiments.flight import fly_frames, resolve_policy
@@ -177,7 +178,7 @@ def main(argv: list[str] | None = None) -> None:
         images[0].save(args.gif, save_all=True, append_images=images[1:], duration=100, loop=0,
                        optimize=True)  # fmt: skip
         print(f"wrote {args.gif} ({len(frames)} frames)")
-    args.out.with_suffix(".json").write_text(json.dumps(summary, indent=1) + "\n")
+    write_json(args.out.with_suffix(".json"), summary)
 
 
 if __name__ == "__main__":

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from safenav.common.jsonout import write_json
 from safenav.experiments.stats import bootstrap_ci
 
 OUTCOMES = ("success", "collision", "timeout")  # the rates of each evaluation, in this order
@@ -138,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
                       f"{name} {d['mean']:+.3f} ({d['ci95'][0]:+.3f} to {d['ci95'][1]:+.3f})"
                       for name, d in paired.items() if name != "seeds"))  # fmt: skip
     if args.json:
-        args.json.write_text(json.dumps(report, indent=1))
+        write_json(args.json, report)
     return 0
 
 

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from safenav.common.jsonout import write_json
 from safenav.envs.config import make_config
 from safenav.envs.dynamics import goal_frame_to_world
 from safenav.envs.nav import SafeNavVectorEnv
@@ -200,7 +201,7 @@ def main(argv: list[str] | None = None) -> dict:
         print(json.dumps(out["causes"]))
         if args.json:
             args.json.parent.mkdir(parents=True, exist_ok=True)
-            args.json.write_text(json.dumps(out, indent=1) + "\n")
+            write_json(args.json, out)
         return out
     k = config.headings * len(config.speeds) * len(config.climbs) + 2
     print(f"oracle: {k} candidates x {config.horizon} steps, margin {config.margin} m, "
@@ -231,7 +232,7 @@ def main(argv: list[str] | None = None) -> dict:
               **out, "wall_s": round(time.perf_counter() - t0, 1)}  # fmt: skip
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(record, indent=1, allow_nan=True) + "\n")
+        write_json(args.json, record)
         print(f"wrote {args.json}")
     return record
 

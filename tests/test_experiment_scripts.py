@@ -189,7 +189,7 @@ def test_lever_table_reads_each_seeds_validation_curve(tmp_path, capsys):
     paired = json.loads(both.read_text())["lever"]["paired_vs"]
     assert paired["label"] == "base" and paired["seeds"] == [1, 3]
     assert paired["success"]["mean"] == 0.0 and paired["success"]["per_seed"] == [0.0, 0.0]
-    assert all(math.isnan(x) for x in paired["success"]["ci95"])  # no interval from 2 seeds
+    assert paired["success"]["ci95"] == [None, None]  # no interval from 2 seeds: null, strict JSON
     assert (
         "paired with base on seeds 1, 3, lever minus base: success +0.000"
         in capsys.readouterr().out
