@@ -222,9 +222,7 @@ def main(argv: list[str] | None = None) -> dict:
           f"{p['collision_dynamic_rate']:.3f}, bounds {p['collision_bounds_rate']:.3f}) timeout "
           f"{p['timeout_rate']:.3f}; mean speed {p['mean_speed']:.2f} m/s, time to goal "
           f"{p['mean_time_to_goal']:.1f} s; {time.perf_counter() - t0:.0f} s")  # fmt: skip
-    settings = dataclasses.asdict(config)
-    if config.privileged_range == math.inf:
-        settings["privileged_range"] = None  # JSON has no infinity: null = everything in view
+    settings = dataclasses.asdict(config)  # privileged_range inf (everything in view) -> null
     record = {"settings": {**settings, "progress_kind": config.progress_kind,
                            "candidates": k, "env_seeds": args.env_seeds, "episodes": args.episodes,
                            "preset": args.preset, "env_overrides": overrides, "threads": args.threads,
