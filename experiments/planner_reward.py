@@ -19,6 +19,7 @@ from pathlib import Path
 
 import torch
 
+from safenav.common.jsonout import write_json
 from safenav.envs.config import make_config
 from safenav.envs.nav import SafeNavVectorEnv
 from safenav.envs.planner import PLANNER_B, PLANNER_B_BEAMS, OraclePlanner
@@ -103,8 +104,7 @@ def main(argv: list[str] | None = None) -> dict:
     out = reward_terms(args.env_seed, args.episodes, args.keep_band)
     print(json.dumps(out["summary"]))
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(out, indent=1) + "\n")
+        write_json(args.json, out)
     return out
 
 

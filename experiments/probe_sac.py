@@ -17,6 +17,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from safenav.common.jsonout import write_json
 from safenav.envs.config import make_config
 from safenav.envs.nav import SafeNavVectorEnv
 from safenav.experiments.evaluate import evaluate
@@ -168,8 +169,7 @@ def main():
     summary.update(steps=step, args=vars(args))
     print("EVAL", json.dumps(summary), flush=True)
     if args.out:
-        with open(args.out, "w") as f:
-            json.dump({"summary": summary, "log": log}, f)
+        write_json(args.out, {"summary": summary, "log": log})
 
 
 if __name__ == "__main__":

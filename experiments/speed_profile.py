@@ -24,7 +24,6 @@ Run: ``.venv/bin/python experiments/speed_profile.py runs/NAME/checkpoint.pt [--
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +34,7 @@ from safenav.algos.csac import CSAC
 from safenav.algos.policy import policy_from_state
 from safenav.common.checkpoint import load_checkpoint, restore_agent
 from safenav.common.config import from_dict
+from safenav.common.jsonout import write_json
 from safenav.envs.nav import SafeNavVectorEnv
 from safenav.experiments.evaluate import fixed_test_scenario
 from safenav.experiments.selection import RESERVED_SEEDS, VALIDATION_SEEDS
@@ -126,7 +126,7 @@ def main() -> None:
         print(f"  clearance {b['clearance_m'][0]:.1f}-{b['clearance_m'][1]:.1f} m: "
               f"{b['steps']:6d} steps, speed {speed}{extra}")  # fmt: skip
     if args.json:
-        args.json.write_text(json.dumps(res, indent=1) + "\n")
+        write_json(args.json, res)
 
 
 if __name__ == "__main__":

@@ -16,12 +16,12 @@ are refused.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from safenav.common.jsonout import write_json
 from safenav.experiments.evaluate import evaluate
 from safenav.experiments.flight import resolve_policy
 from safenav.experiments.selection import RESERVED_SEEDS, VALIDATION_SEEDS, own_shield
@@ -83,9 +83,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{s['diff']:+.3f} (95 % CI {s['ci95'][0]:+.3f} to {s['ci95'][1]:+.3f}, "
               f"{s['episodes']} paired episodes)")  # fmt: skip
     if args.json:
-        args.json.write_text(json.dumps({"env_seeds": args.env_seeds, "episodes_per_map":
-                                         args.episodes, "summary": summary, "policies": rows},
-                                        indent=1) + "\n")  # fmt: skip
+        write_json(args.json, {"env_seeds": args.env_seeds, "episodes_per_map": args.episodes,
+                               "summary": summary, "policies": rows})  # fmt: skip
     return 0
 
 

@@ -46,6 +46,7 @@ from safenav.algos.csac import CSAC
 from safenav.algos.policy import POLICY_FORMAT_VERSION, load_policy, policy_from_state
 from safenav.common.checkpoint import policy_state, save_checkpoint
 from safenav.common.config import RunConfig, to_dict
+from safenav.common.jsonout import write_json
 from safenav.envs.nav import SafeNavVectorEnv
 from safenav.envs.planner import AutoresetPlanner
 from safenav.experiments.evaluate import evaluate
@@ -197,14 +198,14 @@ def main(argv: list[str] | None = None) -> list[dict]:
               f"timeout {val['timeout_rate']:.3f} | {row['wall_s']:.0f} s", flush=True)  # fmt: skip
         record = {"settings": {**vars(args), "out": str(args.out), "machine": platform.node(),
                                "date": time.strftime("%Y-%m-%d")}, "iterations": log}  # fmt: skip
-        (args.out / "dagger.json").write_text(json.dumps(record, indent=1) + "\n")
+        write_json(args.out / "dagger.json", record)
     record["agreement"] = agreement(
         policy_from_state(state, "student"),
         steps=args.agreement_steps,
         privileged_range=args.privileged_range,
     )
     print(f"agreement with the planner on its own flights: R^2 {record['agreement']['r2']}")
-    (args.out / "dagger.json").write_text(json.dumps(record, indent=1) + "\n")
+    write_json(args.out / "dagger.json", record)
     return log
 
 

@@ -20,6 +20,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from safenav.common.jsonout import write_json
 from safenav.experiments.evaluate import fixed_test_scenario
 from safenav.experiments.flight import resolve_policy
 
@@ -63,7 +64,7 @@ def main() -> None:
                       fmt(r["path_over_distance"], 2), fmt(r["speed_m_s"], 2))  # fmt: skip
     Console(width=150).print(table)
     if args.json:
-        args.json.write_text(json.dumps(rows, indent=1) + "\n")
+        write_json(args.json, rows)
 
 
 if __name__ == "__main__":

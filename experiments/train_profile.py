@@ -29,13 +29,13 @@ from __future__ import annotations
 
 import argparse
 import functools
-import json
 import time
 from pathlib import Path
 
 from safenav.algos.csac import CSAC
 from safenav.cli import main as safenav_main
 from safenav.common.buffer import ReplayBuffer
+from safenav.common.jsonout import write_json
 from safenav.deploy.shield import MemoryShield
 from safenav.envs.nav import SafeNavVectorEnv
 from safenav.envs.vector import TorchVecEnv
@@ -136,9 +136,8 @@ def main() -> None:
         indent = "    " if part == NESTED[0] else "  "
         print(f"{indent}{part:24s} {seconds:8.1f} s  {seconds / total:6.1%}")
     if args.json:
-        args.json.write_text(json.dumps({"train_args": train_args, "total_s": round(total, 2),
-                                         "parts_s": {k: round(v, 2) for k, v in parts.items()}},
-                                        indent=1) + "\n")  # fmt: skip
+        write_json(args.json, {"train_args": train_args, "total_s": round(total, 2),
+                               "parts_s": {k: round(v, 2) for k, v in parts.items()}})  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -13,13 +13,13 @@ Run: ``.venv/bin/python experiments/vecenv_overhead.py [--env Hopper-v5] [--step
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from safenav.common.jsonout import write_json
 from safenav.common.normalize import make_normalization
 from safenav.envs.vector import TorchVecEnv, make_vec_env, obs_layout
 
@@ -67,8 +67,8 @@ def main() -> None:
             f"{k:>6}: {v['median_ms']:.3f} ms per env step  ({', '.join(f'{x:.2f}' for x in v['repeats_ms'])})"
         )
     if args.json:
-        args.json.write_text(json.dumps({"env": args.env, "steps": args.steps,
-                                         "normalize": not args.no_normalize, **summary}, indent=1))  # fmt: skip
+        write_json(args.json, {"env": args.env, "steps": args.steps,
+                               "normalize": not args.no_normalize, **summary})  # fmt: skip
 
 
 if __name__ == "__main__":

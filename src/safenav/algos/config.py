@@ -103,10 +103,10 @@ class CSACConfig:
     (Eq. 9) seeks them out, the negative values feed Eq. 6's targets and Eq. 11 reads a constraint
     met (docs/gymnasium-results.md, Hopper). A softplus critic pulled towards targets of 0 is
     driven far below 0 by Adam (whose step does not shrink with the vanishing gradient) and then
-    cannot come back: on SafetyHopperVelocity-v5 its pre-activations reached -15 to -3,800 on
-    every replayed transition, Q_C ~1e-13 while 9 in 10 steps cost 1. ``clipped`` keeps both
-    properties apart: no reader sees a value below 0 (none seeks one: no gradient there), and the
-    loss always has a gradient."""
+    cannot come back: on SafetyHopperVelocity-v5 its pre-activations reached -30 to -3,800 on
+    every replayed transition, Q_C ~1e-18 while 7 to 9 steps in 10 after the first 10k cost 1.
+    ``clipped`` keeps both properties apart: no reader sees a value below 0 (none seeks one: no
+    gradient there), and the loss always has a gradient."""
     cost_n_step: int = 1
     """Steps of the cost target: 1 = Eq. 6; n > 1 = the n-step return of the behaviour policy's
     costs, then the target critics (beyond the paper, ``common.nstep``); reward stays one-step."""
@@ -220,8 +220,8 @@ class CSACConfig:
 
 PAPER_EQUATION_FIELDS = (
     "cost_target", "cost_critic_output", "cost_scale", "cost_n_step", "cost_gamma",
-    "lambda_warmup_steps", "lambda_update", "balance_critic_losses", "action_noise_beta", "planner_share",
-    "curriculum.enabled",
+    "lambda_warmup_steps", "lambda_update", "lambda_from", "scale_actor_loss",
+    "balance_critic_losses", "action_noise_beta", "planner_share", "curriculum.enabled",
 )  # fmt: skip
 """The ``CSACConfig`` fields (dotted) whose non-default values change the paper's equations
 (Eqs. 6-11, the constraint curriculum, the rollout actions) rather than a hyperparameter of

@@ -382,8 +382,8 @@ class CSACLearner:
                 j_c = sum(self.lam_costs) / len(self.lam_costs)
                 loss = self.agent.lagrange.update(torch.tensor([j_c], device=self.device), d)
                 self.pending.update({"losses/lambda": float(loss), "constraint/episode_cost": j_c})
-                if not cfg.lambda_window:
-                    self.lam_costs.clear()
+            if not cfg.lambda_window:  # held or not, the next step reads only later episodes
+                self.lam_costs.clear()
         # lines 11-15 (len: an n-step window delays the first rows of the buffer)
         metrics = []
         if global_step >= self.warmup_until and len(self.buffer):

@@ -296,7 +296,8 @@ def _count(n: int) -> str:
 PER_TRIAL_KEYS = ("run.seed", "run.torch_threads", "run.save_buffer", "recipe.header",
                   "recipe.source")  # fmt: skip
 CONSTRAINT_ONLY = ("lambda_", "init_lambda", "episode_lambda_lr", "cost_", "curriculum.",
-                   "scale_actor_loss", "balance_critic_losses")  # fmt: skip
+                   "scale_actor_loss", "balance_critic_losses", "pid_",
+                   "num_cost_critics")  # fmt: skip
 """Field names (after ``csac.`` / ``ppo.``) that only the constrained algorithms read: SAC and
 PPO build no cost critic and no multiplier, so their rows do not count these as differences."""
 

@@ -40,7 +40,9 @@ def dumps(obj: Any, default: Callable[[Any], Any] | None = None) -> str:
 def write_json(path: str | Path, obj: Any, default: Callable[[Any], Any] | None = None) -> None:
     """Write ``obj`` as strict JSON (:func:`dumps`) to ``path`` atomically and durably: a
     temporary file, ``fsync``, a rename, ``fsync`` of the directory. An existing file is either
-    kept or replaced whole, also across a crash or power cut."""
+    kept or replaced whole, also across a crash or power cut. Missing parent folders are made
+    (``--json results/new/x.json``)."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     write_text_atomic(path, dumps(obj, default))
 
 
