@@ -271,7 +271,8 @@ def test_flight_controller_records_what_it_sends(tmp_path):
     moving = v[np.abs(v).sum(1) > 0]
     assert len(moving) >= 5 and (np.abs(v).sum(1) == 0).sum() >= 2  # flew, and hovered first
     np.testing.assert_allclose(moving, np.tile([1.0, -0.5, 0.0], (len(moving), 1)), atol=1e-9)
-    assert len(msgs["/safenav/range_image"]) == len(moving)  # an observation on every moving tick
+    # an observation on every moving tick, and on a late one (zero setpoint) under a loaded CPU
+    assert len(moving) <= len(msgs["/safenav/range_image"]) <= len(moving) + ctl.log.late_ticks
     cuboids = [mk for _, m in msgs["/safenav/obstacles"] for mk in m.markers]
     assert cuboids and all((mk.type, mk.scale.x, mk.scale.z) == (1, 0.8, 1.0) for mk in cuboids)
     q = msgs["/safenav/pose"][-1][1].pose.pose.orientation
