@@ -155,7 +155,6 @@ def main() -> None:
     for cause, n in result["causes"].items():
         print(f"  {cause:22s} {n:4d}  ({n / result['episodes']:.1%} of episodes)")
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
         write_json(args.json, result)
 
 

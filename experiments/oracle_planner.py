@@ -200,7 +200,6 @@ def main(argv: list[str] | None = None) -> dict:
                        planner=OraclePlanner(config, scan=scan_columns if config.map_scan else None))  # fmt: skip
         print(json.dumps(out["causes"]))
         if args.json:
-            args.json.parent.mkdir(parents=True, exist_ok=True)
             write_json(args.json, out)
         return out
     k = config.headings * len(config.speeds) * len(config.climbs) + 2
@@ -229,7 +228,6 @@ def main(argv: list[str] | None = None) -> dict:
                            "machine": platform.node(), "date": time.strftime("%Y-%m-%d")},
               **out, "wall_s": round(time.perf_counter() - t0, 1)}  # fmt: skip
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
         write_json(args.json, record)
         print(f"wrote {args.json}")
     return record

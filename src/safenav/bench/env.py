@@ -110,6 +110,5 @@ def bench_env(
         "of beams within one cell"
     )
     if json_out is not None:
-        Path(json_out).parent.mkdir(parents=True, exist_ok=True)
-        write_json(Path(json_out), report)
+        write_json(json_out, report)
     return report

@@ -247,8 +247,6 @@ def bench_latency(
             f"pipeline p99 target {TARGET_PIPELINE_P99_MS} ms: {'met' if out['pipeline_meets_target'] else 'NOT met'}"
         )
     if json_out is not None:
-        json_out = Path(json_out)
-        json_out.parent.mkdir(parents=True, exist_ok=True)
         write_json(json_out, out)
     return out
 

@@ -186,8 +186,7 @@ def bench_soak(
         if k != "machine":
             print(f"{k:<36}{v:>14}")
     if json_out is not None:
-        Path(json_out).parent.mkdir(parents=True, exist_ok=True)
-        write_json(Path(json_out), out)
+        write_json(json_out, out)
     return out
 
 

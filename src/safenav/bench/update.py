@@ -172,8 +172,6 @@ def bench_update(json_out: Path | None, repeats: int = 5, updates: int = 40,
     Console().print(table)
     Console().print(f"PPO training (bench/ppo.py): {result['ppo_steps_per_s']:.0f} env steps/s")
     if json_out is not None:
-        json_out = Path(json_out)
-        json_out.parent.mkdir(parents=True, exist_ok=True)
         write_json(json_out, result)
     return result
 
