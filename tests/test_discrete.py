@@ -213,6 +213,7 @@ def test_the_sb3_side_of_the_bench_takes_the_zoo_cartpole_entry_with_its_linear_
         ("clip_range", 0.2),
     ):  # lin_X: X at the start, 0 at the end
         assert kwargs[key](1.0) == pytest.approx(start) and kwargs[key](0.0) == 0.0
+        assert repr(kwargs[key]) == f"lin_{start:g}"  # the trial file records the zoo's value
     assert hyperparameters("ppo", "Acrobot-v1")[1:] == (16, True)
 
 

@@ -508,11 +508,8 @@ def test_bench_gym_on_a_tiny_budget_writes_its_files_and_resumes(tmp_path, capsy
     assert code == 0 and "1 already done (skipped), 1 to run" in err
     assert "resume" in (out / "runs" / names[0][:-5] / "events.jsonl").read_text()
     resumed = json.loads((out / "trials" / names[0]).read_text())
-    assert resumed["resumed_at"] == [400]  # the trial file says where (here: after its last step)
-    assert (
-        "Pendulum-v1 sac (safenav): resumed from a checkpoint (seed 1 at 400 steps)"
-        in (out / "table.md").read_text()
-    )
+    assert resumed["resumed_at"] == []  # resumed after its last step: it trained nothing more
+    assert "resumed from a checkpoint" not in (out / "table.md").read_text()  # so no note
     config = json.loads((out / "runs" / names[0][:-5] / "config.json").read_text())
     assert config["run"]["save_buffer"]  # so the resumed SAC kept its replay buffer
     # the table is the suite's: a report for another selection keeps this row (and its SB3 column)
@@ -588,6 +585,14 @@ def test_bench_table_says_when_the_seeds_of_a_row_ran_different_configurations()
     rows = summarize("safe", [result(1, "softplus"), result(2, "softplus"), over], 25.0)
     assert rows[0]["under_limit"] and rows[0]["seeds_under_limit"] == 2
     assert "| 17 ± 20 (n=3) | yes (2/3 seeds) |" in markdown_table("safe", rows, 25.0)
+    # a seed stopped and resumed midway is named (it does not replay bit for bit); one seed alone
+    # shows no spread
+    stopped = result(2, "softplus") | {"resumed_at": [200]}
+    table = markdown_table("safe", summarize("safe", [result(1, "softplus"), stopped], 25.0), 25.0)
+    assert "csac (safenav): resumed from a checkpoint (seed 2 at 200 steps)" in table
+    assert "| 100 (n=1) | 40 (n=1) |" in markdown_table(
+        "safe", summarize("safe", [over], 25.0), 25.0
+    )
 
 
 def test_bench_table_names_a_csac_that_departs_from_the_paper_a_variant():
@@ -842,12 +847,54 @@ def test_bench_safe_on_a_tiny_budget(tmp_path, capsys):
     assert res["episodes"] > 0 and 0.0 <= res["episode_cost"] <= res["episode_length"] <= 100
 
 
+def test_trial_file_reads_the_run_and_refuses_a_short_one(tmp_path):
+    from safenav.bench.gym import Trial, collect
+    from safenav.errors import SafenavRuntimeError
+
+    trial = Trial("gym", "Pendulum-v1", "sac", "safenav", 1, 200)
+    run_dir = tmp_path / "runs" / trial.name
+    run_dir.mkdir(parents=True)
+    (run_dir / "config.json").write_text(json.dumps({"recipe": {"name": "classic-sac"}}))
+    header = "global_step,time/elapsed_s,charts/episodic_return,charts/episodic_cost,eval/return,eval/cost"  # fmt: skip
+    rows = ["100,1.5,-900,0,,", "200,3.0,-700,0,-650.5,0", "300,4"]  # the last one half-written
+    (run_dir / "progress.csv").write_text("\n".join([header, *rows]) + "\n")
+    result = collect(trial, tmp_path, wall_s=99.0)
+    assert result["curve"] == [[200, -650.5, 0.0]] and result["final"]["return"] == -650.5
+    assert result["train_curve"] == [[100, -900.0, 0.0], [200, -700.0, 0.0]]
+    assert result["steps_done"] == 200 and result["wall_clock_s"] == 3.0
+    assert result["recipe"] == "classic-sac" and result["resumed_at"] == []
+    longer = Trial("gym", "Pendulum-v1", "sac", "safenav", 1, 400)  # same run, a larger budget
+    (tmp_path / "runs" / longer.name).symlink_to(run_dir)
+    with pytest.raises(SafenavRuntimeError, match="ended at step 200 of its 400"):
+        collect(longer, tmp_path, wall_s=99.0)
+
+
+def test_a_trained_sb3_trial_is_not_trained_again(tmp_path):
+    """An SB3 run does not resume: one whose result.json was written before the bench stopped
+    (its trial file missing) is collected as it is, not trained again from step 0."""
+    import subprocess
+
+    from safenav.bench.gym import Trial, train_command
+
+    trial = Trial("gym", "Pendulum-v1", "sac", "sb3", 1, 200)
+    assert "safenav.bench.sb3_trial" in train_command(trial, tmp_path, 25.0)
+    run_dir = tmp_path / "runs" / trial.name
+    run_dir.mkdir(parents=True)
+    (run_dir / "result.json").write_text("{}")
+    cmd = train_command(trial, tmp_path, 25.0)
+    assert "safenav.bench.sb3_trial" not in cmd and subprocess.run(cmd).returncode == 0
+
+
 def test_bench_refuses_unknown_tasks_and_algorithms(tmp_path, capsys):
     for extra, words in ((["--tasks", "Walker2d-v5"], "not in the gym suite"),
                          (["--tasks", "CartPole-v1", "--algos", "sac"], "discrete tasks run PPO only"),
                          (["--algos", "csac"], "the gym suite runs sac, ppo"),
                          (["--sb3", "Nope-v0"], "--sb3 Nope-v0"),
                          (["--train-args=--nope 1"], "--train-args"),
+                         # what a trial is stays the bench's: its file would be mislabelled
+                         (["--train-args=--seed 7"], "--seed is set by the bench"),
+                         (["--preset", "easy"], "--preset applies to bench env"),
+                         (["--train-args=--csac.gamma 0.9 --total-steps=500"], "--total-steps is set"),
                          # a value that looks like an option: how to pass it
                          (["--train-args", "--ppo.lr 1e-3"], "write '--train-args=--ppo.lr 1e-3'")):  # fmt: skip
         code, _, err = run(capsys, ["bench", "gym", "--out", str(tmp_path / "x"), *extra])

@@ -15,7 +15,6 @@ in OUT (those of earlier selections too). Child logs: ``OUT/logs/``.
 from __future__ import annotations
 
 import contextlib
-import csv
 import json
 import math
 import os
@@ -28,9 +27,9 @@ from typing import Any
 
 from safenav.algos.config import paper_departures
 from safenav.bench import zoo_curves
-from safenav.bench.suites import CONSTRAINED, DEFAULT_SB3, SUITES, Reference, Task
+from safenav.bench.suites import DEFAULT_SB3, SUITES, Reference, Task
+from safenav.common.families import CONSTRAINED, PPO_ALGOS, algo_family
 from safenav.errors import SafenavError, SafenavRuntimeError
-from safenav.recipes import PPO_ALGOS
 
 EVAL_POINTS = 10
 """Evaluations per trial (every budget / 10 steps), the last at the end of training."""
@@ -105,6 +104,8 @@ def train_command(trial: Trial, out: Path, cost_limit: float,
     """The child command line of a trial (a safenav run resumes from its checkpoint)."""
     run_dir = out / "runs" / trial.name
     if trial.impl == "sb3":
+        if (run_dir / "result.json").is_file():  # trained; only its trial file is missing
+            return [sys.executable, "-c", ""]
         return [sys.executable, "-m", "safenav.bench.sb3_trial", trial.env, trial.algo,
                 str(trial.seed), str(trial.steps), str(trial.eval_every), str(EVAL_EPISODES),
                 str(run_dir)]  # fmt: skip
@@ -119,35 +120,23 @@ def train_command(trial: Trial, out: Path, cost_limit: float,
     if trial.algo not in PPO_ALGOS:  # an off-policy trial resumes with its replay buffer
         cmd.append("--save-buffer")  # (else it would refill it first)
     if trial.algo in CONSTRAINED:  # the cost limit: a fixed episode-cost budget d
-        family = "ppo" if trial.algo == "ppo_lag" else "csac"
+        family = algo_family(trial.algo)
         cmd += [f"--{family}.curriculum.no-enabled", f"--{family}.curriculum.d-init",
                 str(cost_limit), f"--{family}.curriculum.d-min", str(cost_limit)]  # fmt: skip
     return [*cmd, *extra]
 
 
-def read_progress(run_dir: Path) -> list[dict[str, str]]:
-    path = run_dir / "progress.csv"
-    if not path.is_file():
-        return []
-    with path.open(newline="") as f:
-        return list(csv.DictReader(f))
-
-
-def _num(row: dict[str, str], key: str) -> float:
-    value = row.get(key, "")
-    return float(value) if value not in ("", None) else math.nan
-
-
 def steps_done(trial: Trial, out: Path) -> int:
     """How far a running trial has come (its last progress row or SB3's progress file)."""
+    from safenav.experiments.aggregate import last_step
+
     run_dir = out / "runs" / trial.name
     if trial.impl == "sb3":
         try:
             return int((run_dir / "progress.txt").read_text() or 0)
         except (OSError, ValueError):
             return 0
-    rows = read_progress(run_dir)
-    return int(float(rows[-1]["global_step"])) if rows else 0
+    return last_step(run_dir)
 
 
 def resumed_at(run_dir: Path) -> list[int]:
@@ -169,27 +158,39 @@ def resumed_at(run_dir: Path) -> list[int]:
 def collect(trial: Trial, out: Path, wall_s: float) -> dict[str, Any]:
     """The trial file's content from a finished child's outputs."""
     from safenav.common.machine import machine_description
+    from safenav.experiments.aggregate import read_progress
 
     run_dir = out / "runs" / trial.name
     if trial.impl == "sb3":
         res = json.loads((run_dir / "result.json").read_text())
         curve, train_curve, wall, done = (res["curve"], res["train_curve"], res["wall_clock_s"],
                                           res["steps"])  # fmt: skip
-        extra = {"hyperparameters": res["hyperparameters"], "n_envs": res["n_envs"]}
+        extra = {"hyperparameters": res["hyperparameters"], "n_envs": res["n_envs"],
+                 "normalize": res["normalize"]}  # fmt: skip
     else:
-        rows = read_progress(run_dir)
-        curve = [[int(float(r["global_step"])), _num(r, "eval/return"), _num(r, "eval/cost")]
-                 for r in rows if r.get("eval/return")]  # fmt: skip
-        train_curve = [[int(float(r["global_step"])), _num(r, "charts/episodic_return"),
-                        _num(r, "charts/episodic_cost")]
-                       for r in rows if r.get("charts/episodic_return")]  # fmt: skip
-        wall = _num(rows[-1], "time/elapsed_s") if rows else wall_s
-        done = int(float(rows[-1]["global_step"])) if rows else 0
+        log = read_progress(run_dir) if (run_dir / "progress.csv").is_file() else {}
+        rows = len(log.get("global_step", ()))  # 0: the child wrote no progress (refused below)
+
+        def points(ret_key: str, cost_key: str) -> list[list[float]]:
+            """[step, return, cost] of each row that logged ``ret_key`` (cost NaN if unlogged)."""
+            none = [math.nan] * rows
+            columns = (log["global_step"], log.get(ret_key, none), log.get(cost_key, none))
+            return [[int(step), float(ret), float(cost)]
+                    for step, ret, cost in zip(*columns, strict=True) if not math.isnan(ret)]  # fmt: skip
+
+        curve = points("eval/return", "eval/cost")
+        train_curve = points("charts/episodic_return", "charts/episodic_cost")
+        wall = float(log["time/elapsed_s"][-1]) if rows else wall_s
+        done = int(log["global_step"][-1]) if rows else 0
         config = json.loads((run_dir / "config.json").read_text())
         extra = {"recipe": (config.get("recipe") or {}).get("name"), "config": config,
-                 "resumed_at": resumed_at(run_dir)}  # fmt: skip
+                 # a resume past the budget (a rerun after the end) trained nothing
+                 "resumed_at": [s for s in resumed_at(run_dir) if s < trial.steps]}  # fmt: skip
     if not curve:
         raise SafenavRuntimeError(f"trial {trial.name}: no evaluation recorded ({run_dir})")
+    if done < trial.steps:  # a trial file stands for its whole budget
+        raise SafenavRuntimeError(f"trial {trial.name}: ended at step {done:,} of its "
+                                  f"{trial.steps:,} ({run_dir})")  # fmt: skip
     return {
         "trial": trial.__dict__ | {"name": trial.name}, "steps_done": done,
         "final": {"return": curve[-1][1], "cost": curve[-1][2], "step": curve[-1][0]},
@@ -262,13 +263,6 @@ def load_results(suite: str, out: Path) -> list[dict[str, Any]]:
         if trial.get("suite") == suite and trial.get("env") in SUITES[suite]:
             found.append(result)
     return found
-
-
-def _mean_std(values: list[float]) -> tuple[float, float]:
-    import numpy as np
-
-    arr = np.asarray(values, dtype=float)
-    return float(arr.mean()), float(arr.std(ddof=1)) if len(arr) > 1 else 0.0
 
 
 def within(value: float, ref: float, tolerance: float = 0.1) -> bool:
@@ -347,6 +341,8 @@ def config_differences(results: list[dict[str, Any]]) -> list[str]:
 def summarize(suite: str, results: list[dict[str, Any]], cost_limit: float) -> list[dict[str, Any]]:
     """One row per (task, algo, budget): mean ± std over seeds, safenav beside SB3 and the
     published reference."""
+    from safenav.experiments.aggregate import mean_std
+
     groups: dict[tuple[str, str, int], dict[str, list[dict]]] = {}
     for r in results:
         t = r["trial"]
@@ -358,12 +354,12 @@ def summarize(suite: str, results: list[dict[str, Any]], cost_limit: float) -> l
         row: dict[str, Any] = {"env": env, "algo": algo, "steps": steps,
                                "reference": ref.__dict__ if ref else None}  # fmt: skip
         for impl, rs in impls.items():
-            ret, ret_std = _mean_std([x["final"]["return"] for x in rs])
-            cost, cost_std = _mean_std([x["final"]["cost"] for x in rs])
-            wall, _ = _mean_std([x["wall_clock_s"] for x in rs])
+            ret, cost, wall = (mean_std(x["final"]["return"] for x in rs),
+                               mean_std(x["final"]["cost"] for x in rs),
+                               mean_std(x["wall_clock_s"] for x in rs))  # fmt: skip
             by_seed = sorted(rs, key=lambda x: x["trial"]["seed"])
-            row[impl] = {"return": ret, "return_std": ret_std, "cost": cost, "cost_std": cost_std,
-                         "wall_clock_s": wall, "seeds": [x["trial"]["seed"] for x in by_seed],
+            row[impl] = {"return": ret["mean"], "return_std": ret["std"], "cost": cost["mean"],
+                         "cost_std": cost["std"], "wall_clock_s": wall["mean"], "seeds": [x["trial"]["seed"] for x in by_seed],
                          "returns": [x["final"]["return"] for x in by_seed],
                          "costs": [x["final"]["cost"] for x in by_seed]}  # fmt: skip
             if differ := config_differences(rs):
@@ -463,6 +459,8 @@ def markdown_table(
     def pm(d: dict | None, key: str) -> str:
         if d is None:
             return "-"
+        if len(d["seeds"]) == 1:  # one seed has no spread to show
+            return f"{d[key]:.0f} (n=1)"
         return f"{d[key]:.0f} ± {d[key + '_std']:.0f} (n={len(d['seeds'])})"
 
     if suite == "gym":

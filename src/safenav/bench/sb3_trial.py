@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -80,6 +81,20 @@ PPO_ZOO: dict[str, dict[str, Any]] = {
 }  # fmt: skip
 
 
+@dataclass(frozen=True)
+class Linear:
+    """The zoo's ``lin_X`` schedule: X times SB3's remaining progress (1 at the start, 0 at the
+    end); its repr is the zoo's spelling, so the trial file records the value."""
+
+    start: float
+
+    def __call__(self, progress: float) -> float:
+        return progress * self.start
+
+    def __repr__(self) -> str:
+        return f"lin_{self.start:g}"
+
+
 def hyperparameters(algo: str, env_id: str) -> tuple[dict[str, Any], int, bool]:
     """``(SB3 keyword arguments, n_envs, normalize)`` of the zoo's entry (SB3 defaults if none)."""
     import torch.nn as nn
@@ -90,7 +105,7 @@ def hyperparameters(algo: str, env_id: str) -> tuple[dict[str, Any], int, bool]:
     for key in ("learning_rate", "clip_range"):
         value = kwargs.get(key)
         if isinstance(value, tuple):  # the zoo's "lin_X": linear decay from X to 0
-            kwargs[key] = lambda progress, x=value[1]: progress * x
+            kwargs[key] = Linear(value[1])
     policy_kwargs = dict(kwargs.get("policy_kwargs", {}))
     if policy_kwargs.get("activation_fn") == "relu":
         policy_kwargs["activation_fn"] = nn.ReLU

@@ -96,6 +96,5 @@ SAFE_SUITE: dict[str, Task] = {
 SUITES = {"gym": GYM_SUITE, "safe": SAFE_SUITE}
 DEFAULT_SB3 = {"gym": ("Pendulum-v1", "Hopper-v5"), "safe": ()}
 """Tasks on which Stable-Baselines3 runs beside safenav by default (same budget, same machine)."""
-CONSTRAINED = ("csac", "sac_lag", "ppo_lag")
 
-__all__ = ["CONSTRAINED", "DEFAULT_SB3", "GYM_SUITE", "SAFE_SUITE", "SUITES", "Reference", "Task"]
+__all__ = ["DEFAULT_SB3", "GYM_SUITE", "SAFE_SUITE", "SUITES", "Reference", "Task"]

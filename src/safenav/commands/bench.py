@@ -61,7 +61,7 @@ def bench(
         out: gym, safe: results directory (default benchmarks/results/gym or .../safe).
         tasks: gym, safe: the tasks to run (default: all of the suite).
         algos: gym, safe: the algorithms to run (default: all of the suite).
-        seeds: gym, safe: seeds 1..N per task and algorithm (1-100).
+        seeds: gym, safe: N seeds per task and algorithm, from --first-seed (1-100).
         first_seed: gym, safe: the first of the --seeds seeds (so 101 with --seeds 10 runs
             seeds 101-110: validation seeds to choose on, clear of the reported 1..N).
         steps: gym, safe: env steps per trial; 0 = each task's budget (docs/gymnasium.md).
@@ -91,8 +91,9 @@ def bench(
         raise SafenavError("--num-envs: give at least one count, e.g. --num-envs 1 64 256")
     for n in num_envs:
         at_least("--num-envs", n, 1)
-    check_memory(env_bytes(max(num_envs), cfg), f"--num-envs {max(num_envs):,}",
-                 "benchmark fewer envs")  # fmt: skip
+    if which == "env":
+        check_memory(env_bytes(max(num_envs), cfg), f"--num-envs {max(num_envs):,}",
+                     "benchmark fewer envs")  # fmt: skip
     if json_out is not None:
         check_output_file(json_out, "--json", f"{which}.json")
     in_range("--seeds", seeds, 1, 100)
@@ -108,6 +109,16 @@ def bench(
             from safenav.errors import SafenavError
 
             raise SafenavError(f"{flag} applies to bench gym and bench safe, not bench {which}")
+    if suite:  # the throughput benchmarks' options would be ignored: say so
+        from safenav.cli import ARGS
+        from safenav.commands.train import given_flag
+
+        for flag in ("json", "repeats", "preset", "num-envs", "env-steps", "updates"):
+            if given_flag(flag, ARGS.get()):
+                from safenav.errors import SafenavError
+
+                raise SafenavError(f"--{flag} applies to bench env, update, latency or soak, not "
+                                   f"bench {which} (its options: safenav bench --help)")  # fmt: skip
     if out is not None:
         from safenav.common.checks import check_output_dir
 
@@ -138,6 +149,12 @@ def bench(
         bench_latency(json_out)
 
 
+TRIAL_FLAGS = ("env", "algo", "seed", "total-steps", "run-dir", "resume", "overwrite",
+               "eval-every", "eval-episodes")  # fmt: skip
+"""``safenav train`` options that ``bench gym`` / ``safe`` set per trial: ``--train-args`` may
+not give them (the last one would win, and a trial file would be mislabelled)."""
+
+
 def split_train_args(text: str) -> tuple[str, ...]:
     """``--train-args`` as argv words, checked by ``safenav train``'s own parser (exit 2)."""
     import shlex
@@ -149,7 +166,13 @@ def split_train_args(text: str) -> tuple[str, ...]:
     except ValueError as err:
         raise SafenavError(f"--train-args {text!r}: {err}") from None
     if words:
-        from safenav.commands.train import parse_train_args
+        from safenav.commands.train import given_flag, parse_train_args
+
+        # what a trial is (its task, algorithm, seed, budget, run directory) is the bench's
+        if owned := [f"--{f}" for f in TRIAL_FLAGS if given_flag(f, words)]:
+            raise SafenavError(f"--train-args {text!r}: {', '.join(owned)} is set by the bench for "
+                               "each trial (use --tasks, --algos, --seeds, --first-seed, --steps, "
+                               "--out)")  # fmt: skip
 
         try:
             parse_train_args(["--env", "Pendulum-v1", "--config", "none", *words])

@@ -17,7 +17,7 @@ from safenav.algos.config import CSACConfig
 from safenav.algos.ppo_config import PPOConfig
 from safenav.cli import app
 from safenav.common.config import RunConfig
-from safenav.common.families import algo_family
+from safenav.common.families import CONSTRAINED, algo_family
 
 ALGOS = ("csac", "sac", "ppo", "ppo_lag", "sac_lag")
 # Options a resumed run may change; every other option comes from the run's config.json.
@@ -178,8 +178,9 @@ def _recipe_overrides(section: dict, obj, prefix: str, args) -> dict:
 def apply_recipe(config: str | None, algo: str, run: RunConfig, csac: CSACConfig, ppo: PPOConfig,
                  args: tuple[str, ...] | list[str], resume: Path | None = None):  # fmt: skip
     """``(algo, run, csac, ppo, recipe)`` with the recipe of ``--config`` (or the default recipe
-    of ``--algo`` on SafeNav) applied under the options ``args`` gives (those win). A resumed
-    run keeps the configuration in its config.json."""
+    of ``--algo`` on the env's task family, :func:`safenav.recipes.default_recipe`) applied under
+    the options ``args`` gives (those win). A resumed run keeps the configuration in its
+    config.json."""
     from safenav import recipes
     from safenav.errors import SafenavError
 
@@ -278,9 +279,9 @@ def plan(algo: str, run: RunConfig, csac: CSACConfig, ppo: PPOConfig, run_dir: P
             raise SafenavError(f"--resume {run_dir}: {'; '.join(clashes)}; a resumed run keeps "
                                "the configuration in its config.json (start a new run to "
                                "change it)")  # fmt: skip
-        default = RunConfig()
-        changes = {k: getattr(run, k) for k in RESUMABLE
-                   if getattr(run, k) != getattr(default, k) or given(k)}  # fmt: skip
+        default = RunConfig()  # a flag given at its default value counts too (--device cpu
+        changes = {k: getattr(run, k) for k in RESUMABLE  # resumes a run trained on cuda)
+                   if getattr(run, k) != getattr(default, k) or given_flag(k, ARGS.get())}  # fmt: skip
         run = dataclasses.replace(saved_run, **changes)
     elif run_dir is None:
         env_name = run.env.split(":")[-1]
@@ -390,18 +391,14 @@ def check_cost(algo: str, run: RunConfig) -> None:
         from safenav.common.costs import load_cost_fn
 
         load_cost_fn(run.cost_fn)
-    if (
-        run.cost_fn is not None
-        or algo in ("csac", "sac_lag", "ppo_lag")
-        and not is_safenav(run.env)
-    ):
+    if run.cost_fn is not None or algo in CONSTRAINED and not is_safenav(run.env):
         try:
             has_cost = reports_cost(run.env, run.cost_fn)
         except Exception as err:  # noqa: BLE001 -- the user's function on this env's steps
             raise SafenavError(f"--cost-fn {run.cost_fn}: fails on {run.env}'s steps: "
                                f"{type(err).__name__}: {err}") from None  # fmt: skip
-        if not has_cost and algo in ("csac", "sac_lag", "ppo_lag"):
-            plain = "ppo" if algo == "ppo_lag" else "sac"
+        if not has_cost and algo in CONSTRAINED:
+            plain = "ppo" if algo_family(algo) == "ppo" else "sac"
             print(f"safenav train: warning: {run.env} reports no info['cost'], so {algo} sees cost "
                   f"0 in every step and reduces to {plain}; give a cost with --cost-fn "
                   "module:function (docs/gymnasium.md)", file=sys.stderr)  # fmt: skip
@@ -417,16 +414,6 @@ def warn_images(env_id: str, obs_shapes: dict[str, tuple[int, ...]]) -> None:
                   f"it is flattened into {math.prod(shape):,} inputs of an MLP (no image encoder "
                   "for Gymnasium tasks), slow and unlikely to learn; wrap the env to give a "
                   "feature vector (e.g. gymnasium.wrappers)", file=sys.stderr)  # fmt: skip
-
-
-def given(field: str) -> bool:
-    """Whether the command line names the option of RunConfig ``field`` (also when it gives
-    the default value: ``--device cpu`` to resume a run trained on cuda)."""
-    from safenav.cli import ARGS
-
-    flag = "--" + field.replace("_", "-")
-    negated = "--no-" + field.replace("_", "-")
-    return any(a in (flag, negated) or a.startswith(flag + "=") for a in ARGS.get())
 
 
 def check_training_memory(algo: str, run: RunConfig, cfg, obs_shapes, action_dim: int, env_cfg,

@@ -13,6 +13,9 @@ FAMILIES = {
 PPO_ALGOS = ("ppo", "ppo_lag")
 """The on-policy algorithms; every other ``--algo`` is of the SAC family."""
 
+CONSTRAINED = ("csac", "sac_lag", "ppo_lag")
+"""The algorithms that read a cost (``info["cost"]``) against a limit."""
+
 
 def algo_family(algo: str) -> str:
     """``"ppo"`` for PPO and PPO-Lag (their options are ``--ppo.*``), ``"csac"`` for the SAC
@@ -43,4 +46,4 @@ def task_family(env_id: str) -> tuple[str, str]:
     return "gym", "a Gymnasium env outside the classic control, Box2D and MuJoCo families"
 
 
-__all__ = ["FAMILIES", "PPO_ALGOS", "algo_family", "task_family"]
+__all__ = ["CONSTRAINED", "FAMILIES", "PPO_ALGOS", "algo_family", "task_family"]

@@ -3,8 +3,10 @@
 ``safenav train --config NAME|PATH`` starts from a recipe (a file shipped here, or a user's own
 by path); command-line flags override it; ``config.json`` records the resolved values and the
 recipe's name. Without ``--config``, ``--algo A`` on SafeNav takes the recipe named ``A`` (with
-``_`` read as ``-``) when one ships. A file's header (its leading ``#`` comments) says where its
-values come from, how it departs from the paper's equations, and what it measured.
+``_`` read as ``-``) when one ships, and on a Gymnasium env its task family's (``classic-sac``,
+``box2d-ppo``, ``mujoco-sac``, ...; ``gym-sac`` / ``gym-ppo`` for any other env). A file's header
+(its leading ``#`` comments) says where its values come from, how it departs from the paper's
+equations, and what it measured.
 
 Layout of a recipe file::
 
