@@ -359,7 +359,8 @@ def summarize(suite: str, results: list[dict[str, Any]], cost_limit: float) -> l
                                mean_std(x["wall_clock_s"] for x in rs))  # fmt: skip
             by_seed = sorted(rs, key=lambda x: x["trial"]["seed"])
             row[impl] = {"return": ret["mean"], "return_std": ret["std"], "cost": cost["mean"],
-                         "cost_std": cost["std"], "wall_clock_s": wall["mean"], "seeds": [x["trial"]["seed"] for x in by_seed],
+                         "cost_std": cost["std"], "wall_clock_s": wall["mean"],
+                         "seeds": [x["trial"]["seed"] for x in by_seed],
                          "returns": [x["final"]["return"] for x in by_seed],
                          "costs": [x["final"]["cost"] for x in by_seed]}  # fmt: skip
             if differ := config_differences(rs):

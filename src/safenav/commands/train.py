@@ -279,8 +279,9 @@ def plan(algo: str, run: RunConfig, csac: CSACConfig, ppo: PPOConfig, run_dir: P
             raise SafenavError(f"--resume {run_dir}: {'; '.join(clashes)}; a resumed run keeps "
                                "the configuration in its config.json (start a new run to "
                                "change it)")  # fmt: skip
-        default = RunConfig()  # a flag given at its default value counts too (--device cpu
-        changes = {k: getattr(run, k) for k in RESUMABLE  # resumes a run trained on cuda)
+        # a flag given at its default value counts too: --device cpu resumes a run trained on cuda
+        default = RunConfig()
+        changes = {k: getattr(run, k) for k in RESUMABLE
                    if getattr(run, k) != getattr(default, k) or given_flag(k, ARGS.get())}  # fmt: skip
         run = dataclasses.replace(saved_run, **changes)
     elif run_dir is None:
