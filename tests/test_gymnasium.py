@@ -867,6 +867,11 @@ def test_trial_file_reads_the_run_and_refuses_a_short_one(tmp_path):
     (tmp_path / "runs" / longer.name).symlink_to(run_dir)
     with pytest.raises(SafenavRuntimeError, match="ended at step 200 of its 400"):
         collect(longer, tmp_path, wall_s=99.0)
+    silent = Trial("gym", "Pendulum-v1", "sac", "safenav", 2, 200)  # died before its first row
+    (tmp_path / "runs" / silent.name).mkdir()
+    (tmp_path / "runs" / silent.name / "config.json").write_text("{}")
+    with pytest.raises(SafenavRuntimeError, match="no evaluation recorded"):
+        collect(silent, tmp_path, wall_s=99.0)
 
 
 def test_a_trained_sb3_trial_is_not_trained_again(tmp_path):

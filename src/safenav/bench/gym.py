@@ -169,19 +169,19 @@ def collect(trial: Trial, out: Path, wall_s: float) -> dict[str, Any]:
                  "normalize": res["normalize"]}  # fmt: skip
     else:
         log = read_progress(run_dir) if (run_dir / "progress.csv").is_file() else {}
-        rows = len(log.get("global_step", ()))  # 0: the child wrote no progress (refused below)
+        step = log.get("global_step", [])  # empty: the child wrote no progress (refused below)
+        none = [math.nan] * len(step)  # a column the run did not log
 
         def points(ret_key: str, cost_key: str) -> list[list[float]]:
-            """[step, return, cost] of each row that logged ``ret_key`` (cost NaN if unlogged)."""
-            none = [math.nan] * rows
-            columns = (log["global_step"], log.get(ret_key, none), log.get(cost_key, none))
-            return [[int(step), float(ret), float(cost)]
-                    for step, ret, cost in zip(*columns, strict=True) if not math.isnan(ret)]  # fmt: skip
+            """[step, return, cost] of each row that logged ``ret_key``."""
+            columns = (step, log.get(ret_key, none), log.get(cost_key, none))
+            return [[int(s), float(r), float(c)]
+                    for s, r, c in zip(*columns, strict=True) if not math.isnan(r)]  # fmt: skip
 
         curve = points("eval/return", "eval/cost")
         train_curve = points("charts/episodic_return", "charts/episodic_cost")
-        wall = float(log["time/elapsed_s"][-1]) if rows else wall_s
-        done = int(log["global_step"][-1]) if rows else 0
+        wall = float(log.get("time/elapsed_s", none)[-1]) if len(step) else wall_s
+        done = int(step[-1]) if len(step) else 0
         config = json.loads((run_dir / "config.json").read_text())
         extra = {"recipe": (config.get("recipe") or {}).get("name"), "config": config,
                  # a resume past the budget (a rerun after the end) trained nothing
