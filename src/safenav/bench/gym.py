@@ -180,7 +180,7 @@ def collect(trial: Trial, out: Path, wall_s: float) -> dict[str, Any]:
 
         curve = points("eval/return", "eval/cost")
         train_curve = points("charts/episodic_return", "charts/episodic_cost")
-        wall = float(log.get("time/elapsed_s", none)[-1]) if len(step) else wall_s
+        wall = float(log["time/elapsed_s"][-1]) if len(step) else wall_s
         done = int(step[-1]) if len(step) else 0
         config = json.loads((run_dir / "config.json").read_text())
         extra = {"recipe": (config.get("recipe") or {}).get("name"), "config": config,
